@@ -1,0 +1,42 @@
+# poseflow: the two set-up commands are `make demo` and `make test`; both build .venv themselves.
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+export OMP_NUM_THREADS ?= 2
+
+.PHONY: demo test test-slow lint bench venv sysdeps clean
+
+sysdeps:
+	@$(PYTHON) -c "import ctypes.util,sys; sys.exit(0 if all(ctypes.util.find_library(l) for l in ('usb-1.0','GL','EGL')) else 1)" \
+	  || { (apt-get update -qq && apt-get install -y -qq libusb-1.0-0 libgl1 libegl1 libgomp1) >/dev/null \
+	  || echo "warning: could not install libusb-1.0-0/libgl1/libegl1; open3d may fail to import"; }
+
+$(STAMP): pyproject.toml
+	$(MAKE) sysdeps
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q torch==2.13.0
+	$(PY) -m pip install -q -e '.[dev]'
+	touch $(STAMP)
+
+venv: $(STAMP)
+
+test: $(STAMP)
+	$(PY) -m pytest -q -m "not slow" -p no:cacheprovider
+
+test-slow: $(STAMP)
+	$(PY) -m pytest -q -m slow -p no:cacheprovider || [ $$? -eq 5 ]
+
+lint: $(STAMP)
+	$(VENV)/bin/ruff check src tests benchmarks examples
+	$(VENV)/bin/ruff format --check src tests benchmarks examples
+
+bench: $(STAMP)
+	$(PY) benchmarks/registration.py
+
+demo: $(STAMP)
+	$(PY) -m poseflow.cli demo
+
+clean:
+	rm -rf $(VENV) build dist src/*.egg-info

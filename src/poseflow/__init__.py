@@ -1,0 +1,36 @@
+"""poseflow: 6D object pose estimation from RGBD images, and the parts FunFlow6D is built from.
+
+Subpackages are imported on first use (``poseflow.registration``, ``poseflow.flows``, ...), so
+``import poseflow`` stays cheap and a user who needs only the fusion layer never loads Open3D.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+from poseflow import errors
+from poseflow.errors import PoseflowError
+
+__version__ = "0.1.0"
+
+_SUBPACKAGES = (
+    "geometry",
+    "registration",
+    "render",
+    "data",
+    "features",
+    "fusion",
+    "flows",
+    "eval",
+    "models",
+    "cli",
+)
+
+__all__ = ["PoseflowError", "__version__", "errors", *_SUBPACKAGES]
+
+
+def __getattr__(name: str) -> Any:
+    if name in _SUBPACKAGES:
+        return importlib.import_module(f"poseflow.{name}")
+    raise AttributeError(f"module 'poseflow' has no attribute {name!r}")
