@@ -1,0 +1,25 @@
+"""Fusion: learned layers that merge per-point geometric and semantic descriptors (torch only)."""
+
+from poseflow.fusion.attention import CrossAttention, GatedCrossAttention, key_padding_mask
+from poseflow.fusion.blocks import (
+    FUSIONS,
+    ConcatMLPFusion,
+    CrossAttentionFusion,
+    FusionGates,
+    GatedCrossAttentionFusion,
+    SumFusion,
+    build_fusion,
+)
+
+__all__ = [
+    "FUSIONS",
+    "ConcatMLPFusion",
+    "CrossAttention",
+    "CrossAttentionFusion",
+    "FusionGates",
+    "GatedCrossAttention",
+    "GatedCrossAttentionFusion",
+    "SumFusion",
+    "build_fusion",
+    "key_padding_mask",
+]

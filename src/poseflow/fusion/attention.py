@@ -1,0 +1,174 @@
+"""Cross-attention between two point-feature streams, with and without a sigmoid output gate.
+
+Shape letters: ``B`` batch, ``P`` query points, ``S`` key/value points, ``D`` channels, ``H`` heads
+(``D = H * D_h``).
+
+:class:`GatedCrossAttention` is the branch of FunFlow6D's fusion block (paper, "Feature fusion via
+gated cross-attention"): queries from ``X_q``, keys and values from ``X_kv``, multi-head scaled
+dot-product attention, an element-wise sigmoid gate ``σ(X_q W_g)`` on the attention output, then
+``W_O``, dropout and a LayerNorm with a residual from ``X_q``. :class:`CrossAttention` is the same
+layer without the gate (the ablation's "standard, ungated cross-attention").
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from poseflow._checks import check_mask, check_same, check_tensor
+from poseflow.errors import ValueRangeError
+
+__all__ = ["CrossAttention", "GatedCrossAttention", "key_padding_mask"]
+
+
+def key_padding_mask(mask: torch.Tensor) -> torch.Tensor:
+    """Turn a validity mask into an SDPA key mask that never masks a whole row.
+
+    A batch item whose points are all padding would leave its attention rows with no key, which
+    some SDPA kernels answer with NaN. Such items get every key unmasked instead; their outputs
+    are padding anyway and are zeroed by the callers.
+
+    Args:
+        mask: ``(B, S)`` bool, True for valid points.
+
+    Returns:
+        ``(B, 1, 1, S)`` bool, broadcastable against SDPA's ``(B, H, P, S)`` scores.
+
+    Example:
+        >>> key_padding_mask(torch.tensor([[True, False], [False, False]]))[:, 0, 0]
+        tensor([[ True, False],
+                [ True,  True]])
+    """
+    keep = mask | ~mask.any(dim=-1, keepdim=True)
+    return keep[:, None, None, :]
+
+
+class CrossAttention(nn.Module):
+    """Multi-head cross-attention ``X_q ← X_kv`` with output projection, dropout and post-norm.
+
+    ``out = LN(X_q + Dropout(W_O · SDPA(X_q W_Q, X_kv W_K, X_kv W_V)))``. The projections
+    ``W_Q, W_K, W_V, W_O`` are :class:`torch.nn.Linear` layers with bias and PyTorch's default
+    initialisation.
+
+    Args:
+        dim: channels ``D`` of both streams.
+        num_heads: attention heads ``H``; must divide ``dim``.
+        dropout: dropout probability after ``W_O`` (paper: 0.1).
+
+    Example:
+        >>> layer = CrossAttention(16, num_heads=2).eval()
+        >>> layer(torch.randn(2, 5, 16), torch.randn(2, 7, 16)).shape
+        torch.Size([2, 5, 16])
+    """
+
+    def __init__(self, dim: int = 64, *, num_heads: int = 4, dropout: float = 0.1) -> None:
+        super().__init__()
+        if dim <= 0 or num_heads <= 0 or dim % num_heads:
+            raise ValueRangeError(
+                f"dim must be a positive multiple of num_heads, got {dim} and {num_heads}"
+            )
+        if not 0.0 <= dropout < 1.0:
+            raise ValueRangeError(f"dropout must lie in [0, 1), got {dropout}")
+        self.dim = dim
+        self.num_heads = num_heads
+        self.to_q = nn.Linear(dim, dim)
+        self.to_k = nn.Linear(dim, dim)
+        self.to_v = nn.Linear(dim, dim)
+        self.out_proj = nn.Linear(dim, dim)
+        self.dropout = nn.Dropout(dropout)
+        self.norm = nn.LayerNorm(dim)
+
+    def gate(self, x_q: torch.Tensor) -> torch.Tensor | None:
+        """Return the ``(B, P, D)`` multiplicative gate of the attention output (None: ungated)."""
+        return None
+
+    def forward(
+        self,
+        x_q: torch.Tensor,
+        x_kv: torch.Tensor,
+        *,
+        kv_mask: torch.Tensor | None = None,
+        q_mask: torch.Tensor | None = None,
+        return_gate: bool = False,
+    ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor | None]:
+        """Attend from ``x_q`` to ``x_kv``.
+
+        Args:
+            x_q: query stream, shape ``(B, P, D)``.
+            x_kv: key/value stream, shape ``(B, S, D)``.
+            kv_mask: ``(B, S)`` bool, True for valid keys; padded keys get no attention weight.
+            q_mask: ``(B, P)`` bool, True for valid queries; rows of padded queries (and of their
+                gate) are set to zero.
+            return_gate: also return the gate (``None`` for an ungated layer).
+
+        Returns:
+            ``(B, P, D)``, or the pair ``(output, gate)`` with the gate ``(B, P, D)`` when
+            ``return_gate`` is True.
+        """
+        sizes = check_tensor(x_q, "x_q", ("B", "P", self.dim))
+        check_tensor(x_kv, "x_kv", ("B", "S", self.dim), sizes=sizes)
+        check_same(("x_q", x_q), ("x_kv", x_kv))
+        if kv_mask is not None:
+            check_mask(kv_mask, "kv_mask", ("B", "S"), sizes)
+        if q_mask is not None:
+            check_mask(q_mask, "q_mask", ("B", "P"), sizes)
+        b, p, d = x_q.shape
+        h = self.num_heads
+
+        def heads(y: torch.Tensor) -> torch.Tensor:
+            return y.unflatten(-1, (h, d // h)).transpose(1, 2)
+
+        q, k, v = heads(self.to_q(x_q)), heads(self.to_k(x_kv)), heads(self.to_v(x_kv))
+        attn_mask = None if kv_mask is None else key_padding_mask(kv_mask)
+        att = F.scaled_dot_product_attention(q, k, v, attn_mask=attn_mask)
+        att = att.transpose(1, 2).reshape(b, p, d)
+        gate = self.gate(x_q)
+        if gate is not None:
+            att = gate * att
+        out = self.norm(x_q + self.dropout(self.out_proj(att)))
+        if q_mask is not None:
+            keep = q_mask[..., None].to(out.dtype)
+            out = out * keep
+            gate = None if gate is None else gate * keep
+        if return_gate:
+            return out, gate
+        return out
+
+
+class GatedCrossAttention(CrossAttention):
+    """Cross-attention whose output is modulated by a head-specific element-wise sigmoid gate.
+
+    ``out = LN(X_q + Dropout(W_O · (σ(X_q W_g + b_g) ⊙ SDPA(X_q W_Q, X_kv W_K, X_kv W_V))))``.
+    The gate has one entry per channel, so each head ``h`` owns the ``D_h`` channels
+    ``h·D_h … (h+1)·D_h − 1`` of it: it is head-specific and element-wise as in the paper.
+
+    Initialisation: ``W_g`` (a ``D × D`` :class:`torch.nn.Linear`) has its weight **and** bias set
+    to zero, so ``σ = 0.5`` exactly, for every input, at initialisation; the paper zero-initialises
+    the bias so that both modalities start on equal footing, and a zero weight makes that hold
+    for any input rather than only on average. The gradient of ``W_g``'s weight is
+    ``∂L/∂σ · σ'(0) · X_q``, non-zero in general, so the gate learns from the first step.
+    ``W_Q, W_K, W_V, W_O`` keep PyTorch's default :class:`torch.nn.Linear` initialisation; the
+    LayerNorm starts at unit scale and zero shift.
+
+    Args:
+        dim: channels ``D`` of both streams.
+        num_heads: attention heads ``H``; must divide ``dim`` (paper: 4, so ``D_h = 16``).
+        dropout: dropout probability after ``W_O`` (paper: 0.1).
+
+    Example:
+        >>> layer = GatedCrossAttention(16, num_heads=2).eval()
+        >>> out, gate = layer(torch.randn(2, 5, 16), torch.randn(2, 5, 16), return_gate=True)
+        >>> out.shape, bool((gate == 0.5).all())
+        (torch.Size([2, 5, 16]), True)
+    """
+
+    def __init__(self, dim: int = 64, *, num_heads: int = 4, dropout: float = 0.1) -> None:
+        super().__init__(dim, num_heads=num_heads, dropout=dropout)
+        self.to_gate = nn.Linear(dim, dim)
+        nn.init.zeros_(self.to_gate.weight)
+        nn.init.zeros_(self.to_gate.bias)
+
+    def gate(self, x_q: torch.Tensor) -> torch.Tensor:
+        """Return ``σ(X_q W_g + b_g)``, shape ``(B, P, D)``."""
+        return torch.sigmoid(self.to_gate(x_q))
