@@ -1,0 +1,221 @@
+"""Per-image stage timing: the paper's inference-time breakdown.
+
+A :class:`StageTimer` accumulates wall-clock time per named stage. Stages nest: time spent in an
+inner stage is charged to the inner stage only (the flow network's forward pass inside the Euler
+integration loop counts as ``flow_net``, the rest of the loop as ``integration``). Inside
+:meth:`StageTimer.image`, time not covered by any stage is charged to ``other``. When CUDA is in
+use the timer synchronises the device at every stage boundary, so that asynchronous kernels are
+charged to the stage that launched them.
+
+The breakdown reports the mean milliseconds per image of every stage and its share of the total;
+``segmentation`` is recorded but excluded from the total, as in the paper (masks are an input).
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import os
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from typing import Any, TypeVar
+
+import torch
+
+from poseflow.errors import MissingDependencyError, ValueRangeError
+
+__all__ = ["EXCLUDED_STAGES", "STAGES", "StageTimer"]
+
+#: The paper's stages in display order (segmentation first, then the pipeline, then the rest).
+STAGES: tuple[str, ...] = (
+    "segmentation",
+    "appearance_encoder",
+    "reducer",
+    "geometric_encoder",
+    "fusion",
+    "flow_net",
+    "integration",
+    "ransac",
+    "icp",
+    "other",
+)
+
+#: Stages recorded but left out of the total (the paper excludes instance segmentation).
+EXCLUDED_STAGES: tuple[str, ...] = ("segmentation",)
+
+F = TypeVar("F", bound=Callable[..., Any])
+
+
+class StageTimer:
+    """Accumulate exclusive wall-clock time per stage, per image.
+
+    Args:
+        synchronize: call ``torch.cuda.synchronize()`` at stage boundaries; None (default) does so
+            whenever CUDA is available and initialised.
+        excluded: stages left out of the per-image total.
+        clock: a monotonic clock in seconds (for tests).
+
+    Example:
+        >>> timer = StageTimer()
+        >>> with timer.image():
+        ...     with timer.stage("ransac"):
+        ...         pass
+        >>> timer.num_images, sorted(timer.breakdown()["stages_ms"])
+        (1, ['other', 'ransac'])
+    """
+
+    def __init__(
+        self,
+        *,
+        synchronize: bool | None = None,
+        excluded: tuple[str, ...] = EXCLUDED_STAGES,
+        clock: Callable[[], float] = time.perf_counter,
+    ) -> None:
+        self.synchronize = synchronize
+        self.excluded = tuple(excluded)
+        self.clock = clock
+        self.totals: dict[str, float] = {}
+        self.counts: dict[str, int] = {}
+        self.num_images = 0
+        self._stack: list[str] = []
+        self._last = 0.0
+
+    def _sync(self) -> None:
+        want = self.synchronize
+        if want is None:
+            want = torch.cuda.is_available() and torch.cuda.is_initialized()
+        if want:
+            torch.cuda.synchronize()
+
+    def _charge_until_now(self) -> float:
+        """Charge the time since the last boundary to the innermost open stage; return now."""
+        self._sync()
+        now = self.clock()
+        if self._stack:
+            name = self._stack[-1]
+            self.totals[name] = self.totals.get(name, 0.0) + (now - self._last)
+        self._last = now
+        return now
+
+    @contextmanager
+    def stage(self, name: str) -> Iterator[None]:
+        """Time a block as stage ``name`` (exclusive of nested stages).
+
+        Raises:
+            ValueRangeError: ``name`` is empty.
+        """
+        if not name:
+            raise ValueRangeError("a stage needs a name")
+        self._charge_until_now()
+        self._stack.append(name)
+        self.counts[name] = self.counts.get(name, 0) + 1
+        try:
+            yield
+        finally:
+            self._charge_until_now()
+            self._stack.pop()
+
+    @contextmanager
+    def image(self) -> Iterator[None]:
+        """Delimit the processing of one image; uncovered time inside is charged to ``other``."""
+        self._charge_until_now()
+        self._stack.append("other")
+        try:
+            yield
+        finally:
+            self._charge_until_now()
+            self._stack.pop()
+        self.num_images += 1
+
+    def wrap(self, name: str) -> Callable[[F], F]:
+        """Decorator timing every call of a function as stage ``name``.
+
+        Example:
+            >>> timer = StageTimer()
+            >>> @timer.wrap("icp")
+            ... def refine(x):
+            ...     return x + 1
+            >>> refine(1), timer.counts["icp"]
+            (2, 1)
+        """
+
+        def deco(fn: F) -> F:
+            @functools.wraps(fn)
+            def inner(*args: Any, **kwargs: Any) -> Any:
+                with self.stage(name):
+                    return fn(*args, **kwargs)
+
+            return inner  # type: ignore[return-value]
+
+        return deco
+
+    def reset(self) -> None:
+        """Forget everything recorded."""
+        self.totals.clear()
+        self.counts.clear()
+        self.num_images = 0
+
+    def breakdown(self) -> dict[str, Any]:
+        """Mean milliseconds per image of each stage, their shares and the total.
+
+        Returns:
+            ``{"num_images", "stages_ms", "percent", "total_ms", "excluded_ms"}``; per-image means
+            divide by the number of images (by 1 if no :meth:`image` block was closed). Stages
+            appear in :data:`STAGES` order, then any others alphabetically.
+        """
+        n = max(self.num_images, 1)
+        known = [s for s in STAGES if s in self.totals]
+        extra = sorted(s for s in self.totals if s not in STAGES)
+        stages_ms = {s: 1000.0 * self.totals[s] / n for s in known + extra}
+        included = {s: v for s, v in stages_ms.items() if s not in self.excluded}
+        total = sum(included.values())
+        percent = {s: (100.0 * v / total if total > 0 else 0.0) for s, v in included.items()}
+        return {
+            "num_images": self.num_images,
+            "stages_ms": stages_ms,
+            "percent": percent,
+            "total_ms": total,
+            "excluded_ms": {s: v for s, v in stages_ms.items() if s in self.excluded},
+        }
+
+    def to_json(self, path: str | os.PathLike[str]) -> dict[str, Any]:
+        """Write :meth:`breakdown` as JSON and return it."""
+        data = self.breakdown()
+        with open(path, "w", encoding="utf-8") as f:
+            json.dump(data, f, indent=2)
+        return data
+
+    def plot(self, path: str | os.PathLike[str], *, kind: str = "pie") -> None:
+        """Draw the breakdown (excluded stages left out) as a pie or bar chart PNG.
+
+        Args:
+            path: output PNG path.
+            kind: ``"pie"`` (shares, as in the paper's figure) or ``"bar"`` (ms per image).
+
+        Raises:
+            ValueRangeError: unknown ``kind``, or nothing was recorded.
+            MissingDependencyError: matplotlib is not installed.
+        """
+        if kind not in ("pie", "bar"):
+            raise ValueRangeError(f"kind must be 'pie' or 'bar', got {kind!r}")
+        data = self.breakdown()
+        ms = {s: v for s, v in data["stages_ms"].items() if s not in self.excluded}
+        if not ms or data["total_ms"] <= 0:
+            raise ValueRangeError("no stage time recorded: nothing to plot")
+        try:
+            from matplotlib.figure import Figure
+        except ImportError as exc:
+            raise MissingDependencyError("matplotlib", "viz", "timing plots") from exc
+        labels = [f"{s.replace('_', ' ')} ({data['percent'][s]:.1f}%)" for s in ms]
+        fig = Figure(figsize=(7, 4.5), dpi=100)  # no pyplot: no global state, no GUI backend
+        ax = fig.subplots()
+        if kind == "pie":
+            ax.pie(list(ms.values()), labels=labels, startangle=90, counterclock=False)
+            ax.axis("equal")
+        else:
+            ax.barh(labels[::-1], list(ms.values())[::-1])
+            ax.set_xlabel("ms per image")
+        ax.set_title(f"{data['total_ms']:.1f} ms per image ({data['num_images']} images)")
+        fig.tight_layout()
+        fig.savefig(path)

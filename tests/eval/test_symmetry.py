@@ -1,0 +1,86 @@
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from poseflow.errors import ShapeError, ValueRangeError
+from poseflow.eval.symmetry import (
+    axis_angle_rotation,
+    discretize_continuous_symmetry,
+    symmetries_from_model_info,
+    symmetry_transforms,
+)
+
+
+def test_axis_angle_rotation_is_a_rotation(dtype):
+    R = axis_angle_rotation(
+        torch.tensor([1.0, 2.0, 3.0], dtype=dtype), torch.linspace(0, 6, 7, dtype=dtype)
+    )
+    eye = torch.eye(3, dtype=dtype).expand(7, 3, 3)
+    torch.testing.assert_close(R @ R.transpose(1, 2), eye)
+    torch.testing.assert_close(torch.linalg.det(R), torch.ones(7, dtype=dtype))
+    # The axis is fixed by every rotation.
+    a = torch.tensor([1.0, 2.0, 3.0], dtype=dtype)
+    torch.testing.assert_close(R @ a, a.expand(7, 3))
+
+
+def test_discretisation_count_and_offset():
+    axis = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    offset = torch.tensor([0.1, 0.0, 0.0], dtype=torch.float64)
+    S = discretize_continuous_symmetry(axis, offset)
+    assert S.shape == (math.ceil(math.pi / 0.01), 4, 4) == (315, 4, 4)
+    torch.testing.assert_close(S[0], torch.eye(4, dtype=torch.float64))
+    # The offset point lies on the axis: every sample fixes it.
+    p = torch.cat((offset, torch.ones(1, dtype=torch.float64)))
+    torch.testing.assert_close(S @ p, p.expand(315, 4))
+    # Consecutive samples are one step of 2 pi / 315 apart.
+    step = 2 * math.pi / 315
+    torch.testing.assert_close(
+        S[1, :3, :3], axis_angle_rotation(axis, torch.tensor([step], dtype=torch.float64))[0]
+    )
+    assert discretize_continuous_symmetry(axis, offset, max_sym_disc_step=0.5).shape[0] == 7
+
+
+def test_symmetry_transforms_product_order():
+    flip = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64))  # 180 deg about x
+    axis, offset = torch.tensor([0.0, 0.0, 1.0]), torch.zeros(3)
+    S = symmetry_transforms(flip[None], [(axis, offset)], max_sym_disc_step=0.5)
+    C = discretize_continuous_symmetry(axis.double(), offset.double(), max_sym_disc_step=0.5)
+    assert S.shape == (2 * 7, 4, 4)
+    torch.testing.assert_close(S[:7], C)
+    torch.testing.assert_close(S[7:], C @ flip)
+
+
+def test_identity_only_without_symmetries(dtype):
+    S = symmetry_transforms(dtype=dtype)
+    assert S.dtype == dtype
+    torch.testing.assert_close(S, torch.eye(4, dtype=dtype)[None])
+
+
+def test_model_info_converts_millimetres():
+    info = {
+        "diameter": 100.0,
+        "symmetries_discrete": [[-1, 0, 0, 10, 0, -1, 0, 20, 0, 0, 1, 0, 0, 0, 0, 1]],
+    }
+    S = symmetries_from_model_info(info)
+    assert S.shape == (2, 4, 4)
+    torch.testing.assert_close(S[1, :3, 3], torch.tensor([0.01, 0.02, 0.0], dtype=torch.float64))
+    cont = symmetries_from_model_info(
+        {"symmetries_continuous": [{"axis": [0, 0, 1], "offset": [0, 0, 50]}]},
+        max_sym_disc_step=0.5,
+    )
+    p = torch.tensor([0.0, 0.0, 0.05, 1.0], dtype=torch.float64)
+    torch.testing.assert_close(cont @ p, p.expand(7, 4))
+
+
+def test_bad_symmetries_raise():
+    with pytest.raises(ShapeError):
+        symmetries_from_model_info({"symmetries_discrete": [[1, 0, 0]]})
+    with pytest.raises(ValueRangeError):
+        discretize_continuous_symmetry(torch.zeros(3), torch.zeros(3))
+    with pytest.raises(ValueRangeError):
+        discretize_continuous_symmetry(
+            torch.tensor([0.0, 0, 1]), torch.zeros(3), max_sym_disc_step=0
+        )
