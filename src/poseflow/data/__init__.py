@@ -1,5 +1,11 @@
 """Data: object models, default demo objects, BOP datasets and the synthetic scene generator."""
 
+from poseflow.data.demo_objects import (
+    DEMO_OBJECT_NAMES,
+    demo_mesh,
+    demo_objects,
+    write_demo_models,
+)
 from poseflow.data.objects import (
     MeshFormatError,
     ObjectModel,
@@ -13,8 +19,11 @@ from poseflow.data.objects import (
 )
 
 __all__ = [
+    "DEMO_OBJECT_NAMES",
     "MeshFormatError",
     "ObjectModel",
+    "demo_mesh",
+    "demo_objects",
     "discretize_symmetries",
     "load_mesh",
     "mesh_vertex_arrays",
@@ -22,4 +31,5 @@ __all__ = [
     "symmetries_from_info",
     "write_bop_model",
     "write_bop_models",
+    "write_demo_models",
 ]

@@ -441,14 +441,23 @@ def farthest_point_sample(
     else:
         r = torch.rand(B, N, generator=generator, device=generator.device).to(device)
         cur = r.masked_fill(~mask, -1.0).argmax(1)
+    # One coordinate at a time with in-place ops: this loop is memory-bound, and avoiding
+    # (B, N, 3) temporaries makes it several times faster than the vectorised form.
+    x, y, z = (pts[..., c].contiguous() for c in range(3))
     dist = torch.full((B, N), torch.inf, dtype=points.dtype, device=device)
     dist = dist.masked_fill(~mask, -1.0)
+    d, tmp = torch.empty_like(x), torch.empty_like(x)
     rows = torch.arange(B, device=device)
     for i in range(M):
         idx[:, i] = cur
         dist[rows, cur] = -1.0
-        d = (pts - pts[rows, cur].unsqueeze(1)).square().sum(-1)
-        dist = torch.minimum(dist, d)
+        torch.sub(x, x[rows, cur].unsqueeze(1), out=d)
+        d.mul_(d)
+        torch.sub(y, y[rows, cur].unsqueeze(1), out=tmp)
+        d.addcmul_(tmp, tmp)
+        torch.sub(z, z[rows, cur].unsqueeze(1), out=tmp)
+        d.addcmul_(tmp, tmp)
+        torch.minimum(dist, d, out=dist)
         cur = dist.argmax(1)
     valid = torch.arange(M, device=device)[None] < count[:, None]
     # slots past a cloud's size repeat its first sample, so gathering stays well defined
