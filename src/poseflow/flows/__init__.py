@@ -1,0 +1,90 @@
+"""Conditional flow matching over point sets: path, loss, samplers, trainer.
+
+The generative core of FunFlow6D as a general-purpose package: it knows nothing of poses. Train
+a velocity model ``model(x=x_t, t=t, **cond)`` with :class:`CFMTrainer` and integrate it from
+noise with :func:`sample` (Euler, midpoint, Heun or RK4), anchors held fixed by ``frozen_mask``.
+"""
+
+from poseflow.flows.checkpoint import (
+    atomic_write,
+    flatten_optimizer_state,
+    latest_checkpoint,
+    load_checkpoint,
+    prune_checkpoints,
+    save_checkpoint,
+    unflatten_optimizer_state,
+)
+from poseflow.flows.distributed import (
+    DistributedContext,
+    all_reduce_mean,
+    barrier,
+    destroy_distributed,
+    init_distributed,
+)
+from poseflow.flows.ema import EMA
+from poseflow.flows.loss import cfm_loss
+from poseflow.flows.objective import CFMObjective, FlowBatch, StepRandom
+from poseflow.flows.path import LinearPath, PathSample
+from poseflow.flows.protocols import VelocityModel
+from poseflow.flows.samplers import (
+    SAMPLERS,
+    EulerSampler,
+    HeunSampler,
+    MidpointSampler,
+    ODESampler,
+    RK4Sampler,
+    get_sampler,
+    initial_noise,
+    sample,
+)
+from poseflow.flows.schedule import warmup_cosine_lr
+from poseflow.flows.timesteps import (
+    TIME_SAMPLERS,
+    logit_normal_time,
+    sample_time,
+    u_shaped_time,
+    uniform_time,
+)
+from poseflow.flows.trainer import CFMTrainer, Objective, TrainConfig, ValidateHook
+
+__all__ = [
+    "EMA",
+    "SAMPLERS",
+    "TIME_SAMPLERS",
+    "CFMObjective",
+    "CFMTrainer",
+    "DistributedContext",
+    "EulerSampler",
+    "FlowBatch",
+    "HeunSampler",
+    "LinearPath",
+    "MidpointSampler",
+    "ODESampler",
+    "Objective",
+    "PathSample",
+    "RK4Sampler",
+    "StepRandom",
+    "TrainConfig",
+    "ValidateHook",
+    "VelocityModel",
+    "all_reduce_mean",
+    "atomic_write",
+    "barrier",
+    "cfm_loss",
+    "destroy_distributed",
+    "flatten_optimizer_state",
+    "get_sampler",
+    "init_distributed",
+    "initial_noise",
+    "latest_checkpoint",
+    "load_checkpoint",
+    "logit_normal_time",
+    "prune_checkpoints",
+    "sample",
+    "sample_time",
+    "save_checkpoint",
+    "u_shaped_time",
+    "unflatten_optimizer_state",
+    "uniform_time",
+    "warmup_cosine_lr",
+]
