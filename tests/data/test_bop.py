@@ -366,3 +366,28 @@ def test_bad_detections(dataset):
     (root / "bad.json").write_text(json.dumps([{"scene_id": 1, "image_id": 0, "score": 1.0}]))
     with pytest.raises(BOPFormatError, match=r"entry 0, scene 1, image 0.*category_id"):
         read_detections(root / "bad.json")
+
+
+def test_jpg_and_gray_images(tmp_path):
+    from PIL import Image
+
+    ramp = torch.linspace(0, 1, W).expand(H, W)
+    rgb = torch.stack([ramp, ramp.flip(1), torch.full((H, W), 0.3)])  # smooth: JPEG-friendly
+    with BOPWriter(tmp_path, "train_pbr", image_ext=".jpg") as w:
+        w.add_image(0, 0, K=torch.eye(3), rgb=rgb, depth=torch.full((H, W), 0.7))
+    s = BOPDataset(tmp_path, "train_pbr", load_masks=False).scene(0)
+    assert s.rgb_path(0).suffix == ".jpg"
+    assert (s[0]["rgb"] - rgb).abs().mean() < 0.02  # lossy
+    gray = (np.arange(H * W).reshape(H, W) % 256).astype(np.uint8)
+    (s.path / "rgb" / "000000.jpg").unlink()
+    (s.path / "gray").mkdir()
+    Image.fromarray(gray).save(s.path / "gray" / "000000.png")
+    img = s[0]["rgb"]
+    assert img.shape == (3, H, W) and torch.equal(img[0], img[2])
+    assert torch.allclose(img[1] * 255, torch.from_numpy(gray).float())
+
+
+def test_loader_with_worker_processes(dataset):
+    root, _ = dataset
+    loader = DataLoader(BOPInstanceDataset(root, "test"), batch_size=2, num_workers=2)
+    assert sum(len(b["obj_id"]) for b in loader) == 6
