@@ -301,3 +301,17 @@ def test_procedural_textures_vary():
     texs = [procedural_texture(s, 32) for s in range(8)]
     assert all(t.shape == (32, 32, 3) and t.dtype == np.uint8 for t in texs)
     assert len({t.tobytes() for t in texs}) == 8
+
+
+def test_objects_from_a_bop_models_folder(noisy, tmp_path):
+    """Pointing the generator at a BOP models/ folder keeps the ids and the symmetries."""
+    models = Path(noisy) / "models"
+    root = _generate(
+        tmp_path, models, mesh_scale=0.001, num_train_images=0, num_test_images=1,
+        objects_per_image=3, width=48, height=40,
+    )  # fmt: skip
+    info = read_models_info(root / "models" / "models_info.json")
+    before = read_models_info(models / "models_info.json")
+    assert sorted(info) == [1, 2, 3]
+    assert len(info[2].symmetries_continuous) == 1
+    assert info[3].diameter == pytest.approx(before[3].diameter)

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -38,6 +39,7 @@ from poseflow.data.bop import (
     BOPWriter,
     ModelInfo,
     TestTarget,
+    read_models_info,
     write_models_info,
     write_test_targets,
 )
@@ -477,7 +479,7 @@ def _load_objects(objects: Any, mesh_scale: float = 1.0) -> list[SyntheticObject
     out = []
     for obj_id, obj in items:
         if isinstance(obj, SyntheticObject):
-            out.append(obj)
+            out.append(obj)  # keeps its own id
             continue
         mesh = as_textured_mesh(obj)
         out.append(SyntheticObject(int(obj_id), mesh, _info_of(obj, mesh)))
@@ -487,7 +489,13 @@ def _load_objects(objects: Any, mesh_scale: float = 1.0) -> list[SyntheticObject
     return out
 
 
-def _load_mesh_folder(folder: Path, scale: float) -> list[TexturedMesh]:
+def _load_mesh_folder(folder: Path, scale: float) -> dict[int, Any]:
+    """Meshes of a folder keyed by object id.
+
+    Files named like BOP models (``obj_000005.ply``) keep their id, and their entry of a
+    ``models_info.json`` beside them (symmetries, diameter) is used; other files are numbered
+    1, 2, ... in name order.
+    """
     from poseflow.data.objects import load_mesh
 
     if not folder.is_dir():
@@ -495,7 +503,21 @@ def _load_mesh_folder(folder: Path, scale: float) -> list[TexturedMesh]:
     paths = sorted(p for p in folder.iterdir() if p.suffix.lower() in (".ply", ".obj"))
     if not paths:
         raise ValueRangeError(f"no .ply or .obj meshes in {folder}")
-    return [load_mesh(p, scale=scale) for p in paths]
+    bop_ids = [re.fullmatch(r"obj_(\d+)", p.stem) for p in paths]
+    if all(bop_ids):
+        infos = {}
+        if (folder / "models_info.json").is_file():
+            infos = read_models_info(folder / "models_info.json")
+        out: dict[int, Any] = {}
+        for p, match in zip(paths, bop_ids):
+            obj_id = int(match.group(1))  # type: ignore[union-attr]
+            mesh = load_mesh(p, scale=scale)
+            if obj_id in infos:
+                out[obj_id] = SyntheticObject(obj_id, mesh, infos[obj_id])
+            else:
+                out[obj_id] = mesh
+        return out
+    return {i: load_mesh(p, scale=scale) for i, p in enumerate(paths, 1)}
 
 
 def _write_models(root: Path, objects: Sequence[SyntheticObject]) -> None:
@@ -551,9 +573,11 @@ def generate_dataset(
     Args:
         out_dir: output folder (created; existing files of the same names are overwritten).
         objects: the objects: None for the library's demo objects
-            (:func:`poseflow.data.demo_objects.demo_objects`), a folder of ``.ply``/``.obj``
-            meshes in metres, a sequence of meshes (``ObjectModel``, ``TexturedMesh``, Open3D
-            meshes or :class:`SyntheticObject`) numbered from 1, or a mapping ``{obj_id: mesh}``.
+            (:func:`poseflow.data.demo_objects.demo_objects`); a folder of ``.ply``/``.obj``
+            meshes (scaled by ``mesh_scale``; BOP-named ``obj_XXXXXX.ply`` files keep their id
+            and their ``models_info.json`` entry); a sequence of meshes (``ObjectModel``,
+            ``TexturedMesh``, Open3D meshes) numbered from 1; or a mapping ``{obj_id: mesh}``.
+            A :class:`SyntheticObject` keeps its own id and info.
         num_train_images: images of the ``train`` split.
         num_test_images: images of the ``test`` split.
         objects_per_image: target objects per scene, a number or an inclusive range; objects
@@ -594,7 +618,7 @@ def generate_dataset(
         >>> box = o3d.geometry.TriangleMesh.create_box(0.08, 0.06, 0.04)
         >>> root = generate_dataset(tempfile.mkdtemp(), [box], num_train_images=1,
         ...     num_test_images=1, objects_per_image=1, width=64, height=48, progress=False)
-        >>> sample = BOPImageDataset(root, "test")[0]
+        >>> sample = BOPImageDataset(root, "test", load_masks=False)[0]
         >>> sample["rgb"].shape, sample["obj_ids"].tolist()
         (torch.Size([3, 48, 64]), [1])
     """
