@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from poseflow.errors import ShapeError, ValueRangeError
+from poseflow.geometry.se3 import random_rotation
 from poseflow.render import Light, Renderer, TexturedMesh, as_textured_mesh, render, sample_texture
 
 W, H = 64, 48
@@ -228,3 +229,29 @@ def test_bad_input() -> None:
         TexturedMesh(np.zeros((3, 3)), np.array([[0, 1, 3]]))
     with pytest.raises(ShapeError):
         Renderer([])
+
+
+def test_depth_matches_open3d_full_scene_cast() -> None:
+    box = o3d.geometry.TriangleMesh.create_box(0.1, 0.06, 0.04).translate((-0.05, -0.03, -0.02))
+    sphere = o3d.geometry.TriangleMesh.create_sphere(0.04, resolution=20)
+    g = torch.Generator().manual_seed(0)
+    poses = torch.eye(4, dtype=torch.float64).repeat(2, 1, 1)
+    poses[:, :3, :3] = random_rotation(2, generator=g, dtype=torch.float64)
+    poses[:, :3, 3] = torch.tensor([[-0.03, 0.0, 0.5], [0.03, 0.01, 0.55]], dtype=torch.float64)
+    out = render([box, sphere], poses, K, W, H)
+    scene = o3d.t.geometry.RaycastingScene()
+    for m, T in zip((box, sphere), poses.numpy()):
+        posed = o3d.geometry.TriangleMesh(m).transform(T)
+        scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(posed))
+    # Open3D's pinhole rays pass through (u + 0.5, v + 0.5): shift the principal point by +0.5
+    shift = np.array([[0, 0, 0.5], [0, 0, 0.5], [0, 0, 0]])
+    rays = scene.create_rays_pinhole(
+        o3d.core.Tensor(K.numpy() + shift), o3d.core.Tensor(np.eye(4)), W, H
+    )
+    hit = scene.cast_rays(rays)
+    z = hit["t_hit"].numpy() * rays.numpy()[..., 5]
+    seen = np.isfinite(z)
+    assert np.array_equal(seen, out.depth.numpy() > 0)
+    np.testing.assert_allclose(out.depth.numpy()[seen], z[seen], atol=1e-5)
+    ids = hit["geometry_ids"].numpy().astype(np.int64)
+    assert np.array_equal(np.where(seen, ids, -1), out.instance.numpy())

@@ -112,26 +112,29 @@ def backproject_depth(
     if max_points is not None and (isinstance(max_points, bool) or max_points < 1):
         raise ValueRangeError(f"max_points must be a positive integer, got {max_points!r}")
     dtype, device = Kb.dtype, depth.device
-    z = depth.to(dtype).reshape(B, H * W) * depth_scale
-    valid = torch.isfinite(z) & (z > 0)
-    if mask is not None:
-        valid &= mask.reshape(B, H * W)
-    counts = valid.sum(1)
+    flat = depth.reshape(B, H * W)  # a view, also for a depth map expanded over instances
+    # gather depth only where the (sparse) masks are set; never materialise B full depth maps
+    source = mask.reshape(B, H * W) if mask is not None else torch.ones_like(flat, dtype=torch.bool)
+    b_idx, p_idx = source.nonzero(as_tuple=True)
+    zz = flat[b_idx, p_idx].to(dtype) * depth_scale
+    ok = torch.isfinite(zz) & (zz > 0)
+    b_idx, p_idx, zz = b_idx[ok], p_idx[ok], zz[ok]
+    counts = torch.bincount(b_idx, minlength=B)
     if max_points is not None and bool((counts > max_points).any()):
-        score = torch.rand(B, H * W, generator=generator, device=device, dtype=torch.float32)
-        score = score.masked_fill(~valid, 2.0)
-        keep = score.topk(max_points, dim=1, largest=False).indices
-        picked = torch.zeros_like(valid)
-        picked.scatter_(1, keep, True)
-        valid &= picked
-        counts = valid.sum(1)
+        r = torch.rand(b_idx.numel(), generator=generator, dtype=torch.float64, device=device)
+        order = torch.argsort(b_idx.to(torch.float64) + r)  # by image, then at random
+        rank = (
+            torch.arange(order.numel(), device=device)
+            - (torch.cumsum(counts, 0) - counts)[b_idx[order]]
+        )
+        chosen = torch.sort(order[rank < max_points]).values  # back to raster order
+        b_idx, p_idx, zz = b_idx[chosen], p_idx[chosen], zz[chosen]
+        counts = torch.bincount(b_idx, minlength=B)
     M = int(counts.max()) if B else 0
-    b_idx, p_idx = valid.nonzero(as_tuple=True)
     starts = torch.cumsum(counts, 0) - counts
     slot = torch.arange(b_idx.numel(), device=device) - starts[b_idx]
     u = p_idx % W
     v = torch.div(p_idx, W, rounding_mode="floor")
-    zz = z[b_idx, p_idx]
     Ki = Kb[b_idx]
     fx, fy, cx, cy, s = Ki[:, 0, 0], Ki[:, 1, 1], Ki[:, 0, 2], Ki[:, 1, 2], Ki[:, 0, 1]
     y = (v.to(dtype) - cy) / fy
