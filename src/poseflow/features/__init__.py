@@ -1,0 +1,64 @@
+"""Features: frozen geometric and appearance descriptors, pixel→point lifting, reducers.
+
+The frozen half of FunFlow6D (paper, "Feature extraction"): per-point descriptors of the query
+model ``Q`` and of the observed target ``T``.
+
+- geometric encoders Φ (:class:`GeometricEncoder`): :class:`FPFHEncoder` (weight-free default),
+  :class:`GeDiEncoder` (GeDi in plain PyTorch, public weights from a local file),
+  :class:`TorchScriptEncoder` / :class:`CallableEncoder` for any other per-point encoder;
+- appearance encoders Θ (:class:`AppearanceEncoder`): :class:`DINOv2Encoder` (transformers),
+  :class:`DenseSIFTEncoder` (weight-free default);
+- lifting: :func:`lift_target_features` (crop around the barycentre), :func:`lift_query_features`
+  (multi-view renderings → :class:`QueryFeatureBank`), cached per object by :class:`FeatureCache`;
+- reduction: :class:`UMAPReducer` (umap-learn fit, fast torch transform), :class:`PCAReducer`,
+  :class:`IdentityReducer`, saved without pickle and reloaded by :func:`load_reducer`.
+"""
+
+from poseflow.features.appearance import (
+    DINOV2_MODELS,
+    AppearanceEncoder,
+    DenseSIFTEncoder,
+    DINOv2Encoder,
+    sample_features,
+    upsample_features,
+)
+from poseflow.features.cache import FeatureCache, cached_query_features
+from poseflow.features.gedi import GeDiEncoder, GeDiNet
+from poseflow.features.geometric import (
+    CallableEncoder,
+    FPFHEncoder,
+    GeometricEncoder,
+    TorchScriptEncoder,
+)
+from poseflow.features.lifting import (
+    QueryFeatureBank,
+    lift_query_features,
+    lift_target_features,
+    viewpoint_poses,
+)
+from poseflow.features.reducers import IdentityReducer, PCAReducer, UMAPReducer, load_reducer
+
+__all__ = [
+    "DINOV2_MODELS",
+    "AppearanceEncoder",
+    "CallableEncoder",
+    "DINOv2Encoder",
+    "DenseSIFTEncoder",
+    "FPFHEncoder",
+    "FeatureCache",
+    "GeDiEncoder",
+    "GeDiNet",
+    "GeometricEncoder",
+    "IdentityReducer",
+    "PCAReducer",
+    "QueryFeatureBank",
+    "TorchScriptEncoder",
+    "UMAPReducer",
+    "cached_query_features",
+    "lift_query_features",
+    "lift_target_features",
+    "load_reducer",
+    "sample_features",
+    "upsample_features",
+    "viewpoint_poses",
+]

@@ -1,0 +1,347 @@
+"""Geometric encoders Φ: per-point descriptors of a point cloud's local 3D structure.
+
+Every encoder follows :class:`GeometricEncoder`: ``encode(points, normals, mask, diameter)`` maps a
+padded batch of clouds ``(B, P, 3)`` to descriptors ``(B, P, D)``; padded rows (``mask`` False)
+come back as zeros. Encoders are frozen: no gradients, no training.
+
+- :class:`FPFHEncoder`: multi-scale FPFH (Open3D) at radii given as fractions of the object
+  diameter (the paper's two scales, 30 % and 40 %), concatenated and L2-normalised. Weight-free,
+  the offline default.
+- :class:`~poseflow.features.gedi.GeDiEncoder`: GeDi's architecture in plain PyTorch (own module).
+- :class:`TorchScriptEncoder` and :class:`CallableEncoder`: adapters that plug in any per-point
+  encoder (dGeDi exported to TorchScript, a user's function).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+import torch
+
+from poseflow._checks import check_mask, check_same, check_tensor
+from poseflow.errors import DegenerateInputError, MissingWeightsError, ShapeError, ValueRangeError
+
+__all__ = [
+    "CallableEncoder",
+    "FPFHEncoder",
+    "GeometricEncoder",
+    "TorchScriptEncoder",
+    "check_geometric_inputs",
+    "estimate_normals",
+]
+
+
+@runtime_checkable
+class GeometricEncoder(Protocol):
+    """What the pipeline needs from a geometric encoder.
+
+    Attributes:
+        dim: the descriptor size ``D``.
+    """
+
+    dim: int
+
+    def encode(
+        self,
+        points: torch.Tensor,
+        normals: torch.Tensor | None,
+        mask: torch.Tensor | None,
+        diameter: torch.Tensor | float,
+    ) -> torch.Tensor:
+        """Describe every point: ``(B, P, 3)`` points → ``(B, P, D)`` descriptors."""
+        ...
+
+
+def check_geometric_inputs(
+    points: torch.Tensor,
+    normals: torch.Tensor | None,
+    mask: torch.Tensor | None,
+    diameter: torch.Tensor | float,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Validate the encoder inputs and return ``(mask (B, P), diameter (B,))`` filled in.
+
+    Args:
+        points: clouds, shape ``(B, P, 3)``, finite.
+        normals: unit normals, shape ``(B, P, 3)``, or None.
+        mask: valid points, shape ``(B, P)`` bool, or None (all valid).
+        diameter: object diameter in metres, a float or a tensor of shape ``(B,)``.
+
+    Returns:
+        The mask ``(B, P)`` and the diameters ``(B,)`` on the points' device and dtype.
+
+    Raises:
+        ShapeError: on a shape, dtype or device mismatch.
+        ValueRangeError: non-finite points or a diameter that is not positive.
+        DegenerateInputError: a cloud with fewer than 3 valid points.
+
+    Example:
+        >>> m, d = check_geometric_inputs(torch.rand(2, 5, 3), None, None, 0.1)
+        >>> m.shape, d.shape
+        (torch.Size([2, 5]), torch.Size([2]))
+    """
+    sizes = check_tensor(points, "points", ("B", "P", 3), finite=True)
+    if normals is not None:
+        check_tensor(normals, "normals", ("B", "P", 3), finite=True, sizes=sizes)
+        check_same(("points", points), ("normals", normals))
+    if mask is None:
+        mask = torch.ones(points.shape[:2], dtype=torch.bool, device=points.device)
+    else:
+        check_mask(mask, "mask", ("B", "P"), sizes)
+        check_same(("points", points), ("mask", mask), dtype=False)
+    if isinstance(diameter, torch.Tensor):
+        if diameter.dim() == 0:
+            diameter = diameter.expand(sizes["B"])
+        check_tensor(diameter, "diameter", ("B",), finite=True, sizes=sizes)
+        diameter = diameter.to(device=points.device, dtype=points.dtype)
+    else:
+        diameter = torch.full(
+            (sizes["B"],), float(diameter), dtype=points.dtype, device=points.device
+        )
+    if not bool((diameter > 0).all()):
+        raise ValueRangeError(f"diameter must be positive, got {diameter.tolist()}")
+    counts = mask.sum(dim=1)
+    if bool((counts < 3).any()):
+        raise DegenerateInputError(
+            f"every cloud needs at least 3 valid points, got counts {counts.tolist()}"
+        )
+    return mask, diameter
+
+
+def estimate_normals(points: np.ndarray, radius: float, *, max_nn: int = 30) -> np.ndarray:
+    """Estimate unit normals with Open3D, oriented away from the cloud's centroid.
+
+    Orienting away from the centroid gives a query model and an observed partial view the same
+    (outward) convention, which FPFH needs: its angles change when a normal flips.
+
+    Args:
+        points: one cloud, shape ``(P, 3)``, float64.
+        radius: neighbourhood radius in metres.
+        max_nn: neighbours used at most.
+
+    Returns:
+        Normals of shape ``(P, 3)``, float64.
+
+    Example:
+        >>> import numpy as np
+        >>> pts = np.random.default_rng(0).normal(size=(200, 3))
+        >>> pts /= np.linalg.norm(pts, axis=1, keepdims=True)
+        >>> n = estimate_normals(pts, 0.5)
+        >>> bool((np.sum(n * pts, axis=1) > 0.9).mean() > 0.9)
+        True
+    """
+    import open3d as o3d
+
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.ascontiguousarray(points)))
+    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=max_nn))
+    normals = np.asarray(pcd.normals).copy()
+    outward = points - points.mean(axis=0, keepdims=True)
+    flip = np.sum(normals * outward, axis=1) < 0
+    normals[flip] *= -1
+    return normals
+
+
+class FPFHEncoder:
+    """Multi-scale FPFH descriptors (Open3D), concatenated and L2-normalised.
+
+    Each scale computes Open3D's 33-bin FPFH histogram with a search radius of
+    ``fraction * diameter``; the scales are concatenated (``D = 33 * len(radius_fractions)``) and
+    each row is L2-normalised. Clouds are processed one by one (Open3D has no batch), on the CPU in
+    float64; the result returns to the input's device and dtype.
+
+    Args:
+        radius_fractions: FPFH radii as fractions of the object diameter (paper: 0.30 and 0.40).
+        max_nn: neighbours per FPFH query at most (bounds the cost on dense clouds).
+        normal_radius_fraction: normal-estimation radius as a fraction of the diameter, used when
+            ``encode`` gets no normals.
+
+    Example:
+        >>> enc = FPFHEncoder()
+        >>> pts = torch.rand(2, 300, 3, generator=torch.Generator().manual_seed(0)) * 0.1
+        >>> f = enc.encode(pts, None, None, 0.17)
+        >>> f.shape, enc.dim
+        (torch.Size([2, 300, 66]), 66)
+        >>> bool(torch.allclose(f.norm(dim=-1), torch.ones(2, 300), atol=1e-5))
+        True
+    """
+
+    def __init__(
+        self,
+        *,
+        radius_fractions: Sequence[float] = (0.30, 0.40),
+        max_nn: int = 100,
+        normal_radius_fraction: float = 0.05,
+    ) -> None:
+        if not radius_fractions or any(r <= 0 for r in radius_fractions):
+            raise ValueRangeError(f"radius_fractions must be positive, got {radius_fractions}")
+        if max_nn < 3:
+            raise ValueRangeError(f"max_nn must be at least 3, got {max_nn}")
+        self.radius_fractions = tuple(float(r) for r in radius_fractions)
+        self.max_nn = int(max_nn)
+        self.normal_radius_fraction = float(normal_radius_fraction)
+        self.dim = 33 * len(self.radius_fractions)
+
+    def __repr__(self) -> str:
+        return f"FPFHEncoder(radius_fractions={self.radius_fractions}, max_nn={self.max_nn})"
+
+    @torch.no_grad()
+    def encode(
+        self,
+        points: torch.Tensor,
+        normals: torch.Tensor | None,
+        mask: torch.Tensor | None,
+        diameter: torch.Tensor | float,
+    ) -> torch.Tensor:
+        """Describe every valid point of every cloud.
+
+        Args:
+            points: clouds, shape ``(B, P, 3)`` in metres.
+            normals: unit normals ``(B, P, 3)`` oriented outward, or None to estimate them
+                (Open3D, oriented away from each cloud's centroid).
+            mask: valid points ``(B, P)`` bool, or None.
+            diameter: object diameter(s) in metres, float or ``(B,)``.
+
+        Returns:
+            Descriptors of shape ``(B, P, 33 * len(radius_fractions))``, unit norm on valid rows
+            (a point with an empty neighbourhood gets a zero histogram), zero on padded rows.
+        """
+        import open3d as o3d
+
+        mask, diameter = check_geometric_inputs(points, normals, mask, diameter)
+        out = torch.zeros(*points.shape[:2], self.dim, dtype=torch.float64)
+        pts_np = points.detach().cpu().double().numpy()
+        nrm_np = None if normals is None else normals.detach().cpu().double().numpy()
+        mask_np = mask.cpu().numpy()
+        for b in range(points.shape[0]):
+            valid = mask_np[b]
+            pts = np.ascontiguousarray(pts_np[b][valid])
+            d = float(diameter[b])
+            if nrm_np is None:
+                nrm = estimate_normals(pts, self.normal_radius_fraction * d)
+            else:
+                nrm = np.ascontiguousarray(nrm_np[b][valid])
+            pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+            pcd.normals = o3d.utility.Vector3dVector(nrm)
+            scales = []
+            for fraction in self.radius_fractions:
+                param = o3d.geometry.KDTreeSearchParamHybrid(
+                    radius=fraction * d, max_nn=self.max_nn
+                )
+                fpfh = o3d.pipelines.registration.compute_fpfh_feature(pcd, param)
+                scales.append(np.asarray(fpfh.data).T)
+            feat = torch.from_numpy(np.concatenate(scales, axis=1))
+            out[b, torch.from_numpy(valid)] = feat
+        out = torch.nn.functional.normalize(out, dim=-1)
+        return out.to(device=points.device, dtype=points.dtype)
+
+
+class CallableEncoder:
+    """Adapt any function ``f(points, normals, mask, diameter) -> (B, P, D)`` to the protocol.
+
+    The output is checked (shape, finiteness), padded rows are zeroed, and the result is moved to
+    the input's device and dtype, so a user's encoder behaves like the built-in ones.
+
+    Args:
+        fn: the per-point encoder.
+        dim: its descriptor size ``D``.
+        normalize: L2-normalise every descriptor.
+
+    Example:
+        >>> fn = lambda p, n, m, d: torch.cat([p, p.norm(dim=-1, keepdim=True)], -1)
+        >>> enc = CallableEncoder(fn, 4)
+        >>> enc.encode(torch.rand(1, 10, 3), None, None, 1.0).shape
+        torch.Size([1, 10, 4])
+    """
+
+    def __init__(
+        self,
+        fn: Callable[..., torch.Tensor],
+        dim: int,
+        *,
+        normalize: bool = False,
+    ) -> None:
+        if dim <= 0:
+            raise ValueRangeError(f"dim must be positive, got {dim}")
+        self.fn = fn
+        self.dim = int(dim)
+        self.normalize = normalize
+
+    @torch.no_grad()
+    def encode(
+        self,
+        points: torch.Tensor,
+        normals: torch.Tensor | None,
+        mask: torch.Tensor | None,
+        diameter: torch.Tensor | float,
+    ) -> torch.Tensor:
+        """Run the wrapped encoder; see :class:`GeometricEncoder`.
+
+        Raises:
+            ShapeError: the wrapped encoder returned the wrong shape.
+            ValueRangeError: it returned NaN or inf on a valid point.
+        """
+        mask, diameter = check_geometric_inputs(points, normals, mask, diameter)
+        out = self.fn(points, normals, mask, diameter)
+        if not isinstance(out, torch.Tensor) or tuple(out.shape) != (*points.shape[:2], self.dim):
+            got = tuple(out.shape) if isinstance(out, torch.Tensor) else type(out).__name__
+            raise ShapeError(f"encoder returned {got}, expected {(*points.shape[:2], self.dim)}")
+        out = out.to(device=points.device, dtype=points.dtype)
+        out = torch.where(mask[..., None], out, torch.zeros((), dtype=out.dtype, device=out.device))
+        if not bool(torch.isfinite(out).all()):
+            raise ValueRangeError("encoder returned NaN or inf descriptors")
+        if self.normalize:
+            out = torch.nn.functional.normalize(out, dim=-1)
+        return out
+
+
+class TorchScriptEncoder(CallableEncoder):
+    """Load a TorchScript per-point encoder (e.g. dGeDi exported with ``torch.jit.save``).
+
+    The scripted module is called as ``module(points, normals, mask, diameter)`` with
+    ``normals`` replaced by zeros when None, and must return ``(B, P, D)``; it runs on the device of
+    the points it receives (``map_location`` picks where it is loaded).
+
+    Args:
+        path: the ``.pt`` file written by ``torch.jit.save``.
+        dim: the descriptor size ``D``.
+        normalize: L2-normalise every descriptor.
+        map_location: device to load the module on.
+
+    Raises:
+        MissingWeightsError: ``path`` does not exist.
+
+    Example:
+        >>> import tempfile, os
+        >>> class Toy(torch.nn.Module):
+        ...     def forward(self, p, n, m, d):
+        ...         return torch.cat([p, n], -1)
+        >>> path = os.path.join(tempfile.mkdtemp(), "toy.pt")
+        >>> torch.jit.save(torch.jit.script(Toy()), path)
+        >>> TorchScriptEncoder(path, 6).encode(torch.rand(1, 8, 3), None, None, 1.0).shape
+        torch.Size([1, 8, 6])
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        dim: int,
+        *,
+        normalize: bool = False,
+        map_location: str | torch.device = "cpu",
+    ) -> None:
+        path = Path(path)
+        if not path.is_file():
+            raise MissingWeightsError(
+                f"no TorchScript encoder at {path}: export one with "
+                "torch.jit.save(torch.jit.script(model), path) and pass that path"
+            )
+        self.module = torch.jit.load(str(path), map_location=map_location).eval()
+
+        def call(points, normals, mask, diameter):
+            if normals is None:
+                normals = torch.zeros_like(points)
+            return self.module(points, normals, mask, diameter)
+
+        super().__init__(call, dim, normalize=normalize)
