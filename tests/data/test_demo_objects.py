@@ -12,6 +12,7 @@ import torch
 
 from poseflow.data.demo_objects import (
     DEMO_OBJECT_NAMES,
+    _box_texture,
     _bracket_occupancy,
     demo_mesh,
     demo_objects,
@@ -66,9 +67,7 @@ def test_sizes_appearance_and_determinism() -> None:
     bracket = meshes["bracket"]
     assert not bracket.has_texture and bracket.has_vertex_colors
     assert np.ptp(bracket.vertex_colors, axis=0).max() == 0  # one plain grey
-    from poseflow.data import demo_objects as module
-
-    a, b = module._box_texture(), module._box_texture()
+    a, b = _box_texture(), _box_texture()
     np.testing.assert_array_equal(a, b)
     assert a.std() > 40  # rich artwork, not a flat colour
     with pytest.raises(ValueRangeError):

@@ -107,6 +107,11 @@ def test_backprojection_depth_scale_and_invalid_depth() -> None:
     cloud = backproject_depth(raw, K, depth_scale=0.1 / 1000)  # BOP depth_scale 0.1 (mm/unit)
     assert cloud.points.dtype == torch.float64
     assert torch.allclose(cloud.points[0, :, 2], torch.tensor([0.1, 0.2, 6.5535, 0.001]).double())
+    png = torch.from_numpy(np.array([[[0, 1000], [2000, 65535]]], dtype=np.uint16))
+    assert torch.allclose(
+        backproject_depth(png, K, depth_scale=1e-4).points[0, :, 2],
+        torch.tensor([0.1, 0.2, 6.5535], dtype=torch.float64),
+    )
     d = torch.tensor([[[float("nan"), 1.0], [float("inf"), -1.0]]])
     out = backproject_depth(d, K.float())
     assert out.mask.sum() == 1 and out.pixels[0, 0].tolist() == [1, 0]

@@ -201,6 +201,7 @@ class Renderer:
         prim = np.zeros((height, width), dtype=np.int64)
         bary = np.zeros((height, width, 2), dtype=np.float32)
         full = np.zeros((n, height, width), dtype=bool)
+        windows: dict[int, tuple[int, int, int, int]] = {}
         for i in range(n):
             window = self._window(ids[i], T[i], Km, width, height)
             if window is None:
@@ -209,6 +210,9 @@ class Renderer:
             hit = self._cast(ids[i], T[i], Kinv, u0, u1, v0, v1)
             t_hit = hit["t_hit"].numpy()
             ok = np.isfinite(t_hit) & (t_hit > 0)
+            if not ok.any():
+                continue
+            windows[i] = window
             full[i, v0:v1, u0:u1] = ok
             zwin = zbuf[v0:v1, u0:u1]
             nearer = ok & (t_hit < zwin)
@@ -217,27 +221,29 @@ class Renderer:
             prim[v0:v1, u0:u1][nearer] = hit["primitive_ids"].numpy()[nearer].astype(np.int64)
             bary[v0:v1, u0:u1][nearer] = hit["primitive_uvs"].numpy()[nearer]
 
-        depth = np.where(inst >= 0, zbuf, 0.0).astype(np.float32)
+        depth = np.where(inst >= 0, zbuf, np.float32(0.0)).astype(np.float32)
         image = bg.copy()
         normals = np.zeros((height, width, 3), dtype=np.float32)
-        for i in np.unique(inst[inst >= 0]):
-            sel = inst == i
+        for i, (u0, u1, v0, v1) in windows.items():
+            # shade inside the object's window only: the rest of the image cannot show it
+            sel = inst[v0:v1, u0:u1] == i
+            if not sel.any():
+                continue
             mesh = self.meshes[ids[i]]
-            fid, b = prim[sel], bary[sel]
+            fid, b = prim[v0:v1, u0:u1][sel], bary[v0:v1, u0:u1][sel]
             R = T[i, :3, :3]
             nrm = mesh.surface_normals(fid, b) @ R.T
             vv, uu = np.nonzero(sel)
-            rays = np.stack([uu, vv, np.ones_like(uu)], axis=1).astype(np.float64) @ Kinv.T
-            flip = np.einsum("pc,pc->p", nrm, rays) > 0
+            pix = np.stack([uu + u0, vv + v0, np.ones_like(uu)], axis=1).astype(np.float64)
+            flip = np.einsum("pc,pc->p", nrm, pix @ Kinv.T) > 0
             nrm[flip] = -nrm[flip]
-            normals[sel] = nrm
+            normals[v0:v1, u0:u1][sel] = nrm
             if rgb:
                 albedo = mesh.surface_colors(fid, b)
                 lambert = np.clip(nrm @ light.unit_direction, 0.0, None)
-                shade = light.ambient + light.diffuse * lambert
-                col = albedo * shade[:, None].astype(np.float32)
-                col = col * np.asarray(light.color, dtype=np.float32)
-                image[sel] = (np.clip(col, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+                shade = (light.ambient + light.diffuse * lambert).astype(np.float32)
+                col = albedo * shade[:, None] * np.asarray(light.color, dtype=np.float32)
+                image[v0:v1, u0:u1][sel] = (np.clip(col, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
         return RenderOutput(
             depth=torch.from_numpy(depth),
             instance=torch.from_numpy(inst),
