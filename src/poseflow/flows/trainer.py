@@ -227,6 +227,7 @@ class CFMTrainer:
         on_cuda = self.device.type == "cuda"
         self.amp_dtype = _PRECISIONS[cfg.precision] if on_cuda else None
         self.scaler = torch.amp.GradScaler("cuda", enabled=self.amp_dtype == torch.float16)
+        # after the DDP wrap, so that the average starts from rank 0's broadcast weights
         self.ema = EMA(self.model, decay=cfg.ema_decay) if cfg.ema_decay is not None else None
         self._data = data
         self._collate_fn = collate_fn
