@@ -84,3 +84,16 @@ def test_bad_symmetries_raise():
         discretize_continuous_symmetry(
             torch.tensor([0.0, 0, 1]), torch.zeros(3), max_sym_disc_step=0
         )
+
+
+def test_agrees_with_the_data_package():
+    from poseflow.data.objects import discretize_symmetries
+
+    flip = torch.diag(torch.tensor([-1.0, 1.0, -1.0, 1.0], dtype=torch.float64))
+    flip[:3, 3] = torch.tensor([0.0, 0.01, 0.0], dtype=torch.float64)
+    axis, offset = torch.tensor([0.0, 1.0, 0.0]), torch.tensor([0.0, 0.0, 0.02])
+    ours = symmetry_transforms(flip[None], [(axis, offset)], max_sym_disc_step=0.1)
+    theirs = discretize_symmetries(
+        [flip.numpy()], [(axis.double().numpy(), offset.double().numpy())], max_sym_disc_step=0.1
+    )
+    torch.testing.assert_close(ours, torch.from_numpy(theirs))

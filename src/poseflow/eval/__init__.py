@@ -1,0 +1,80 @@
+"""Evaluation: BOP 2019 Average Recall, results files, the inlier metric, timing and pictures.
+
+- pose errors :func:`vsd_from_depth`, :func:`mssd`, :func:`mspd` (vectorised over estimates) and
+  symmetry sets discretised as the BOP toolkit does (:func:`symmetry_transforms`);
+- the recall protocol (:func:`assign`, :func:`match`) and the dataset-level
+  :func:`evaluate_bop` returning AR, AR_VSD, AR_MSSD, AR_MSPD, per object and per threshold;
+- BOP 2019 results CSV files (:func:`read_results`, :func:`write_results`);
+- the paper's correspondence-inlier metric (:func:`correspondence_inliers`);
+- the per-image stage breakdown (:class:`StageTimer`) and qualitative overlays
+  (:func:`overlay_poses`, :func:`write_overlay`).
+"""
+
+from poseflow.eval.errors import (
+    MSPD_THRESHOLDS,
+    MSSD_THRESHOLDS,
+    VSD_DELTA,
+    VSD_TAUS,
+    VSD_THRESHOLDS,
+    depth_to_distance,
+    mspd,
+    mssd,
+    project_points,
+    vsd_from_depth,
+)
+from poseflow.eval.evaluate import METRICS, EvalModel, evaluate_bop, gt_results, load_eval_models
+from poseflow.eval.inliers import InlierResult, correspondence_inliers, mutual_nearest_neighbors
+from poseflow.eval.overlay import ESTIMATE_COLOR, GT_COLOR, overlay_poses, write_overlay
+from poseflow.eval.recall import Assignment, Recall, Target, assign, match, targets_from_gt
+from poseflow.eval.results import HEADER, PoseResults, read_results, write_results
+from poseflow.eval.symmetry import (
+    MAX_SYM_DISC_STEP,
+    axis_angle_rotation,
+    discretize_continuous_symmetry,
+    symmetries_from_model_info,
+    symmetry_transforms,
+)
+from poseflow.eval.timing import EXCLUDED_STAGES, STAGES, StageTimer
+
+__all__ = [
+    "ESTIMATE_COLOR",
+    "EXCLUDED_STAGES",
+    "GT_COLOR",
+    "HEADER",
+    "MAX_SYM_DISC_STEP",
+    "METRICS",
+    "MSPD_THRESHOLDS",
+    "MSSD_THRESHOLDS",
+    "STAGES",
+    "VSD_DELTA",
+    "VSD_TAUS",
+    "VSD_THRESHOLDS",
+    "Assignment",
+    "EvalModel",
+    "InlierResult",
+    "PoseResults",
+    "Recall",
+    "StageTimer",
+    "Target",
+    "assign",
+    "axis_angle_rotation",
+    "correspondence_inliers",
+    "depth_to_distance",
+    "discretize_continuous_symmetry",
+    "evaluate_bop",
+    "gt_results",
+    "load_eval_models",
+    "match",
+    "mspd",
+    "mssd",
+    "mutual_nearest_neighbors",
+    "overlay_poses",
+    "project_points",
+    "read_results",
+    "symmetries_from_model_info",
+    "symmetry_transforms",
+    "targets_from_gt",
+    "vsd_from_depth",
+    "write_overlay",
+    "write_results",
+]
