@@ -1,0 +1,143 @@
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from poseflow.errors import DegenerateInputError, ShapeError, ValueRangeError
+from poseflow.features.reducers import (
+    IdentityReducer,
+    PCAReducer,
+    UMAPReducer,
+    _membership,
+    find_ab_params,
+    load_reducer,
+)
+
+
+def _clusters(n: int, g: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+    gen = torch.Generator().manual_seed(seed)
+    centres = torch.randn(8, g, generator=gen, dtype=torch.float64) * 3
+    label = torch.arange(n) % 8
+    return centres[label] + 0.3 * torch.randn(n, g, generator=gen, dtype=torch.float64), label
+
+
+def test_pca_matches_numpy_svd(dtype: torch.dtype) -> None:
+    x, _ = _clusters(200, 12, 0)
+    x = x.to(dtype)
+    pca = PCAReducer(4, normalize=False).fit(x)
+    xn = x.double().numpy()
+    _, s, vt = np.linalg.svd(xn - xn.mean(0), full_matrices=False)
+    got = pca.transform(x).double().numpy()
+    want = (xn - xn.mean(0)) @ vt[:4].T
+    assert np.allclose(np.abs(got), np.abs(want), atol=1e-3 if dtype == torch.float32 else 1e-9)
+    assert np.allclose(pca.explained_variance_.double().numpy(), s[:4] ** 2 / 199, rtol=1e-4)
+    assert pca.transform(x).dtype == dtype
+
+
+def test_numpy_in_numpy_out_and_batched_mask(device: torch.device) -> None:
+    x, _ = _clusters(100, 6, 1)
+    pca = PCAReducer(3).fit(x.numpy())
+    assert isinstance(pca.transform(x.numpy()), np.ndarray)
+    batch = torch.stack([x[:50], x[50:]]).to(device)
+    mask = torch.ones(2, 50, dtype=torch.bool, device=device)
+    mask[1, 40:] = False
+    pca.to(device)
+    out = pca.transform(batch, mask)
+    assert out.shape == (2, 50, 3) and out.device.type == device.type
+    assert torch.allclose(out[1, :40], pca.transform(x[50:90].to(device)))
+    assert bool((out[1, 40:] == 0).all())
+
+
+def test_identity_and_errors() -> None:
+    x = torch.tensor([[3.0, 4.0], [0.0, 2.0], [1.0, 1.0]])
+    assert torch.allclose(IdentityReducer().fit_transform(x), x)
+    assert torch.allclose(
+        IdentityReducer(normalize=True).fit_transform(x).norm(dim=1), torch.ones(3)
+    )
+    with pytest.raises(ValueRangeError):
+        PCAReducer(3).transform(x)  # not fitted
+    with pytest.raises(ValueRangeError):
+        PCAReducer(5).fit(x)
+    with pytest.raises(ShapeError):
+        PCAReducer(1).fit(x).transform(torch.zeros(2, 3))
+    with pytest.raises(DegenerateInputError):
+        PCAReducer(1).fit(x[:1])
+    with pytest.raises(ValueRangeError):
+        UMAPReducer(metric="manhattan")
+
+
+def test_save_load_roundtrip(tmp_path, device: torch.device) -> None:
+    x, _ = _clusters(120, 10, 2)
+    emb = torch.randn(120, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    for red in (IdentityReducer(normalize=True).fit(x), PCAReducer(4).fit(x),
+                UMAPReducer.from_embedding(x, emb, n_neighbors=10)):  # fmt: skip
+        path = red.save(tmp_path / type(red).__name__)
+        assert not list(path.glob("*.pkl"))
+        back = load_reducer(path, device=device)
+        assert type(back) is type(red)
+        assert torch.allclose(back.transform(x.to(device)).cpu(), red.transform(x), atol=1e-10)
+
+
+def test_find_ab_params_matches_umap_defaults() -> None:
+    a, b = find_ab_params(1.0, 0.1)  # umap-learn's defaults give a = 1.577, b = 0.895
+    assert abs(a - 1.577) < 0.01 and abs(b - 0.895) < 0.01
+
+
+def test_membership_sums_to_log2_k() -> None:
+    d = torch.rand(50, 30, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    d, _ = d.sort(dim=1)
+    w = _membership(d, math.log2(30))
+    assert torch.allclose(w.sum(dim=1), torch.full((50,), math.log2(30), dtype=torch.float64))
+    assert bool((w[:, :-1] >= w[:, 1:]).all())  # closer neighbours weigh more
+
+
+def test_torch_transform_places_points_by_their_neighbours(dtype: torch.dtype) -> None:
+    # a 2-d embedding that separates the clusters: new points must land in their cluster
+    x, label = _clusters(400, 16, 3)
+    gen = torch.Generator().manual_seed(4)
+    angle = label.double() * (2 * math.pi / 8)
+    emb = 5 * torch.stack([angle.cos(), angle.sin()], dim=1)
+    emb = emb + 0.2 * torch.randn(400, 2, generator=gen, dtype=torch.float64)
+    red = UMAPReducer.from_embedding(x.to(dtype), emb.to(dtype), n_neighbors=15, metric="euclidean")
+    new, new_label = _clusters(200, 16, 3)
+    new = new + 0.1 * torch.randn(200, 16, generator=gen, dtype=torch.float64)
+    y = red.transform(new.to(dtype))
+    assert y.dtype == dtype and y.shape == (200, 2)
+    ang = torch.arange(8, dtype=torch.float64) * (2 * math.pi / 8)
+    centres = 5 * torch.stack([ang.cos(), ang.sin()], dim=1)  # (8, 2)
+    assert bool((torch.cdist(y.double(), centres).argmin(dim=1) == new_label).all())
+    red.transform_epochs = 0
+    y0 = red.transform(new.to(dtype))
+    assert bool((torch.cdist(y0.double(), centres).argmin(dim=1) == new_label).all())
+
+
+def test_torch_transform_batched_equals_flat(device: torch.device) -> None:
+    x, _ = _clusters(300, 8, 5)
+    emb = torch.randn(300, 4, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    red = UMAPReducer.from_embedding(x, emb, n_neighbors=10, transform_epochs=0).to(device)
+    batch = torch.stack([x[:100], x[100:200]]).to(device)
+    out = red.transform(batch)
+    assert torch.allclose(out[1], red.transform(x[100:200].to(device)))
+
+
+@pytest.mark.slow
+def test_umap_fit_and_transform_match_umap_learn() -> None:
+    from poseflow.eval.inliers import mutual_nearest_neighbors
+
+    x, _ = _clusters(600, 32, 6)
+    x = x.float()
+    red = UMAPReducer(16, n_neighbors=15).fit(x)
+    assert red.embedding_.shape == (600, 16)
+    gen = torch.Generator().manual_seed(7)
+    pick = torch.randperm(600, generator=gen)[:200]
+    new = x[pick] + 0.05 * torch.randn(200, 32, generator=gen)
+    ours = red.transform(new)
+    ref = torch.from_numpy(red.transform_umap_learn(new.numpy()))
+    match_ours = mutual_nearest_neighbors(red.embedding_[None], ours[None])[0]
+    match_ref = mutual_nearest_neighbors(red.embedding_[None], ref[None])[0]
+    correct_ours = int((match_ours == pick).sum())
+    correct_ref = int((match_ref == pick).sum())
+    assert correct_ours >= 0.8 * correct_ref
