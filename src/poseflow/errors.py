@@ -7,8 +7,11 @@ catching ``ValueError`` or ``ImportError`` keeps working.
 from __future__ import annotations
 
 __all__ = [
+    "BOPFormatError",
     "DegenerateInputError",
+    "MeshFormatError",
     "MissingDependencyError",
+    "MissingFileError",
     "MissingWeightsError",
     "PoseflowError",
     "ShapeError",
@@ -44,3 +47,15 @@ class MissingDependencyError(PoseflowError, ImportError):
 
 class MissingWeightsError(PoseflowError, FileNotFoundError):
     """Pretrained weights were requested but are not available locally."""
+
+
+class MissingFileError(PoseflowError, FileNotFoundError):
+    """A file or folder that a dataset or model format requires is missing."""
+
+
+class BOPFormatError(PoseflowError, ValueError):
+    """A BOP file is malformed: a missing key, a wrong type or shape, or implausible units."""
+
+
+class MeshFormatError(DegenerateInputError):
+    """A mesh file is missing, malformed or uses a feature that is not supported."""

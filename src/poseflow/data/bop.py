@@ -45,13 +45,12 @@ import torch
 from PIL import Image
 
 from poseflow.data.rle import rle_decode
-from poseflow.errors import PoseflowError, ShapeError, ValueRangeError
+from poseflow.errors import BOPFormatError, MissingFileError, ShapeError, ValueRangeError
 
 __all__ = [
     "BOPDataWarning",
     "BOPDataset",
     "BOPDetectionDataset",
-    "BOPFormatError",
     "BOPImageDataset",
     "BOPInstanceDataset",
     "BOPScene",
@@ -61,7 +60,6 @@ __all__ = [
     "Detection",
     "GTInfo",
     "GTPose",
-    "MissingFileError",
     "ModelInfo",
     "TestTarget",
     "collate_images",
@@ -93,14 +91,6 @@ MM_PER_M = 1000.0
 #: A depth map whose largest valid value is below this (in metres, after applying depth_scale) is
 #: taken to have been written in metres although millimetres were declared.
 _MIN_PLAUSIBLE_MAX_DEPTH_M = 0.05
-
-
-class BOPFormatError(PoseflowError, ValueError):
-    """A BOP file is malformed: a missing key, a wrong type or shape, or implausible units."""
-
-
-class MissingFileError(PoseflowError, FileNotFoundError):
-    """A file or folder that the BOP format requires is missing."""
 
 
 class BOPDataWarning(UserWarning):

@@ -24,12 +24,11 @@ from typing import Any
 import numpy as np
 import torch
 
-from poseflow.errors import DegenerateInputError, ShapeError, ValueRangeError
+from poseflow.errors import DegenerateInputError, MeshFormatError, ShapeError, ValueRangeError
 from poseflow.geometry.pointcloud import cloud_diameter, farthest_point_sample
 from poseflow.render.mesh import TexturedMesh
 
 __all__ = [
-    "MeshFormatError",
     "ObjectModel",
     "discretize_symmetries",
     "load_mesh",
@@ -39,10 +38,6 @@ __all__ = [
     "write_bop_model",
     "write_bop_models",
 ]
-
-
-class MeshFormatError(DegenerateInputError):
-    """A mesh file is missing, malformed or uses a feature that is not supported."""
 
 
 # ---------------------------------------------------------------------------------------------

@@ -1,5 +1,19 @@
 """Geometry: SE(3) algebra and point-cloud primitives, batch-first, on any device and dtype."""
 
+from poseflow.geometry.pointcloud import (
+    BackprojectedCloud,
+    backproject_depth,
+    cloud_diameter,
+    crop_box_around,
+    crop_resize,
+    crop_to_pixels,
+    estimate_normals,
+    farthest_point_sample,
+    pixels_to_crop,
+    project_points,
+    remove_statistical_outliers,
+    voxel_downsample,
+)
 from poseflow.geometry.se3 import (
     compose,
     from_Rt,
@@ -13,13 +27,25 @@ from poseflow.geometry.se3 import (
 )
 
 __all__ = [
+    "BackprojectedCloud",
+    "backproject_depth",
+    "cloud_diameter",
     "compose",
+    "crop_box_around",
+    "crop_resize",
+    "crop_to_pixels",
+    "estimate_normals",
+    "farthest_point_sample",
     "from_Rt",
     "inverse_transform",
+    "pixels_to_crop",
+    "project_points",
     "random_rotation",
     "random_transform",
+    "remove_statistical_outliers",
     "rotation_angle_error",
     "to_Rt",
     "transform_points",
     "translation_error",
+    "voxel_downsample",
 ]
