@@ -3,6 +3,8 @@
 The generative core of FunFlow6D as a general-purpose package: it knows nothing of poses. Train
 a velocity model ``model(x=x_t, t=t, **cond)`` with :class:`CFMTrainer` and integrate it from
 noise with :func:`sample` (Euler, midpoint, Heun or RK4), anchors held fixed by ``frozen_mask``.
+:class:`PointDiT` is a velocity net over point tokens and :class:`PointPositionalEncoder` the
+per-point positional encoding of its condition.
 """
 
 from poseflow.flows.checkpoint import (
@@ -21,10 +23,18 @@ from poseflow.flows.distributed import (
     destroy_distributed,
     init_distributed,
 )
+from poseflow.flows.dit import (
+    PRESETS,
+    DiTBlock,
+    PointDiT,
+    PointDiTConfig,
+    sinusoidal_time_embedding,
+)
 from poseflow.flows.ema import EMA
 from poseflow.flows.loss import cfm_loss
 from poseflow.flows.objective import CFMObjective, FlowBatch, StepRandom
 from poseflow.flows.path import LinearPath, PathSample
+from poseflow.flows.positional import PointPositionalEncoder, nerf_embedding
 from poseflow.flows.protocols import VelocityModel
 from poseflow.flows.samplers import (
     SAMPLERS,
@@ -49,10 +59,12 @@ from poseflow.flows.trainer import CFMTrainer, Objective, TrainConfig, ValidateH
 
 __all__ = [
     "EMA",
+    "PRESETS",
     "SAMPLERS",
     "TIME_SAMPLERS",
     "CFMObjective",
     "CFMTrainer",
+    "DiTBlock",
     "DistributedContext",
     "EulerSampler",
     "FlowBatch",
@@ -62,6 +74,9 @@ __all__ = [
     "ODESampler",
     "Objective",
     "PathSample",
+    "PointDiT",
+    "PointDiTConfig",
+    "PointPositionalEncoder",
     "RK4Sampler",
     "StepRandom",
     "TrainConfig",
@@ -79,10 +94,12 @@ __all__ = [
     "latest_checkpoint",
     "load_checkpoint",
     "logit_normal_time",
+    "nerf_embedding",
     "prune_checkpoints",
     "sample",
     "sample_time",
     "save_checkpoint",
+    "sinusoidal_time_embedding",
     "u_shaped_time",
     "unflatten_optimizer_state",
     "uniform_time",
