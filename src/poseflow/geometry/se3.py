@@ -12,6 +12,7 @@ import math
 import torch
 
 from poseflow._checks import check_same, check_tensor
+from poseflow.errors import ShapeError, ValueRangeError
 
 __all__ = [
     "compose",
@@ -44,7 +45,7 @@ def from_Rt(R: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
     check_tensor(t, "t", ("*", 3))
     check_same(("R", R), ("t", t))
     if R.shape[:-2] != t.shape[:-1]:
-        raise ValueError(f"R {tuple(R.shape)} and t {tuple(t.shape)} have different batch shapes")
+        raise ShapeError(f"R {tuple(R.shape)} and t {tuple(t.shape)} have different batch shapes")
     T = torch.zeros(*R.shape[:-2], 4, 4, dtype=R.dtype, device=R.device)
     T[..., :3, :3] = R
     T[..., :3, 3] = t
@@ -115,7 +116,7 @@ def compose(*transforms: torch.Tensor) -> torch.Tensor:
         torch.Size([1, 4, 4])
     """
     if not transforms:
-        raise ValueError("compose needs at least one transform")
+        raise ValueRangeError("compose needs at least one transform")
     out = transforms[0]
     check_tensor(out, "transforms[0]", ("*", 4, 4))
     for i, T in enumerate(transforms[1:], 1):
@@ -170,9 +171,11 @@ def translation_error(t1: torch.Tensor, t2: torch.Tensor) -> torch.Tensor:
         tensor([5.])
     """
     if t1.dim() >= 2 and t1.shape[-2:] == (4, 4):
+        check_tensor(t2, "t2", ("*", 4, 4))
         t1, t2 = t1[..., :3, 3], t2[..., :3, 3]
     check_tensor(t1, "t1", ("*", 3))
     check_tensor(t2, "t2", ("*", 3))
+    check_same(("t1", t1), ("t2", t2))
     return (t1 - t2).norm(dim=-1)
 
 

@@ -1,0 +1,446 @@
+"""Exact k-nearest-neighbour search between batched point clouds.
+
+One entry point, :func:`nearest_neighbors`, picks the fastest exact backend for the device:
+
+- CPU: a KD-tree per batch item (``scipy.spatial.cKDTree``, queried on all cores) unless the
+  problem is small enough that a brute-force distance matrix is cheaper;
+- CUDA (and any other device): brute force, the distance matrix built in chunks of query points
+  with one matrix multiply each, so memory stays bounded.
+
+:class:`NeighborIndex` builds the search structure once and answers many queries against the same
+reference cloud (ICP queries the same target at every iteration).
+
+Distances are Euclidean (not squared). Reference points masked out are never returned; where fewer
+than ``k`` valid reference points exist (or none lies within ``max_distance``), the missing
+neighbours have distance ``inf`` and index ``0``.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+import torch
+
+from poseflow._checks import check_mask, check_same, check_tensor
+from poseflow.errors import ShapeError, ValueRangeError
+
+__all__ = ["NeighborIndex", "NeighborTracker", "nearest_neighbors"]
+
+#: Problems with at most this many query-reference pairs per batch item use brute force on CPU.
+_CPU_BRUTE_FORCE_PAIRS = 1 << 14
+#: KD-tree searches of fewer query points than this run on the calling thread.
+_PARALLEL_POINTS = 4096
+#: Entries of the distance matrix computed at once by the brute-force backend.
+_CHUNK_ELEMENTS = 1 << 22
+
+
+@functools.cache
+def _pool() -> ThreadPoolExecutor | None:
+    """The threads that run KD-tree queries of several batch items at once (None on one core)."""
+    workers = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    return ThreadPoolExecutor(workers, thread_name_prefix="poseflow-knn") if workers > 1 else None
+
+
+class NeighborIndex:
+    """A search structure over a batch of reference clouds, built once and queried many times.
+
+    Args:
+        reference: reference points, shape ``(B, M, 3)``. Masked-out points may hold any value,
+            NaN included; valid points must be finite.
+        reference_mask: ``(B, M)`` bool, True for points that may be returned; all by default.
+        backend: ``"auto"`` (KD-tree on CPU unless the clouds are tiny, brute force elsewhere),
+            ``"kdtree"`` (CPU only) or ``"brute"``.
+
+    Raises:
+        ShapeError: wrong shape, dtype or device.
+        ValueRangeError: a valid reference point is not finite, or an unknown backend.
+
+    Example:
+        >>> ref = torch.tensor([[[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]])
+        >>> index = NeighborIndex(ref)
+        >>> dist, idx = index.query(torch.tensor([[[0.9, 0.0, 0.0]]]))
+        >>> idx.tolist(), round(dist.item(), 4)
+        ([[[1]]], 0.1)
+    """
+
+    def __init__(
+        self,
+        reference: torch.Tensor,
+        reference_mask: torch.Tensor | None = None,
+        *,
+        backend: str = "auto",
+    ) -> None:
+        sizes = check_tensor(reference, "reference", ("B", "M", 3))
+        if reference_mask is not None:
+            check_mask(reference_mask, "reference_mask", ("B", "M"), sizes)
+            check_same(("reference", reference), ("reference_mask", reference_mask), dtype=False)
+            finite_or_masked = torch.isfinite(reference).all(-1) | ~reference_mask
+            if not bool(finite_or_masked.all()):
+                raise ValueRangeError("reference contains NaN or inf at valid (unmasked) points")
+            reference = torch.where(reference_mask[..., None], reference, 0)
+        elif reference.numel() and not bool(torch.isfinite(reference).all()):
+            raise ValueRangeError("reference contains NaN or inf")
+        if backend not in ("auto", "kdtree", "brute"):
+            raise ValueRangeError(f"backend must be 'auto', 'kdtree' or 'brute', got {backend!r}")
+        if backend == "kdtree" and reference.device.type != "cpu":
+            raise ValueRangeError("the 'kdtree' backend runs on CPU tensors only")
+        self.reference = reference
+        self.reference_mask = reference_mask
+        self.backend = backend
+        self._trees: list | None = None
+        self._valid_index: list[np.ndarray] | None = None
+        self._ref64: np.ndarray | None = None
+        self._columns: np.ndarray | None = None
+
+    @property
+    def batch_size(self) -> int:
+        """Number of reference clouds ``B``."""
+        return self.reference.shape[0]
+
+    def query(
+        self, query: torch.Tensor, *, k: int = 1, max_distance: float | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Find the ``k`` nearest valid reference points of every query point.
+
+        Args:
+            query: query points, shape ``(B, N, 3)``, finite, with the reference's device and dtype.
+            k: number of neighbours, at least 1.
+            max_distance: if given, neighbours farther than this are reported missing (distance
+                ``inf``, index ``0``); the KD-tree prunes its search with it, which is faster.
+
+        Returns:
+            ``(dist, idx)``: Euclidean distances ``(B, N, k)`` in the query dtype, sorted
+            ascending, and indices ``(B, N, k)`` (int64) into the reference's ``M`` axis.
+
+        Raises:
+            ShapeError: wrong shape, dtype or device.
+            ValueRangeError: NaN/inf query points, ``k < 1`` or ``max_distance <= 0``.
+        """
+        check_tensor(query, "query", ("B", "N", 3), sizes={"B": self.batch_size})
+        check_same(("reference", self.reference), ("query", query))
+        if isinstance(k, bool) or not isinstance(k, int) or k < 1:
+            raise ValueRangeError(f"k must be an integer >= 1, got {k!r}")
+        if max_distance is not None and not max_distance > 0:
+            raise ValueRangeError(f"max_distance must be > 0, got {max_distance!r}")
+        if query.numel() and not bool(torch.isfinite(query).all()):
+            raise ValueRangeError("query contains NaN or inf")
+        return self._search(query, k, max_distance)
+
+    def _search(
+        self,
+        query: torch.Tensor,
+        k: int,
+        max_distance: float | None,
+        items: torch.Tensor | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Unchecked :meth:`query`.
+
+        With ``items`` (int64 indices into the batch), ``query`` holds only those batch items, in
+        that order, and so does the answer.
+        """
+        B, N, M = query.shape[0], query.shape[1], self.reference.shape[1]
+        if B == 0 or N == 0 or M == 0:
+            dist = torch.full((B, N, k), torch.inf, dtype=query.dtype, device=query.device)
+            return dist, torch.zeros(B, N, k, dtype=torch.long, device=query.device)
+        if self._use_kdtree(N):
+            return self._query_kdtree(query, k, max_distance, items)
+        return self._query_brute(query, k, max_distance, items)
+
+    def _use_kdtree(self, n_query: int) -> bool:
+        if self.backend != "auto":
+            return self.backend == "kdtree"
+        if self.reference.device.type != "cpu":
+            return False
+        return n_query * self.reference.shape[1] > _CPU_BRUTE_FORCE_PAIRS
+
+    def _reference64(self) -> np.ndarray:
+        """The reference as a float64 array ``(B, M, 3)`` (masked points zeroed)."""
+        if self._ref64 is None:
+            self._ref64 = self.reference.detach().to(torch.float64).numpy()
+        return self._ref64
+
+    def _reference_columns(self) -> np.ndarray:
+        """The reference as columns ``(3, B * M + 1)`` (float64), the last one at infinity."""
+        if self._columns is None:
+            ref = self._reference64().reshape(-1, 3)
+            self._columns = np.ascontiguousarray(np.concatenate((ref, np.full((1, 3), np.inf))).T)
+        return self._columns
+
+    def _build_trees(self) -> None:
+        from scipy.spatial import cKDTree
+
+        ref = self._reference64()
+        mask = None if self.reference_mask is None else self.reference_mask.numpy()
+        self._trees, self._valid_index = [], []
+        for b in range(ref.shape[0]):
+            valid = np.arange(ref.shape[1]) if mask is None else np.flatnonzero(mask[b])
+            self._valid_index.append(valid)
+            self._trees.append(cKDTree(ref[b, valid]) if len(valid) else None)
+
+    def _query_kdtree(
+        self,
+        query: torch.Tensor,
+        k: int,
+        max_distance: float | None,
+        items: torch.Tensor | None,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        q = query.detach().to(torch.float64).numpy()
+        item_ids = list(range(q.shape[0])) if items is None else items.tolist()
+        found = self._kdtree_search(list(q), item_ids, k, max_distance)
+        dist = torch.from_numpy(np.stack([d for d, _ in found])).to(query.dtype)
+        return dist, torch.from_numpy(np.stack([i for _, i in found]))
+
+    def _kdtree_search(
+        self,
+        points: list[np.ndarray],
+        items: list[int],
+        k: int,
+        max_distance: float | None,
+    ) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Query the tree of batch item ``items[j]`` with ``points[j]`` ``(n_j, 3)`` (float64).
+
+        Returns one ``(dist, idx)`` pair of ``(n_j, k)`` arrays per query set, missing neighbours
+        as ``(inf, 0)``.
+        """
+        if self._trees is None:
+            self._build_trees()
+        bound = np.inf if max_distance is None else float(max_distance)
+
+        def one(j: int) -> tuple[np.ndarray, np.ndarray]:
+            n, tree = len(points[j]), self._trees[items[j]]  # type: ignore[index]
+            if tree is None or n == 0:
+                return np.full((n, k), np.inf), np.zeros((n, k), dtype=np.int64)
+            d, i = tree.query(points[j], k=k, distance_upper_bound=bound)
+            d, i = d.reshape(n, k), i.reshape(n, k)
+            valid = self._valid_index[items[j]]  # type: ignore[index]
+            return d, np.where(np.isfinite(d), valid[np.minimum(i, tree.n - 1)], 0)
+
+        # cKDTree releases the GIL while it searches: one task per batch item keeps the cores
+        # busy without splitting each (small) query across threads.
+        if len(points) > 1 and sum(map(len, points)) >= _PARALLEL_POINTS and _pool() is not None:
+            return list(_pool().map(one, range(len(points))))  # type: ignore[union-attr]
+        return [one(j) for j in range(len(points))]
+
+    def _query_brute(
+        self,
+        query: torch.Tensor,
+        k: int,
+        max_distance: float | None,
+        items: torch.Tensor | None,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        ref, mask = self.reference.detach(), self.reference_mask
+        if items is not None:
+            ref = ref[items]
+            mask = None if mask is None else mask[items]
+        query = query.detach()
+        B, N, M = query.shape[0], query.shape[1], ref.shape[1]
+        # Centre on the reference's mean so that |q|^2 - 2 q.r + |r|^2 loses little precision.
+        centre = ref.mean(1, keepdim=True)
+        ref_c, query_c = ref - centre, query - centre
+        ref_sq = ref_c.square().sum(-1)
+        if mask is not None:
+            ref_sq = ref_sq.masked_fill(~mask, torch.inf)
+        kk = min(k, M)
+        chunk = max(1, _CHUNK_ELEMENTS // max(1, B * M))
+        idx_parts = []
+        for start in range(0, N, chunk):
+            q = query_c[:, start : start + chunk]
+            d2 = torch.baddbmm(ref_sq.unsqueeze(1), q, ref_c.transpose(1, 2), alpha=-2)
+            d2 = d2 + q.square().sum(-1, keepdim=True)
+            if kk == 1:
+                idx_parts.append(d2.argmin(-1, keepdim=True))
+            else:
+                idx_parts.append(d2.topk(kk, dim=-1, largest=False, sorted=True).indices)
+        idx = torch.cat(idx_parts, 1)
+        # Exact distances of the chosen neighbours; masked ones (only chosen when too few valid
+        # points remain) are reported missing.
+        picked = ref_c.gather(1, idx.reshape(B, N * kk, 1).expand(-1, -1, 3)).reshape(B, N, kk, 3)
+        dist = (query_c.unsqueeze(2) - picked).norm(dim=-1)
+        missing = torch.zeros_like(dist, dtype=torch.bool)
+        if mask is not None:
+            missing |= ~mask.gather(1, idx.reshape(B, N * kk)).reshape(B, N, kk)
+        if max_distance is not None:
+            missing |= dist > max_distance
+        if kk > 1:
+            # Exact distances may reorder near-ties; keep the output sorted.
+            dist, order = dist.masked_fill(missing, torch.inf).sort(-1)
+            idx, missing = idx.gather(-1, order), missing.gather(-1, order)
+        dist = dist.masked_fill(missing, torch.inf)
+        idx = idx.masked_fill(missing, 0)
+        if kk < k:
+            pad = (0, k - kk)
+            dist = torch.nn.functional.pad(dist, pad, value=torch.inf)
+            idx = torch.nn.functional.pad(idx, pad, value=0)
+        return dist, idx
+
+
+class NeighborTracker:
+    """Exact nearest neighbours of a query cloud that moves a little between calls (as in ICP).
+
+    Each call answers exactly what ``index.query(points, k=1, max_distance=max_distance)`` would,
+    but on the KD-tree backend it searches the tree again only for the points whose answer may
+    have changed. For every point it remembers where it was last searched (its anchor), the
+    ``candidates`` nearest reference points there, and a lower bound ``L`` on the distance from
+    the anchor to every other reference point. After the point moved by ``delta``, the other
+    points are at least ``L - delta`` away, so the nearest candidate, if closer than that, is the
+    nearest neighbour; if both are beyond ``max_distance``, nothing is in range. Only the other
+    points are searched again. Late ICP iterations then search almost nothing. Other backends
+    search every point at every call.
+
+    Args:
+        index: the reference clouds.
+        max_distance: neighbours farther than this are reported missing (``inf``, index 0).
+        candidates: reference points remembered per query point.
+        margin: searches reach ``(1 + margin) * max_distance``, so that points just out of range
+            are settled without a search too.
+
+    Example:
+        >>> ref = torch.tensor([[[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]])
+        >>> tracker = NeighborTracker(NeighborIndex(ref), max_distance=0.5)
+        >>> tracker.query(torch.tensor([[[0.1, 0.0, 0.0], [0.5, 0.9, 0.0]]]))[1].tolist()
+        [[[0], [0]]]
+        >>> tracker.query(torch.tensor([[[0.8, 0.0, 0.0], [0.5, 0.9, 0.0]]]))[0]
+        tensor([[[0.2000],
+                 [   inf]]])
+    """
+
+    def __init__(
+        self,
+        index: NeighborIndex,
+        *,
+        max_distance: float,
+        candidates: int = 4,
+        margin: float = 0.5,
+    ) -> None:
+        if not max_distance > 0 or not margin >= 0 or candidates < 1:
+            raise ValueRangeError(
+                "need max_distance > 0, candidates >= 1 and margin >= 0, got "
+                f"{max_distance}, {candidates}, {margin}"
+            )
+        self.index = index
+        self.max_distance = float(max_distance)
+        self.candidates = int(candidates)
+        self._bound = self.max_distance * (1 + margin)
+        # Per batch item and query point: the anchor (3, B, N), the candidates (K, B, N) as columns
+        # of the flattened reference (the last, at infinity, for none) and the bound L (B, N).
+        self._anchor: np.ndarray | None = None
+        self._cand = self._lower = np.empty(0)
+
+    def query(
+        self, points: torch.Tensor, items: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Nearest valid reference point of every point within ``max_distance``.
+
+        Args:
+            points: query points ``(B', N, 3)``: all ``B`` batch items, or those listed in
+                ``items``, in that order.
+            items: optional int64 ``(B',)`` batch indices of the rows of ``points``.
+
+        Returns:
+            ``(dist, idx)`` of shape ``(B', N, 1)``, as :meth:`NeighborIndex.query` returns them.
+        """
+        index = self.index
+        check_tensor(points, "points", (None, "N", 3))
+        check_same(("reference", index.reference), ("points", points))
+        n_items = index.batch_size if items is None else len(items)
+        if points.shape[0] != n_items:
+            raise ShapeError(f"points has {points.shape[0]} batch items, expected {n_items}")
+        if points.numel() and not bool(torch.isfinite(points).all()):
+            raise ValueRangeError("points contains NaN or inf")
+        if (
+            points.shape[1] == 0
+            or index.reference.shape[1] == 0
+            or not index._use_kdtree(points.shape[1])
+        ):
+            return index._search(points, 1, self.max_distance, items)
+
+        # Coordinates first, (3, B', N): every step below is a flat, contiguous array operation.
+        q = np.ascontiguousarray(np.moveaxis(points.detach().to(torch.float64).numpy(), -1, 0))
+        B, N, M, K = index.batch_size, q.shape[2], index.reference.shape[1], self.candidates
+        ref = index._reference_columns()  # (3, B * M + 1), the last column at infinity
+        if self._anchor is None or self._anchor.shape[2] != N:
+            self._anchor = np.zeros((3, B, N))
+            self._cand = np.full((K, B, N), B * M, dtype=np.int64)
+            self._lower = np.full((B, N), -np.inf)  # never searched
+        sel = slice(None) if items is None else items.cpu().numpy()
+        item_ids = np.arange(B) if items is None else sel
+
+        diff = q - self._anchor[:, sel]
+        moved = np.sqrt(np.einsum("cbn,cbn->bn", diff, diff))
+        cand = self._cand[:, sel]  # (K, B', N)
+        dist2 = sum(np.square(np.take(ref[c], cand) - q[c]) for c in range(3))  # (K, B', N)
+        nearest, best2 = cand[0], dist2[0]
+        for k in range(1, K):
+            closer = dist2[k] < best2
+            nearest = np.where(closer, cand[k], nearest)
+            best2 = np.where(closer, dist2[k], best2)
+        dist = np.sqrt(best2)
+        others = self._lower[sel] - moved  # every other reference point is at least this far
+        settled = (dist < others) | ((dist > self.max_distance) & (others > self.max_distance))
+
+        redo = ~settled
+        rows = [np.flatnonzero(r) for r in redo]
+        found = index._kdtree_search(
+            [q[:, j, r].T for j, r in enumerate(rows)], item_ids.tolist(), K, self._bound
+        )
+        jj, ii = np.nonzero(redo)  # row-major: the order of the per-item searches above
+        if len(jj):
+            bb = item_ids[jj]
+            d = np.concatenate([f[0] for f in found])
+            i = np.concatenate([f[1] for f in found]) + (bb * M)[:, None]
+            i[np.isinf(d)] = B * M
+            self._anchor[:, bb, ii] = q[:, jj, ii]
+            self._cand[:, bb, ii] = i.T
+            # Unlisted points lie beyond the K-th candidate, or beyond the search bound when
+            # fewer were found; a hair less, against rounding.
+            self._lower[bb, ii] = np.minimum(d[:, K - 1], self._bound) * (1 - 1e-12)
+            nearest[jj, ii], dist[jj, ii] = i[:, 0], d[:, 0]
+
+        ok = dist <= self.max_distance
+        out = torch.from_numpy(np.where(ok, dist, np.inf)).to(points.dtype).unsqueeze(-1)
+        idx = np.where(ok, nearest - item_ids[:, None] * M, 0)
+        return out, torch.from_numpy(idx).unsqueeze(-1)
+
+
+def nearest_neighbors(
+    query: torch.Tensor,
+    reference: torch.Tensor,
+    *,
+    k: int = 1,
+    reference_mask: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Exact k nearest neighbours of every query point among the valid reference points.
+
+    The backend is chosen per device (see the module docstring); all give the same answer up to
+    ties between equidistant points. Not differentiable: use the indices to gather points and
+    compute differentiable distances from them.
+
+    Args:
+        query: query points, shape ``(B, N, 3)``, finite.
+        reference: reference points, shape ``(B, M, 3)``; same device and dtype as ``query``.
+            Masked-out points may hold any value (NaN included).
+        k: number of neighbours per query point, at least 1.
+        reference_mask: ``(B, M)`` bool, True where a reference point may be returned.
+
+    Returns:
+        ``(dist, idx)``, both of shape ``(B, N, k)``, sorted by increasing distance: ``dist``
+        holds Euclidean distances (not squared) in the query's dtype, ``idx`` int64 indices into
+        ``reference``'s ``M`` axis. Where fewer than ``k`` valid reference points exist, the
+        missing neighbours have ``dist = inf`` and ``idx = 0``; masked points are never returned.
+
+    Raises:
+        ShapeError: wrong shapes, mismatched batch size, device or dtype, or a non-bool mask.
+        ValueRangeError: NaN/inf in the query or at valid reference points, or ``k < 1``.
+
+    Example:
+        >>> ref = torch.tensor([[[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [5.0, 0.0, 0.0]]])
+        >>> dist, idx = nearest_neighbors(torch.tensor([[[0.8, 0.0, 0.0]]]), ref, k=2)
+        >>> idx.tolist()
+        [[[1, 0]]]
+        >>> dist
+        tensor([[[0.2000, 0.8000]]])
+    """
+    return NeighborIndex(reference, reference_mask).query(query, k=k)

@@ -1,0 +1,447 @@
+"""Point-to-point ICP, single- and multi-scale, batched over instances.
+
+Each iteration pairs every valid source point (moved by the current estimate) with its nearest
+valid target point, keeps the pairs closer than ``max_correspondence_distance`` and re-solves
+Procrustes on them (:mod:`poseflow.geometry.neighbors` picks the search backend per device; the
+target's search structure is built once per call). Instances stop independently: an instance
+whose fitness and inlier RMSE both change less than ``relative_fitness`` and ``relative_rmse``
+(Open3D's criteria) is frozen while the others go on.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import torch
+
+from poseflow._checks import check_mask, check_same, check_tensor
+from poseflow.errors import ValueRangeError
+from poseflow.geometry.neighbors import NeighborIndex, NeighborTracker
+from poseflow.registration._threads import serial_cpu_ops
+from poseflow.registration.procrustes import _solve, _zero_masked
+from poseflow.registration.result import RegistrationResult
+
+__all__ = ["ICP", "MultiScaleICP", "icp", "multi_scale_icp"]
+
+
+class ICP:
+    """Point-to-point ICP solver: stores the hyper-parameters, registers when called.
+
+    See :func:`icp` for the algorithm, arguments and result.
+
+    Example:
+        >>> g = torch.Generator().manual_seed(0)
+        >>> cloud = torch.rand(1, 300, 3, generator=g)
+        >>> result = ICP(max_correspondence_distance=0.2)(cloud, cloud + 0.01)
+        >>> result.transformation[0, :3, 3]
+        tensor([0.0100, 0.0100, 0.0100])
+    """
+
+    def __init__(
+        self,
+        *,
+        max_correspondence_distance: float,
+        max_iterations: int = 30,
+        relative_fitness: float = 1e-6,
+        relative_rmse: float = 1e-6,
+    ) -> None:
+        _check_distance(max_correspondence_distance, "max_correspondence_distance")
+        _check_iterations(max_iterations)
+        _check_relative(relative_fitness, relative_rmse)
+        self.max_correspondence_distance = float(max_correspondence_distance)
+        self.max_iterations = max_iterations
+        self.relative_fitness = float(relative_fitness)
+        self.relative_rmse = float(relative_rmse)
+
+    def __repr__(self) -> str:
+        return (
+            f"ICP(max_correspondence_distance={self.max_correspondence_distance}, "
+            f"max_iterations={self.max_iterations}, relative_fitness={self.relative_fitness}, "
+            f"relative_rmse={self.relative_rmse})"
+        )
+
+    def __call__(
+        self,
+        source: torch.Tensor,
+        target: torch.Tensor,
+        init: torch.Tensor | None = None,
+        *,
+        source_mask: torch.Tensor | None = None,
+        target_mask: torch.Tensor | None = None,
+    ) -> RegistrationResult:
+        """Register; arguments and result as in :func:`icp`."""
+        with serial_cpu_ops(source):
+            problem = _Problem.make(source, target, init, source_mask, target_mask)
+            state = _run_scale(
+                problem,
+                problem.init,
+                self.max_correspondence_distance,
+                self.max_iterations,
+                self.relative_fitness,
+                self.relative_rmse,
+            )
+            return problem.result(state)
+
+
+class MultiScaleICP:
+    """Coarse-to-fine point-to-point ICP solver; see :func:`multi_scale_icp`.
+
+    Example:
+        >>> g = torch.Generator().manual_seed(0)
+        >>> cloud = torch.rand(1, 300, 3, generator=g)
+        >>> solver = MultiScaleICP(max_correspondence_distances=[0.3, 0.1, 0.03])
+        >>> solver(cloud, cloud + 0.02).transformation[0, :3, 3]
+        tensor([0.0200, 0.0200, 0.0200])
+    """
+
+    def __init__(
+        self,
+        *,
+        max_correspondence_distances: Sequence[float],
+        max_iterations: int | Sequence[int] = 30,
+        relative_fitness: float = 1e-6,
+        relative_rmse: float = 1e-6,
+    ) -> None:
+        distances = [float(d) for d in max_correspondence_distances]
+        if not distances:
+            raise ValueRangeError("max_correspondence_distances must not be empty")
+        for d in distances:
+            _check_distance(d, "max_correspondence_distances")
+        if any(b > a for a, b in itertools.pairwise(distances)):
+            raise ValueRangeError(
+                f"max_correspondence_distances must go from coarse to fine (non-increasing), "
+                f"got {distances}"
+            )
+        if isinstance(max_iterations, int) and not isinstance(max_iterations, bool):
+            iterations = [max_iterations] * len(distances)
+        else:
+            iterations = list(max_iterations)
+            if len(iterations) != len(distances):
+                raise ValueRangeError(
+                    f"max_iterations has {len(iterations)} entries for {len(distances)} scales"
+                )
+        for it in iterations:
+            _check_iterations(it)
+        _check_relative(relative_fitness, relative_rmse)
+        self.max_correspondence_distances = distances
+        self.max_iterations = iterations
+        self.relative_fitness = float(relative_fitness)
+        self.relative_rmse = float(relative_rmse)
+
+    def __repr__(self) -> str:
+        return (
+            f"MultiScaleICP(max_correspondence_distances={self.max_correspondence_distances}, "
+            f"max_iterations={self.max_iterations}, relative_fitness={self.relative_fitness}, "
+            f"relative_rmse={self.relative_rmse})"
+        )
+
+    def __call__(
+        self,
+        source: torch.Tensor,
+        target: torch.Tensor,
+        init: torch.Tensor | None = None,
+        *,
+        source_mask: torch.Tensor | None = None,
+        target_mask: torch.Tensor | None = None,
+    ) -> RegistrationResult:
+        """Register; arguments and result as in :func:`multi_scale_icp`."""
+        scales = list(zip(self.max_correspondence_distances, self.max_iterations))
+        fit, rmse = self.relative_fitness, self.relative_rmse
+        with serial_cpu_ops(source):
+            problem = _Problem.make(source, target, init, source_mask, target_mask)
+            T = problem.init
+            iterations = torch.zeros(problem.B, dtype=torch.int64, device=T.device)
+            for distance, max_it in scales[:-1]:
+                state = _run_scale(problem, T, distance, max_it, fit, rmse)
+                iterations += state.iterations
+                # An instance that found too few pairs at this scale keeps its previous estimate.
+                T = torch.where(state.valid[:, None, None], state.T, T)
+            distance, max_it = scales[-1]
+            state = _run_scale(problem, T, distance, max_it, fit, rmse)
+            state.iterations += iterations
+            return problem.result(state)
+
+
+def icp(
+    source: torch.Tensor,
+    target: torch.Tensor,
+    init: torch.Tensor | None = None,
+    *,
+    max_correspondence_distance: float,
+    max_iterations: int = 30,
+    relative_fitness: float = 1e-6,
+    relative_rmse: float = 1e-6,
+    source_mask: torch.Tensor | None = None,
+    target_mask: torch.Tensor | None = None,
+) -> RegistrationResult:
+    """Refine the rigid transform mapping ``source`` onto ``target`` by point-to-point ICP.
+
+    Same algorithm, defaults and stopping rule as Open3D's ``registration_icp`` with
+    ``TransformationEstimationPointToPoint``, batched: every iteration re-solves Procrustes on
+    the current nearest-neighbour pairs within ``max_correspondence_distance``, and an instance
+    stops when both its fitness and inlier RMSE change by less than ``relative_fitness`` and
+    ``relative_rmse`` (or after ``max_iterations`` updates).
+
+    Args:
+        source: source cloud, shape ``(B, N, 3)``.
+        target: target cloud, shape ``(B, M, 3)``, same device and dtype (``M`` may differ).
+        init: initial transforms ``(B, 4, 4)`` (source to target); identity by default.
+        max_correspondence_distance: pairs farther apart than this are ignored.
+        max_iterations: transform updates per instance, at most.
+        relative_fitness: convergence threshold on the change of fitness.
+        relative_rmse: convergence threshold on the change of inlier RMSE.
+        source_mask: optional ``(B, N)`` bool, True for source points to use.
+        target_mask: optional ``(B, M)`` bool, True for target points that may be matched.
+
+    Returns:
+        A :class:`~poseflow.registration.result.RegistrationResult` evaluated at the final
+        transforms: ``inliers`` marks the source points with a target point within
+        ``max_correspondence_distance``. Instances with fewer than 3 such pairs (at the start
+        or the end), or whose pairs are collinear, get ``valid = False`` and the identity.
+
+    Raises:
+        ShapeError: wrong shapes, mismatched devices or dtypes, non-bool masks.
+        ValueRangeError: NaN/inf at valid points or in ``init``, or a hyper-parameter out of
+            range.
+
+    Example:
+        >>> g = torch.Generator().manual_seed(0)
+        >>> cloud = torch.rand(2, 400, 3, generator=g)
+        >>> result = icp(cloud, cloud + 0.02, max_correspondence_distance=0.1)
+        >>> result.transformation[:, :3, 3]
+        tensor([[0.0200, 0.0200, 0.0200],
+                [0.0200, 0.0200, 0.0200]])
+    """
+    solver = ICP(
+        max_correspondence_distance=max_correspondence_distance,
+        max_iterations=max_iterations,
+        relative_fitness=relative_fitness,
+        relative_rmse=relative_rmse,
+    )
+    return solver(source, target, init, source_mask=source_mask, target_mask=target_mask)
+
+
+def multi_scale_icp(
+    source: torch.Tensor,
+    target: torch.Tensor,
+    init: torch.Tensor | None = None,
+    *,
+    max_correspondence_distances: Sequence[float],
+    max_iterations: int | Sequence[int] = 30,
+    relative_fitness: float = 1e-6,
+    relative_rmse: float = 1e-6,
+    source_mask: torch.Tensor | None = None,
+    target_mask: torch.Tensor | None = None,
+) -> RegistrationResult:
+    """Coarse-to-fine point-to-point ICP over decreasing correspondence distances.
+
+    Runs :func:`icp` once per distance, from the coarsest (widest basin of convergence) to the
+    finest (most accurate), each scale starting where the previous one ended; the target's search
+    structure is built once. An instance with fewer than 3 pairs at some scale keeps its previous
+    estimate for the next scale. The result is that of the last scale, with ``num_iterations``
+    summed over the scales.
+
+    Args:
+        source: source cloud, shape ``(B, N, 3)``.
+        target: target cloud, shape ``(B, M, 3)``.
+        init: initial transforms ``(B, 4, 4)``; identity by default.
+        max_correspondence_distances: one distance per scale, non-increasing.
+        max_iterations: transform updates per scale: one int for all, or one per scale.
+        relative_fitness: convergence threshold on the change of fitness, at every scale.
+        relative_rmse: convergence threshold on the change of inlier RMSE, at every scale.
+        source_mask: optional ``(B, N)`` bool, True for source points to use.
+        target_mask: optional ``(B, M)`` bool, True for target points that may be matched.
+
+    Returns:
+        A :class:`~poseflow.registration.result.RegistrationResult` as :func:`icp` returns it,
+        measured with the finest distance.
+
+    Raises:
+        ShapeError: wrong shapes, mismatched devices or dtypes, non-bool masks.
+        ValueRangeError: NaN/inf at valid points, distances not positive or not coarse-to-fine,
+            or a hyper-parameter out of range.
+
+    Example:
+        >>> g = torch.Generator().manual_seed(0)
+        >>> cloud = torch.rand(1, 400, 3, generator=g)
+        >>> result = multi_scale_icp(cloud, cloud + 0.05, max_correspondence_distances=[0.2, 0.05])
+        >>> result.transformation[0, :3, 3]
+        tensor([0.0500, 0.0500, 0.0500])
+    """
+    solver = MultiScaleICP(
+        max_correspondence_distances=max_correspondence_distances,
+        max_iterations=max_iterations,
+        relative_fitness=relative_fitness,
+        relative_rmse=relative_rmse,
+    )
+    return solver(source, target, init, source_mask=source_mask, target_mask=target_mask)
+
+
+@dataclass
+class _State:
+    """Per-instance ICP state at the current transforms."""
+
+    T: torch.Tensor  # (B, 4, 4)
+    inliers: torch.Tensor  # (B, N) bool
+    fitness: torch.Tensor  # (B,)
+    rmse: torch.Tensor  # (B,)
+    iterations: torch.Tensor  # (B,) int64
+    valid: torch.Tensor  # (B,) bool
+
+
+@dataclass
+class _Problem:
+    """Validated inputs shared by all scales, with the target's search structure."""
+
+    source: torch.Tensor  # (B, N, 3), masked points zeroed
+    target: torch.Tensor  # (B, M, 3), masked points zeroed
+    source_valid: torch.Tensor  # (B, N) bool
+    n_valid: torch.Tensor  # (B,) valid source points, as the dtype
+    init: torch.Tensor  # (B, 4, 4)
+    index: NeighborIndex
+
+    @property
+    def B(self) -> int:
+        return self.source.shape[0]
+
+    @classmethod
+    def make(
+        cls,
+        source: torch.Tensor,
+        target: torch.Tensor,
+        init: torch.Tensor | None,
+        source_mask: torch.Tensor | None,
+        target_mask: torch.Tensor | None,
+    ) -> _Problem:
+        sizes = check_tensor(source, "source", ("B", "N", 3))
+        check_tensor(target, "target", ("B", "M", 3), sizes=sizes)
+        check_same(("source", source), ("target", target))
+        B, N = sizes["B"], sizes["N"]
+        if init is None:
+            init = torch.eye(4, dtype=source.dtype, device=source.device).expand(B, 4, 4)
+        check_tensor(init, "init", ("B", 4, 4), finite=True, sizes=sizes)
+        check_same(("source", source), ("init", init))
+        for mask, name, letter in (
+            (source_mask, "source_mask", "N"),
+            (target_mask, "target_mask", "M"),
+        ):
+            if mask is not None:
+                check_mask(mask, name, ("B", letter), sizes)
+                check_same(("source", source), (name, mask), dtype=False)
+        source = _zero_masked(source, source_mask, "source")
+        target = _zero_masked(target, target_mask, "target")
+        if source_mask is None:
+            source_mask = torch.ones(B, N, dtype=torch.bool, device=source.device)
+        return cls(
+            source=source.detach(),
+            target=target.detach(),
+            source_valid=source_mask,
+            n_valid=source_mask.sum(-1).to(source.dtype),
+            init=init.detach(),
+            index=NeighborIndex(target.detach(), target_mask),
+        )
+
+    def evaluate(
+        self, T: torch.Tensor, tracker: NeighborTracker, items: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Pairs under ``T``, for the batch ``items`` only if given.
+
+        Returns inliers ``(B', N)``, matched target points ``(B', N, 3)``, fitness and inlier
+        RMSE ``(B',)``.
+        """
+        sel = slice(None) if items is None else items
+        source, valid, n_valid = self.source[sel], self.source_valid[sel], self.n_valid[sel]
+        moved = torch.baddbmm(T[:, None, :3, 3], source, T[:, :3, :3].transpose(1, 2))
+        dist, idx = tracker.query(moved, items)
+        inliers = (dist[..., 0] <= tracker.max_distance) & valid
+        matched = self.target[sel].gather(1, idx.expand(-1, -1, 3))
+        count = inliers.sum(-1).to(dist.dtype)
+        fitness = count / n_valid.clamp_min(1)
+        d2 = torch.where(inliers, dist[..., 0], 0).square().sum(-1)
+        return inliers, matched, fitness, (d2 / count.clamp_min(1)).sqrt()
+
+    def result(self, state: _State) -> RegistrationResult:
+        """Final record: hopeless instances get the identity, zero fitness and no inliers."""
+        ok = state.valid
+        eye = torch.eye(4, dtype=state.T.dtype, device=state.T.device).expand(self.B, 4, 4)
+        return RegistrationResult(
+            transformation=torch.where(ok[:, None, None], state.T, eye),
+            fitness=torch.where(ok, state.fitness, 0),
+            inlier_rmse=torch.where(ok, state.rmse, 0),
+            inliers=state.inliers & ok[:, None],
+            num_iterations=state.iterations,
+            valid=ok,
+        )
+
+
+def _run_scale(
+    problem: _Problem,
+    T: torch.Tensor,
+    distance: float,
+    max_iterations: int,
+    relative_fitness: float,
+    relative_rmse: float,
+) -> _State:
+    """Iterate ICP at one correspondence distance from ``T``; returns the state at the end."""
+    T = T.clone()
+    tracker = NeighborTracker(problem.index, max_distance=distance)
+    inliers, matched, fitness, rmse = problem.evaluate(T, tracker)
+    B = problem.B
+    iterations = torch.zeros(B, dtype=torch.int64, device=T.device)
+    solvable = torch.ones(B, dtype=torch.bool, device=T.device)
+    active = inliers.sum(-1) >= 3
+    n_active = int(active.sum())
+    for _ in range(max_iterations):
+        if n_active == 0:
+            break
+        # Only the instances still iterating are solved and searched.
+        items = None if n_active == B else active.nonzero()[:, 0]
+        sel = slice(None) if items is None else items
+        T_new, ok = _solve(problem.source[sel], matched[sel], inliers[sel].to(T.dtype))
+        T_new = torch.where(ok[:, None, None], T_new, T[sel])
+        new_inliers, new_matched, new_fitness, new_rmse = problem.evaluate(T_new, tracker, items)
+        converged = ((new_fitness - fitness[sel]).abs() < relative_fitness) & (
+            (new_rmse - rmse[sel]).abs() < relative_rmse
+        )
+        going = ok & ~converged & (new_inliers.sum(-1) >= 3)
+        if items is None:
+            T, inliers, matched, fitness, rmse = (
+                T_new,
+                new_inliers,
+                new_matched,
+                new_fitness,
+                new_rmse,
+            )
+            iterations += ok
+            solvable &= ok
+            active = going
+        else:
+            T[items], inliers[items], matched[items] = T_new, new_inliers, new_matched
+            fitness[items], rmse[items] = new_fitness, new_rmse
+            iterations[items] += ok
+            solvable[items] = ok
+            active[items] = going
+        n_active = int(going.sum())
+    valid = solvable & (inliers.sum(-1) >= 3)
+    return _State(T, inliers, fitness, rmse, iterations, valid)
+
+
+def _check_distance(value: float, name: str) -> None:
+    if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+        raise ValueRangeError(f"{name} must be finite and > 0, got {value!r}")
+
+
+def _check_iterations(value: int) -> None:
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ValueRangeError(f"max_iterations must be an int >= 1, got {value!r}")
+
+
+def _check_relative(relative_fitness: float, relative_rmse: float) -> None:
+    if not (relative_fitness >= 0 and relative_rmse >= 0):
+        raise ValueRangeError(
+            f"relative_fitness and relative_rmse must be >= 0, got {relative_fitness}, "
+            f"{relative_rmse}"
+        )

@@ -1,0 +1,192 @@
+"""Weighted orthogonal Procrustes (Kabsch, and Umeyama with scaling), batched and differentiable."""
+
+from __future__ import annotations
+
+import torch
+
+from poseflow._checks import check_mask, check_same, check_tensor
+from poseflow.errors import ValueRangeError
+
+__all__ = ["Procrustes", "procrustes"]
+
+
+def procrustes(
+    source: torch.Tensor,
+    target: torch.Tensor,
+    weights: torch.Tensor | None = None,
+    mask: torch.Tensor | None = None,
+    *,
+    with_scaling: bool = False,
+) -> torch.Tensor:
+    """Rigid (or similarity) transform that best maps ``source`` onto ``target`` in least squares.
+
+    Minimises ``sum_i w_i |c R s_i + t - d_i|^2`` over rotations ``R`` (``det R = +1``: reflections
+    are never returned), translations ``t`` and, with ``with_scaling``, a scale ``c > 0``
+    (Umeyama); otherwise ``c = 1`` (Kabsch). The SVD of the 3×3 cross-covariance runs in float64
+    whatever the input dtype, and gradients flow to ``source``, ``target`` and ``weights``
+    (they are undefined where two singular values coincide, e.g. symmetric point sets).
+
+    An instance with fewer than 3 points of positive weight, or whose points are (numerically)
+    collinear or coincident, has no unique solution and gets the identity.
+
+    Args:
+        source: source points, shape ``(B, N, 3)``.
+        target: corresponding target points, shape ``(B, N, 3)``, same device and dtype.
+        weights: optional non-negative weights, shape ``(B, N)``; all ones by default.
+        mask: optional ``(B, N)`` bool, True for pairs to use. Masked pairs may hold NaN.
+        with_scaling: also estimate a uniform scale; the returned ``(B, 4, 4)`` then holds
+            ``c R`` in its upper-left block.
+
+    Returns:
+        Transforms ``(B, 4, 4)`` mapping source to target (``d ≈ R s + t``), in the inputs' dtype.
+
+    Raises:
+        ShapeError: wrong shapes, mismatched devices or dtypes, a non-bool mask.
+        ValueRangeError: NaN/inf at unmasked pairs, negative or non-finite weights.
+
+    Example:
+        >>> src = torch.tensor([[[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]]])
+        >>> T = procrustes(src, src + torch.tensor([1.0, 2.0, 3.0]))
+        >>> T[0, :3, 3].round(decimals=4).tolist()
+        [1.0, 2.0, 3.0]
+    """
+    source, target, w = _check_pairs(source, target, weights, mask)
+    return _solve(source, target, w, with_scaling=with_scaling)[0]
+
+
+class Procrustes:
+    """Solver object for :func:`procrustes`: stores ``with_scaling`` and solves when called.
+
+    Args:
+        with_scaling: also estimate a uniform scale (Umeyama).
+
+    Example:
+        >>> solver = Procrustes()
+        >>> src = torch.tensor([[[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]]])
+        >>> solver(src, src).shape
+        torch.Size([1, 4, 4])
+    """
+
+    def __init__(self, *, with_scaling: bool = False) -> None:
+        self.with_scaling = with_scaling
+
+    def __call__(
+        self,
+        source: torch.Tensor,
+        target: torch.Tensor,
+        weights: torch.Tensor | None = None,
+        mask: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        """Solve; arguments and result as in :func:`procrustes`."""
+        return procrustes(source, target, weights, mask, with_scaling=self.with_scaling)
+
+    def __repr__(self) -> str:
+        return f"Procrustes(with_scaling={self.with_scaling})"
+
+
+def _check_pairs(
+    source: torch.Tensor,
+    target: torch.Tensor,
+    weights: torch.Tensor | None,
+    mask: torch.Tensor | None,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Validate corresponding point sets; return them with masked pairs zeroed, and the weights.
+
+    The returned weights are ``(B, N)`` in the points' dtype, zero at masked pairs.
+    """
+    sizes = check_tensor(source, "source", ("B", "N", 3))
+    check_tensor(target, "target", ("B", "N", 3), sizes=sizes)
+    check_same(("source", source), ("target", target))
+    if mask is not None:
+        check_mask(mask, "mask", ("B", "N"), sizes)
+        check_same(("source", source), ("mask", mask), dtype=False)
+    source = _zero_masked(source, mask, "source")
+    target = _zero_masked(target, mask, "target")
+    if weights is None:
+        w = torch.ones(source.shape[:2], dtype=source.dtype, device=source.device)
+    else:
+        check_tensor(weights, "weights", ("B", "N"), sizes=sizes)
+        check_same(("source", source), ("weights", weights))
+        w = weights if mask is None else torch.where(mask, weights, 0)
+        if not bool(torch.isfinite(w).all()) or bool((w < 0).any()):
+            raise ValueRangeError("weights must be finite and non-negative")
+    if mask is not None:
+        w = w * mask
+    return source, target, w
+
+
+def _zero_masked(points: torch.Tensor, mask: torch.Tensor | None, name: str) -> torch.Tensor:
+    """Raise on NaN/inf at valid points; return ``points`` with masked points set to zero."""
+    if mask is None:
+        if points.numel() and not bool(torch.isfinite(points).all()):
+            raise ValueRangeError(f"{name} contains NaN or inf")
+        return points
+    if not bool((torch.isfinite(points).all(-1) | ~mask).all()):
+        raise ValueRangeError(f"{name} contains NaN or inf at valid (unmasked) points")
+    return torch.where(mask[..., None], points, 0)
+
+
+def _solve(
+    source: torch.Tensor,
+    target: torch.Tensor,
+    weights: torch.Tensor,
+    *,
+    with_scaling: bool = False,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Unchecked weighted Procrustes on ``(B, N, 3)`` pairs with ``(B, N)`` weights (0 = unused).
+
+    Returns:
+        ``(T, ok)``: transforms ``(B, 4, 4)`` in the points' dtype, the identity where ``ok``
+        ``(B,)`` is False (fewer than 3 weighted points, collinear or coincident points).
+    """
+    dtype = source.dtype
+    eps = torch.finfo(dtype).eps
+    total = weights.sum(-1, keepdim=True)  # (B, 1)
+    wn = (weights / total.clamp_min(torch.finfo(dtype).tiny)).unsqueeze(1)  # (B, 1, N)
+    mu_s = (wn @ source).squeeze(1)  # (B, 3)
+    mu_d = (wn @ target).squeeze(1)
+    xs = source - mu_s.unsqueeze(1)
+    xd = target - mu_d.unsqueeze(1)
+    xs_w = xs * wn.transpose(1, 2)
+    cov = xd.transpose(1, 2) @ xs_w  # (B, 3, 3) = sum_i w_i xd_i xs_i^T
+
+    cov64 = cov.to(torch.float64)
+    U, S, Vh = torch.linalg.svd(cov64.detach() if cov64.requires_grad else cov64)
+    # Unique solution iff the cross-covariance has rank >= 2, judged against the rounding noise of
+    # the input dtype: the second singular value must stand out of the first, and the first out
+    # of the noise left by centring (coincident points).
+    scale = (mu_s.square().sum(-1) + mu_d.square().sum(-1)).detach().to(torch.float64)
+    ok = (
+        ((weights > 0).sum(-1) >= 3)
+        & (S[:, 1] > eps**0.5 * S[:, 0])
+        & (S[:, 0] > eps * scale)
+        & torch.isfinite(S).all(-1)
+    )
+    if cov64.requires_grad:
+        # Differentiate a well-conditioned stand-in where the solution is not unique, so that the
+        # SVD's backward stays finite there (those instances get the identity and zero gradient).
+        stand_in = torch.diag(torch.tensor([3.0, 2.0, 1.0], dtype=torch.float64, device=cov.device))
+        U, S, Vh = torch.linalg.svd(torch.where(ok[:, None, None], cov64, stand_in))
+    # det(U Vh) = det(U) det(Vh), each the triple product of its columns (or rows).
+    sign = (_det3(U.detach()) * _det3(Vh.detach())).sign()
+    D = torch.cat((torch.ones_like(S[:, :2]), torch.where(sign < 0, -1.0, 1.0)[:, None]), -1)
+    R = (U * D.unsqueeze(1)) @ Vh  # U diag(D) Vh
+
+    if with_scaling:
+        spread = (xs * xs_w).sum((1, 2)).to(torch.float64)  # sum_i w_i |xs_i|^2
+        R = R * ((S * D).sum(-1) / torch.where(ok, spread, 1.0))[:, None, None]
+    t = mu_d.to(torch.float64) - (R @ mu_s.to(torch.float64).unsqueeze(-1)).squeeze(-1)
+
+    B = source.shape[0]
+    T = torch.zeros(B, 4, 4, dtype=dtype, device=source.device)
+    T[:, 3, 3] = 1
+    T[:, :3, :3] = torch.where(
+        ok[:, None, None], R, torch.eye(3, dtype=torch.float64, device=R.device)
+    ).to(dtype)
+    T[:, :3, 3] = torch.where(ok[:, None], t, 0).to(dtype)
+    return T, ok
+
+
+def _det3(M: torch.Tensor) -> torch.Tensor:
+    """Determinants of ``(B, 3, 3)`` matrices as triple products."""
+    return (torch.linalg.cross(M[:, 0], M[:, 1]) * M[:, 2]).sum(-1)
