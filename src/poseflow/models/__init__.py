@@ -1,0 +1,16 @@
+"""FunFlow6D: the model class, its configuration and its trainable network."""
+
+from poseflow.models.config import ABLATIONS, FunFlow6DConfig
+from poseflow.models.funflow6d import FunFlow6D, Observation, PoseEstimate, PreparedObject
+from poseflow.models.network import FunFlow6DNet, NetConfig
+
+__all__ = [
+    "ABLATIONS",
+    "FunFlow6D",
+    "FunFlow6DConfig",
+    "FunFlow6DNet",
+    "NetConfig",
+    "Observation",
+    "PoseEstimate",
+    "PreparedObject",
+]

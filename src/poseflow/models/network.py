@@ -1,0 +1,158 @@
+"""The trainable part of FunFlow6D: input adapters, fusion, positional encoder and DiT.
+
+Shape letters: ``B`` instances, ``N`` points per cloud, ``L = 2N`` tokens ``[Q ; T]``, ``Dg`` /
+``Ds`` channels of the frozen geometric / semantic descriptors, ``D`` fused channels, ``d_P``
+positional channels.
+
+The fusion block is applied to the query and the target clouds independently, as in the paper:
+``[Q ; T]`` is folded to ``(2B, N, D)`` so that one call fuses both without letting points of one
+cloud attend to the other. Fusion and positional encoding do not depend on the flow state, so
+:meth:`FunFlow6DNet.condition` is computed once per estimate and the sampler calls only the DiT.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import torch
+from torch import nn
+
+from poseflow._checks import check_mask, check_tensor
+from poseflow.errors import ShapeError
+from poseflow.flows.dit import PointDiT
+from poseflow.flows.positional import PointPositionalEncoder
+from poseflow.fusion import build_fusion
+
+__all__ = ["FunFlow6DNet", "NetConfig"]
+
+
+@dataclass(frozen=True, kw_only=True)
+class NetConfig:
+    """Sizes of :class:`FunFlow6DNet`.
+
+    Attributes:
+        geometric_dim: channels ``Dg`` of the frozen geometric descriptors.
+        semantic_dim: channels ``Ds`` of the (reduced) semantic descriptors.
+        feature_dim: fused channels ``D`` (paper: 64). A stream whose width differs from ``D``
+            goes through a learned linear adapter first.
+        fusion: ``"gated"`` (paper), ``"cross"``, ``"concat_mlp"`` or ``"sum"``.
+        fusion_heads: attention heads of the fusion block (paper: 4).
+        dropout: dropout of the fusion block (paper: 0.1).
+        posenc_dim: positional channels ``d_P``.
+        posenc_frequencies: octaves of the sinusoidal embedding of each attribute.
+        dit_preset: :class:`~poseflow.flows.dit.PointDiT` preset (``"paper"``, ``"small"``,
+            ``"tiny"``).
+    """
+
+    geometric_dim: int = 64
+    semantic_dim: int = 64
+    feature_dim: int = 64
+    fusion: str = "gated"
+    fusion_heads: int = 4
+    dropout: float = 0.1
+    posenc_dim: int = 64
+    posenc_frequencies: int = 6
+    dit_preset: str = "small"
+
+    def to_json(self) -> dict[str, Any]:
+        """The configuration as a JSON-serialisable dict."""
+        return asdict(self)
+
+
+class FunFlow6DNet(nn.Module):
+    """Velocity network ``Ψ(t, X(t) | C)`` with ``C = [F | P]`` built from frozen descriptors.
+
+    Args:
+        config: sizes and the fusion variant.
+
+    Example:
+        >>> net = FunFlow6DNet(NetConfig(geometric_dim=6, semantic_dim=5, feature_dim=8,
+        ...                              fusion_heads=2, posenc_dim=8, dit_preset="tiny"))
+        >>> B, N = 2, 4
+        >>> inputs = dict(geometric=torch.randn(B, 2 * N, 6), semantic=torch.randn(B, 2 * N, 5),
+        ...               points=torch.randn(B, 2 * N, 3), normals=torch.randn(B, 2 * N, 3),
+        ...               x_0=torch.randn(B, 2 * N, 3))
+        >>> net(x=torch.randn(B, 2 * N, 3), t=torch.rand(B), **inputs).shape
+        torch.Size([2, 8, 3])
+    """
+
+    def __init__(self, config: NetConfig | None = None) -> None:
+        super().__init__()
+        self.config = cfg = NetConfig() if config is None else config
+        d = cfg.feature_dim
+        self.geometric_in = (
+            nn.Identity() if cfg.geometric_dim == d else nn.Linear(cfg.geometric_dim, d)
+        )
+        self.semantic_in = (
+            nn.Identity() if cfg.semantic_dim == d else nn.Linear(cfg.semantic_dim, d)
+        )
+        kwargs: dict[str, Any] = {"dim": d}
+        if cfg.fusion in ("gated", "cross"):
+            kwargs.update(num_heads=cfg.fusion_heads, dropout=cfg.dropout)
+        self.fusion = build_fusion(cfg.fusion, **kwargs)
+        self.posenc = PointPositionalEncoder(cfg.posenc_dim, num_frequencies=cfg.posenc_frequencies)
+        self.dit = PointDiT.from_preset(cfg.dit_preset, cond_dim=d + cfg.posenc_dim)
+
+    def condition(
+        self,
+        *,
+        geometric: torch.Tensor,
+        semantic: torch.Tensor,
+        points: torch.Tensor,
+        normals: torch.Tensor,
+        x_0: torch.Tensor,
+        mask: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        """The conditioning signal ``C = [F | P]`` of ``[Q ; T]``.
+
+        Args:
+            geometric: geometric descriptors ``(B, 2N, Dg)``.
+            semantic: semantic descriptors ``(B, 2N, Ds)``.
+            points: normalised coordinates ``(B, 2N, 3)``: ``Q`` canonical, ``T`` observed.
+            normals: unit normals ``(B, 2N, 3)``.
+            x_0: the noise sample ``X(0)`` ``(B, 2N, 3)``.
+            mask: ``(B, 2N)`` bool, True at valid points (None: all valid).
+
+        Returns:
+            ``(B, 2N, D + d_P)``.
+        """
+        sizes = check_tensor(points, "points", ("B", "L", 3))
+        if sizes["L"] % 2:
+            raise ShapeError(f"[Q ; T] needs an even number of points, got {sizes['L']}")
+        check_tensor(geometric, "geometric", ("B", "L", self.config.geometric_dim), sizes=sizes)
+        check_tensor(semantic, "semantic", ("B", "L", self.config.semantic_dim), sizes=sizes)
+        if mask is not None:
+            check_mask(mask, "mask", ("B", "L"), sizes)
+        B, L = sizes["B"], sizes["L"]
+        n = L // 2
+        g = self.geometric_in(geometric).reshape(2 * B, n, -1)
+        s = self.semantic_in(semantic).reshape(2 * B, n, -1)
+        fused = self.fusion(g, s, None if mask is None else mask.reshape(2 * B, n))
+        fused = fused.reshape(B, L, -1)
+        is_target = torch.arange(L, device=points.device).expand(B, L) >= n
+        pos = self.posenc(points, normals, x_0, is_target)
+        return torch.cat([fused, pos], dim=-1)
+
+    def forward(
+        self,
+        *,
+        x: torch.Tensor,
+        t: torch.Tensor,
+        geometric: torch.Tensor,
+        semantic: torch.Tensor,
+        points: torch.Tensor,
+        normals: torch.Tensor,
+        x_0: torch.Tensor,
+        mask: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        """Velocity of every point of ``[Q ; T]``, ``(B, 2N, 3)``; see :meth:`condition`."""
+        c = self.condition(
+            geometric=geometric,
+            semantic=semantic,
+            points=points,
+            normals=normals,
+            x_0=x_0,
+            mask=mask,
+        )
+        return self.dit(x, t, condition=c, mask=mask, num_query=x.shape[1] // 2)

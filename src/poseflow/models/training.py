@@ -1,0 +1,212 @@
+"""Training FunFlow6D: per-instance flow inputs from BOP images, augmented, then flow matching.
+
+The frozen encoders are the slow part of a training step and do not change during training, so
+:func:`build_training_set` runs them once per instance (``copies`` times, each with fresh
+augmentations) and stores the flow inputs; :func:`train` then runs
+:class:`~poseflow.flows.CFMTrainer` over them (under ``torchrun`` too).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+
+from poseflow.data.bop import BOPImageDataset
+from poseflow.errors import DegenerateInputError, ValueRangeError
+from poseflow.flows import CFMObjective, CFMTrainer, TrainConfig
+from poseflow.models.funflow6d import FunFlow6D
+
+__all__ = ["FlowTrainingSet", "augment", "build_training_set", "train"]
+
+#: The per-instance tensors a training batch holds (``x_1`` and the model's keyword inputs).
+TRAINING_KEYS = ("x_1", "frozen_mask", "geometric", "semantic", "points", "normals", "mask")
+
+
+class FlowTrainingSet(torch.utils.data.Dataset):
+    """Precomputed flow inputs of training instances, one dict of tensors per item.
+
+    Args:
+        tensors: ``{key: (I, ...)}`` for every key of :data:`TRAINING_KEYS`.
+    """
+
+    def __init__(self, tensors: dict[str, torch.Tensor]) -> None:
+        missing = [k for k in TRAINING_KEYS if k not in tensors]
+        if missing:
+            raise ValueRangeError(f"training tensors lack {missing}")
+        sizes = {len(v) for v in tensors.values()}
+        if len(sizes) != 1:
+            raise ValueRangeError(f"training tensors have different lengths: {sorted(sizes)}")
+        self.tensors = {k: tensors[k] for k in TRAINING_KEYS}
+
+    def __len__(self) -> int:
+        return len(self.tensors["x_1"])
+
+    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
+        return {k: v[i] for k, v in self.tensors.items()}
+
+    def save(self, path: str | Path) -> Path:
+        """Write the tensors to one safetensors file."""
+        from safetensors.torch import save_file
+
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(".tmp")
+        save_file({k: v.contiguous() for k, v in self.tensors.items()}, str(tmp))
+        tmp.replace(path)
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path) -> FlowTrainingSet:
+        """Read a file written by :meth:`save`."""
+        from safetensors.torch import load_file
+
+        return cls(load_file(str(path)))
+
+
+def augment(
+    depth: torch.Tensor,
+    masks: torch.Tensor,
+    *,
+    generator: torch.Generator,
+    depth_noise: float = 0.002,
+    max_erosion: int = 2,
+    mask_noise: float = 0.02,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Perturb a training observation the way real sensors and segmenters do.
+
+    Depth gets Gaussian noise (``depth_noise`` metres at 1 m, growing with ``z²``); each mask is
+    eroded by a random radius up to ``max_erosion`` pixels and loses a random ``mask_noise``
+    fraction of its pixels.
+
+    Args:
+        depth: depth ``(H, W)`` metres.
+        masks: instance masks ``(B, H, W)`` bool.
+        generator: the random generator.
+        depth_noise: noise standard deviation at 1 m, metres.
+        max_erosion: largest erosion radius, pixels.
+        mask_noise: fraction of mask pixels dropped at random.
+
+    Returns:
+        The perturbed ``(depth, masks)``.
+
+    Example:
+        >>> d, m = augment(torch.ones(8, 8), torch.ones(1, 8, 8, dtype=torch.bool),
+        ...                generator=torch.Generator().manual_seed(0))
+        >>> d.shape, bool(m.sum() < 64)
+        (torch.Size([8, 8]), True)
+    """
+    noise = torch.randn(depth.shape, generator=generator) * depth_noise * depth.square()
+    depth = torch.where(depth > 0, depth + noise, depth)
+    out = []
+    for m in masks:
+        r = int(torch.randint(0, max_erosion + 1, (1,), generator=generator))
+        if r:
+            k = 2 * r + 1
+            m = -F.max_pool2d(-m[None, None].float(), k, stride=1, padding=r)[0, 0] > 0.5
+        drop = torch.rand(m.shape, generator=generator) < mask_noise
+        out.append(m & ~drop)
+    return depth, torch.stack(out) if out else masks
+
+
+@torch.no_grad()
+def build_training_set(
+    model: FunFlow6D,
+    root: str | Path,
+    *,
+    split: str = "train",
+    copies: int = 1,
+    min_visib_fract: float = 0.1,
+    max_images: int | None = None,
+    seed: int = 0,
+    progress: bool = True,
+) -> FlowTrainingSet:
+    """Run the frozen encoders over the instances of a BOP split.
+
+    Args:
+        model: the model; the objects of the split must be prepared.
+        root: the BOP dataset folder.
+        split: the split to read (``train`` for generated data, ``train_pbr`` for BOP's).
+        copies: augmented copies of every instance (the first is not augmented).
+        min_visib_fract: skip instances less visible than this.
+        max_images: use at most this many images.
+        seed: seed of the augmentations and samplings.
+        progress: show a progress bar.
+
+    Returns:
+        The :class:`FlowTrainingSet`.
+
+    Raises:
+        DegenerateInputError: no usable instance in the split.
+    """
+    from tqdm.auto import tqdm
+
+    images = BOPImageDataset(root, split)
+    count = len(images) if max_images is None else min(max_images, len(images))
+    g = torch.Generator().manual_seed(seed)
+    parts: dict[str, list[torch.Tensor]] = {k: [] for k in TRAINING_KEYS}
+    for i in tqdm(range(count), desc=f"features of {split}", disable=not progress):
+        s = images[i]
+        keep = (s["visib_fract"] >= min_visib_fract) & s["valid"]
+        keep &= torch.tensor([int(o) in model.objects for o in s["obj_ids"]], dtype=torch.bool)
+        if not bool(keep.any()):
+            continue
+        for copy in range(copies):
+            depth, masks = s["depth"], s["masks_visib"][keep]
+            if copy:
+                depth, masks = augment(depth, masks, generator=g)
+            obs = model.observe(s["rgb"], depth, s["K"], masks, s["obj_ids"][keep], generator=g)
+            inputs = model.flow_inputs(obs, s["poses"][keep])
+            for k in TRAINING_KEYS:
+                parts[k].append(inputs[k][obs.valid])
+    if not parts["x_1"] or sum(len(p) for p in parts["x_1"]) == 0:
+        raise DegenerateInputError(f"{root}/{split} holds no usable instance of a prepared object")
+    return FlowTrainingSet({k: torch.cat(v) for k, v in parts.items()})
+
+
+def train(
+    model: FunFlow6D,
+    data: FlowTrainingSet,
+    *,
+    config: TrainConfig | None = None,
+    out_dir: str | Path | None = None,
+    resume: bool = False,
+    validate: Any = None,
+    device: str | torch.device | None = None,
+) -> dict[str, float]:
+    """Train the model's network by conditional flow matching.
+
+    Args:
+        model: the model (its network is trained in place; the EMA weights are copied into it
+            at the end).
+        data: the precomputed training set.
+        config: trainer settings.
+        out_dir: checkpoints and ``metrics.jsonl`` (None: nothing written).
+        resume: continue from the latest checkpoint in ``out_dir``.
+        validate: optional validation hook (see :class:`~poseflow.flows.CFMTrainer`).
+        device: training device.
+
+    Returns:
+        The last logged metrics.
+    """
+    objective = CFMObjective(
+        time_sampler=model.config.time_sampler,
+        pin_frozen=model.config.anchor == "pinned",
+        noise_kwarg="x_0",
+    )
+    trainer = CFMTrainer(
+        model,
+        data,
+        config=config,
+        objective=objective,
+        validate=validate,
+        out_dir=out_dir,
+        device=device,
+    )
+    if resume:
+        trainer.resume()
+    metrics = trainer.fit()
+    model.load_state_dict(trainer.ema_model.state_dict())
+    return metrics

@@ -1,0 +1,99 @@
+import pytest
+import torch
+
+from poseflow.data.objects import sample_surface
+from poseflow.errors import MissingWeightsError, ShapeError, ValueRangeError
+from poseflow.geometry.se3 import rotation_angle_error, transform_points, translation_error
+from poseflow.models import FunFlow6D
+
+
+def test_observe_lifts_valid_clouds_with_features(tiny_model, scene):
+    obs = tiny_model.observe(scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 1])
+    n = tiny_model.config.num_points
+    assert obs.points.shape == (2, n, 3) and obs.valid.all()
+    assert obs.geometric.shape == (2, n, tiny_model.geometric_encoder.dim)
+    assert obs.appearance.shape[:2] == (2, n)
+    assert torch.allclose(obs.normals[obs.mask].norm(dim=-1), torch.ones(1), atol=1e-4)
+
+
+def test_flow_target_is_the_observed_cloud_in_the_canonical_frame(tiny_model, scene, box):
+    obs = tiny_model.observe(scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 1])
+    inputs = tiny_model.flow_inputs(obs, scene["poses"])
+    n = tiny_model.config.num_points
+    s = inputs["scale"][:, None, None]
+    canonical = inputs["x_1"][:, n:] * s
+    back = transform_points(scene["poses"], canonical)
+    assert torch.allclose(back[obs.mask], obs.points[obs.mask], atol=1e-5)
+    # ...and those canonical points lie on the model's surface.
+    dense, _, _ = sample_surface(box.mesh, 20000, generator=torch.Generator().manual_seed(0))
+    d = torch.cdist(canonical[obs.mask], torch.from_numpy(dense).float()).min(dim=1).values
+    assert d.median() < 0.01 * box.diameter
+    assert torch.equal(inputs["frozen_mask"][:, :n], torch.ones(2, n, dtype=torch.bool))
+    assert torch.allclose(inputs["x_1"][:, :n], inputs["points"][:, :n])
+
+
+class _Oracle(torch.nn.Module):
+    """A velocity net that knows the answer: v = (x_1 - x) / (1 - t) integrates to x_1."""
+
+    def __init__(self, x_1):
+        super().__init__()
+        self.x_1 = x_1
+
+    def forward(self, x, t, *, condition, mask=None, num_query=None):
+        return (self.x_1 - x) / (1 - t)[:, None, None]
+
+
+@pytest.mark.parametrize("solver", ["ransac", "svd"])
+def test_perfect_flow_gives_the_ground_truth_pose(tiny_model, scene, solver):
+    model = FunFlow6D(tiny_model.config.replace(pose_solver=solver))
+    model.objects = tiny_model.objects
+    obs = model.observe(scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 1])
+    model.net.dit = _Oracle(model.flow_inputs(obs, scene["poses"])["x_1"])
+    est = model.estimate(scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 1])
+    assert est.valid.all() and (est.scores > 0.5).all()
+    assert (rotation_angle_error(est.poses, scene["poses"]) < 1.0).all()
+    assert (translation_error(est.poses, scene["poses"]) < 0.002).all()
+
+
+def test_untrained_model_returns_finite_flagged_poses(tiny_model, scene):
+    est = tiny_model.estimate(
+        scene["rgb"],
+        scene["depth"],
+        scene["K"],
+        scene["masks"],
+        torch.tensor([1, 1]),
+        generator=torch.Generator().manual_seed(0),
+    )
+    assert est.poses.shape == (2, 4, 4) and torch.isfinite(est.poses).all()
+    assert ((est.scores >= 0) & (est.scores <= 1)).all()
+
+
+def test_bad_input(tiny_model, scene):
+    with pytest.raises(ValueRangeError, match="not prepared"):
+        tiny_model.observe(scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 7])
+    with pytest.raises(ShapeError):
+        tiny_model.observe(scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1])
+    empty = torch.zeros_like(scene["masks"])
+    est = tiny_model.estimate(scene["rgb"], scene["depth"], scene["K"], empty, [1, 1])
+    assert not est.valid.any() and torch.isfinite(est.poses).all()
+
+
+def test_save_load_round_trip(tiny_model, tmp_path):
+    tiny_model.save(tmp_path / "ckpt")
+    loaded = FunFlow6D.load(tmp_path / "ckpt")
+    assert loaded.config == tiny_model.config
+    for a, b in zip(tiny_model.net.state_dict().values(), loaded.net.state_dict().values()):
+        assert torch.equal(a, b)
+    with pytest.raises(MissingWeightsError):
+        FunFlow6D.load(tmp_path / "nothing")
+
+
+def test_prepared_objects_are_cached(tiny_model, box, tmp_path):
+    model = FunFlow6D(tiny_model.config)
+    model.prepare_objects({1: box}, cache_dir=tmp_path, progress=False)
+    again = FunFlow6D(tiny_model.config)
+    again.prepare_objects({1: box}, cache_dir=tmp_path, progress=False)
+    a, b = model.objects[1], again.objects[1]
+    assert torch.equal(a.points, b.points) and torch.allclose(a.geometric, b.geometric)
+    x = a.bank.pooled()
+    assert torch.allclose(a.reducer.transform(x), b.reducer.transform(x), atol=1e-4)
