@@ -308,6 +308,7 @@ class _Pairs:
         self.obj = torch.tensor([a.targets[r].obj_id for r in row.tolist()], dtype=torch.long)
         self.image = [(a.targets[r].scene_id, a.targets[r].im_id) for r in row.tolist()]
         self.gt_id = gt.tolist()
+        self.est = est.tolist()
         self.T_est = res.poses[est].to(torch.float64)
         if self.count:
             self.T_gt = torch.from_numpy(
@@ -373,35 +374,31 @@ def _vsd_errors(
         K = scenes.K[key]
         width, height = scenes.size[key]
         depth = ds.scene(key[0]).load_depth_image(key[1]).to(torch.float64)
-        gt_cache: dict[int, tuple[tuple[int, int, int, int] | None, torch.Tensor]] = {}
+        # Every pose is rendered once, alone, inside its own window (an estimate is usually
+        # compared with several GT instances of its object, a GT instance with several estimates).
+        cache: dict[tuple[str, int], tuple[tuple[int, int, int, int] | None, torch.Tensor]] = {}
         for p in by_image[key]:
             o = int(pairs.obj[p])
             m = models[o]
             T_e, T_g = pairs.T_est[p].numpy(), pairs.T_gt[p].numpy()
             if not _sphere_projections_overlap(0.5 * m.diameter, T_e[:3, 3], T_g[:3, 3]):
                 continue  # the toolkit's shortcut: error 1 for every tau
-            g = pairs.gt_id[p]
-            if g not in gt_cache:
-                w = _window(m.corners, T_g, K, width, height)
-                d = _render_depth(renderer, mesh_index[o], T_g, K, w) if w is not None else None
-                gt_cache[g] = (w, torch.zeros(0, 0) if d is None else d)
-            w_gt, d_gt_win = gt_cache[g]
-            w_est = _window(m.corners, T_e, K, width, height)
-            wins = [w for w in (w_est, w_gt) if w is not None]
+            views = []
+            for ck, T in ((("est", pairs.est[p]), T_e), (("gt", pairs.gt_id[p]), T_g)):
+                if ck not in cache:
+                    w = _window(m.corners, T, K, width, height)
+                    d = _render_depth(renderer, mesh_index[o], T, K, w) if w is not None else None
+                    cache[ck] = (w, torch.zeros(0, 0) if d is None else d)
+                views.append(cache[ck])
+            wins = [w for w, _ in views if w is not None]
             if not wins:
                 continue  # nothing rendered in either pose: empty union, error 1
             u0, v0 = min(w[0] for w in wins), min(w[2] for w in wins)
             u1, v1 = max(w[1] for w in wins), max(w[3] for w in wins)
-            roi = (u0, u1, v0, v1)
-            d_est = (
-                _render_depth(renderer, mesh_index[o], T_e, K, roi)
-                if w_est is not None
-                else torch.zeros(v1 - v0, u1 - u0, dtype=torch.float64)
-            )
-            d_gt = torch.zeros(v1 - v0, u1 - u0, dtype=torch.float64)
-            if w_gt is not None:
-                a0, a1, b0, b1 = w_gt
-                d_gt[b0 - v0 : b1 - v0, a0 - u0 : a1 - u0] = d_gt_win
+            d_est, d_gt = (torch.zeros(v1 - v0, u1 - u0, dtype=torch.float64) for _ in range(2))
+            for (w, d), canvas in zip(views, (d_est, d_gt)):
+                if w is not None:
+                    canvas[w[2] - v0 : w[3] - v0, w[0] - u0 : w[1] - u0] = d
             Kc = torch.from_numpy(K.copy())
             Kc[0, 2] -= u0
             Kc[1, 2] -= v0
