@@ -116,25 +116,32 @@ def test_empty_reference_and_query():
         assert torch.isinf(dist).all() and (idx == 0).all()
 
 
+@FIXTURES
 @given(seed=seeds, steps=st.integers(1, 8), scale=st.sampled_from([1e-4, 1e-2, 0.1]))
-def test_tracker_equals_fresh_queries(seed, steps, scale):
+def test_tracker_equals_fresh_queries(seed, steps, scale, dtype):
     g = torch.Generator().manual_seed(seed)
     B, N, M = 3, 400, 600
-    reference = _cloud(g, B, M)
+    reference = _cloud(g, B, M, dtype) + 1.0  # away from the origin: rounding matters
     mask = torch.rand(B, M, generator=g) < 0.8
     index = NeighborIndex(reference, mask)
     tracker = NeighborTracker(index, max_distance=0.05)
-    points = _cloud(g, B, N)
+    points = _cloud(g, B, N, dtype) + 1.0
     for step in range(steps):
-        points = points + scale * torch.randn(B, N, 3, generator=g, dtype=torch.float64)
+        points = points + scale * torch.randn(B, N, 3, generator=g, dtype=torch.float64).to(dtype)
         items = None if step % 2 == 0 else torch.tensor([2, 0])
         sub = points if items is None else points[items]
         dist, idx = tracker.query(sub, items)
+        assert dist.dtype == dtype and dist.shape == idx.shape == (len(sub), N, 1)
         fresh = NeighborIndex(reference[items] if items is not None else reference,
                               mask[items] if items is not None else mask)  # fmt: skip
         expected_dist, expected_idx = fresh.query(sub, k=1, max_distance=0.05)
-        torch.testing.assert_close(dist, expected_dist, atol=1e-12, rtol=0)
-        assert (idx == expected_idx).float().mean() > 0.999  # ties aside
+        # Same points found (the bound aside: a distance within rounding of it may flip).
+        near_bound = (expected_dist - 0.05).abs() < 1e-5
+        assert (torch.isfinite(dist) == torch.isfinite(expected_dist))[~near_bound].all()
+        both = torch.isfinite(dist) & torch.isfinite(expected_dist)
+        atol = 1e-6 if dtype == torch.float32 else 1e-12
+        torch.testing.assert_close(dist[both], expected_dist[both], atol=atol, rtol=0)
+        assert (idx == expected_idx)[both].float().mean() > 0.999  # ties aside
 
 
 def test_bad_inputs():

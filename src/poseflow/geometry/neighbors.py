@@ -94,6 +94,7 @@ class NeighborIndex:
         self._valid_index: list[np.ndarray] | None = None
         self._ref64: np.ndarray | None = None
         self._columns: np.ndarray | None = None
+        self._max_abs: float | None = None
 
     @property
     def batch_size(self) -> int:
@@ -156,17 +157,25 @@ class NeighborIndex:
             return False
         return n_query * self.reference.shape[1] > _CPU_BRUTE_FORCE_PAIRS
 
+    def _extent(self) -> float:
+        """Largest absolute coordinate of the (valid) reference points."""
+        if self._max_abs is None:
+            ref = self._reference64()
+            self._max_abs = float(np.abs(ref).max(initial=0))
+        return self._max_abs
+
     def _reference64(self) -> np.ndarray:
         """The reference as a float64 array ``(B, M, 3)`` (masked points zeroed)."""
         if self._ref64 is None:
             self._ref64 = self.reference.detach().to(torch.float64).numpy()
         return self._ref64
 
-    def _reference_columns(self) -> np.ndarray:
-        """The reference as columns ``(3, B * M + 1)`` (float64), the last one at infinity."""
-        if self._columns is None:
+    def _reference_columns(self, dtype: type) -> np.ndarray:
+        """The reference as columns ``(3, B * M + 1)`` of ``dtype``, the last one at infinity."""
+        if self._columns is None or self._columns.dtype != dtype:
             ref = self._reference64().reshape(-1, 3)
-            self._columns = np.ascontiguousarray(np.concatenate((ref, np.full((1, 3), np.inf))).T)
+            columns = np.concatenate((ref, np.full((1, 3), np.inf))).T.astype(dtype)
+            self._columns = np.ascontiguousarray(columns)
         return self._columns
 
     def _build_trees(self) -> None:
@@ -357,12 +366,14 @@ class NeighborTracker:
         ):
             return index._search(points, 1, self.max_distance, items)
 
-        # Coordinates first, (3, B', N): every step below is a flat, contiguous array operation.
-        q = np.ascontiguousarray(np.moveaxis(points.detach().to(torch.float64).numpy(), -1, 0))
+        # Coordinates first, (3, B', N): every step below is a flat, contiguous array operation,
+        # in float32 for float32 points (half the memory traffic), else in float64.
+        work = torch.float32 if points.dtype == torch.float32 else torch.float64
+        q = np.ascontiguousarray(np.moveaxis(points.detach().to(work).numpy(), -1, 0))
         B, N, M, K = index.batch_size, q.shape[2], index.reference.shape[1], self.candidates
-        ref = index._reference_columns()  # (3, B * M + 1), the last column at infinity
-        if self._anchor is None or self._anchor.shape[2] != N:
-            self._anchor = np.zeros((3, B, N))
+        ref = index._reference_columns(q.dtype)  # (3, B * M + 1), the last column at infinity
+        if self._anchor is None or self._anchor.shape[2] != N or self._anchor.dtype != q.dtype:
+            self._anchor = np.zeros((3, B, N), dtype=q.dtype)
             self._cand = np.full((K, B, N), B * M, dtype=np.int64)
             self._lower = np.full((B, N), -np.inf)  # never searched
         sel = slice(None) if items is None else items.cpu().numpy()
@@ -378,7 +389,10 @@ class NeighborTracker:
             nearest = np.where(closer, cand[k], nearest)
             best2 = np.where(closer, dist2[k], best2)
         dist = np.sqrt(best2)
-        others = self._lower[sel] - moved  # every other reference point is at least this far
+        # Every other reference point is at least this far, less the rounding of the arithmetic
+        # above (a few units in the last place of the coordinates).
+        slack = 16 * np.finfo(q.dtype).eps * max(float(np.abs(q).max(initial=0)), index._extent())
+        others = self._lower[sel] - moved - slack
         settled = (dist < others) | ((dist > self.max_distance) & (others > self.max_distance))
 
         redo = ~settled
@@ -397,7 +411,7 @@ class NeighborTracker:
             # Unlisted points lie beyond the K-th candidate, or beyond the search bound when
             # fewer were found; a hair less, against rounding.
             self._lower[bb, ii] = np.minimum(d[:, K - 1], self._bound) * (1 - 1e-12)
-            nearest[jj, ii], dist[jj, ii] = i[:, 0], d[:, 0]
+            nearest[jj, ii], dist[jj, ii] = i[:, 0], d[:, 0].astype(q.dtype)
 
         ok = dist <= self.max_distance
         out = torch.from_numpy(np.where(ok, dist, np.inf)).to(points.dtype).unsqueeze(-1)
