@@ -263,7 +263,8 @@ def run(args: argparse.Namespace) -> int:
 
     print(
         f"poseflow registration demo: {args.instances} objects, {args.points} correspondences "
-        f"each, {args.outliers:.0%} outliers, noise {args.noise * 1000:.1f} mm, seed {args.seed}"
+        f"each, {args.outliers:.0%} outliers, noise {args.noise * 1000:.1f} mm (depth) and "
+        f"{args.flow_noise * 1000:.1f} mm (predictions), seed {args.seed}"
     )
     header = f"{'object':>6} {'inliers':>8} {'RANSAC rot':>11} {'+ICP rot':>9} {'+ICP trans':>11}"
     if not args.no_open3d:
