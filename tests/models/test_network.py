@@ -57,3 +57,9 @@ def test_gradients_reach_every_parameter():
     v.square().sum().backward()
     missing = [n for n, p in net.named_parameters() if p.grad is None or not p.grad.abs().sum()]
     assert not missing
+
+
+def test_dit_preset_fields_can_be_overridden():
+    net = FunFlow6DNet(NetConfig(**{**CFG.to_json(), "dit": {"hidden_dim": 48, "depth": 3}}))
+    assert net.dit.config.hidden_dim == 48 and len(net.dit.blocks) == 3
+    assert net.dit.config.cond_dim == CFG.feature_dim + CFG.posenc_dim

@@ -12,7 +12,7 @@ cloud attend to the other. Fusion and positional encoding do not depend on the f
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import torch
@@ -43,6 +43,8 @@ class NetConfig:
         posenc_frequencies: octaves of the sinusoidal embedding of each attribute.
         dit_preset: :class:`~poseflow.flows.dit.PointDiT` preset (``"paper"``, ``"small"``,
             ``"tiny"``).
+        dit: overrides of the preset's :class:`~poseflow.flows.dit.PointDiTConfig` fields, e.g.
+            ``{"hidden_dim": 96}``.
     """
 
     geometric_dim: int = 64
@@ -54,6 +56,7 @@ class NetConfig:
     posenc_dim: int = 64
     posenc_frequencies: int = 6
     dit_preset: str = "small"
+    dit: dict[str, Any] = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
         """The configuration as a JSON-serialisable dict."""
@@ -92,7 +95,9 @@ class FunFlow6DNet(nn.Module):
             kwargs.update(num_heads=cfg.fusion_heads, dropout=cfg.dropout)
         self.fusion = build_fusion(cfg.fusion, **kwargs)
         self.posenc = PointPositionalEncoder(cfg.posenc_dim, num_frequencies=cfg.posenc_frequencies)
-        self.dit = PointDiT.from_preset(cfg.dit_preset, cond_dim=d + cfg.posenc_dim)
+        self.dit = PointDiT.from_preset(
+            cfg.dit_preset, **{**cfg.dit, "cond_dim": d + cfg.posenc_dim}
+        )
 
     def condition(
         self,
