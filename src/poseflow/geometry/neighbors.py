@@ -2,13 +2,15 @@
 
 One entry point, :func:`nearest_neighbors`, picks the fastest exact backend for the device:
 
-- CPU: a KD-tree per batch item (``scipy.spatial.cKDTree``, queried on all cores) unless the
-  problem is small enough that a brute-force distance matrix is cheaper;
+- CPU: a KD-tree per batch item (``scipy.spatial.cKDTree``; large searches run the batch items in
+  parallel threads, one item per task) unless the problem is small enough (at most 16,384
+  query-reference pairs per item) that a brute-force distance matrix is cheaper;
 - CUDA (and any other device): brute force, the distance matrix built in chunks of query points
   with one matrix multiply each, so memory stays bounded.
 
 :class:`NeighborIndex` builds the search structure once and answers many queries against the same
-reference cloud (ICP queries the same target at every iteration).
+reference cloud; :class:`NeighborTracker` answers the same queries for a cloud that moves a little
+between calls (ICP) while searching again only the points whose answer may have changed.
 
 Distances are Euclidean (not squared). Reference points masked out are never returned; where fewer
 than ``k`` valid reference points exist (or none lies within ``max_distance``), the missing
@@ -32,7 +34,7 @@ __all__ = ["NeighborIndex", "NeighborTracker", "nearest_neighbors"]
 #: Problems with at most this many query-reference pairs per batch item use brute force on CPU.
 _CPU_BRUTE_FORCE_PAIRS = 1 << 14
 #: KD-tree searches of fewer query points than this run on the calling thread.
-_PARALLEL_POINTS = 4096
+_PARALLEL_POINTS = 8192
 #: Entries of the distance matrix computed at once by the brute-force backend.
 _CHUNK_ELEMENTS = 1 << 22
 

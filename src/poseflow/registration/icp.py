@@ -3,9 +3,12 @@
 Each iteration pairs every valid source point (moved by the current estimate) with its nearest
 valid target point, keeps the pairs closer than ``max_correspondence_distance`` and re-solves
 Procrustes on them (:mod:`poseflow.geometry.neighbors` picks the search backend per device; the
-target's search structure is built once per call). Instances stop independently: an instance
-whose fitness and inlier RMSE both change less than ``relative_fitness`` and ``relative_rmse``
-(Open3D's criteria) is frozen while the others go on.
+target's search structure is built once per call, and on CPU a
+:class:`~poseflow.geometry.neighbors.NeighborTracker` searches again only the points whose
+nearest neighbour may have changed, with the same answers). Instances stop independently: an
+instance whose fitness and inlier RMSE both change less than ``relative_fitness`` and
+``relative_rmse`` (Open3D's criteria) is frozen while the others go on. On CPU the solver's
+tensor ops run on the calling thread (see :func:`poseflow.registration._threads.serial_cpu_ops`).
 """
 
 from __future__ import annotations

@@ -6,7 +6,9 @@ scored with one matrix multiply: the squared residual of pair ``n`` under hypoth
     |R s + t - d|^2 = |s|^2 + |d|^2 + |t|^2 + 2 (R^T t).s - 2 <R, d s^T> - 2 t.d,
 
 is linear in per-pair features ``[d s^T, d, s, |s|^2 + |d|^2, 1]`` (17 numbers) with
-per-hypothesis coefficients, so a ``(H, 17) @ (17, N)`` product yields every residual.
+per-hypothesis coefficients, so a ``(H, 17) @ (17, N)`` product yields every residual. On CPU the
+solver's tensor ops run on the calling thread (see
+:func:`poseflow.registration._threads.serial_cpu_ops`).
 """
 
 from __future__ import annotations
