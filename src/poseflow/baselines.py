@@ -29,9 +29,8 @@ built from poseflow's own parts, and the floor FunFlow6D has to clear:
 from __future__ import annotations
 
 import os
-import time
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from typing import Any
 
 import torch
 
@@ -40,6 +39,7 @@ from poseflow.data.bop import BOPDataset
 from poseflow.data.objects import ObjectModel, sample_surface
 from poseflow.errors import DegenerateInputError, ValueRangeError
 from poseflow.eval.inliers import mutual_nearest_neighbors
+from poseflow.eval.predict import PoseEstimate, predict_dataset
 from poseflow.eval.recall import Target
 from poseflow.eval.results import PoseResults
 from poseflow.eval.timing import StageTimer
@@ -56,22 +56,7 @@ from poseflow.registration.icp import multi_scale_icp
 from poseflow.registration.ransac import ransac_procrustes
 from poseflow.render.raycast import Renderer
 
-__all__ = ["BaselineEstimate", "ClassicBaseline"]
-
-
-@dataclass
-class BaselineEstimate:
-    """Poses estimated for the instances of one image.
-
-    Attributes:
-        poses: model-to-camera transforms in metres, ``(n, 4, 4)`` float64 (identity if invalid).
-        scores: ICP fitness of the chosen hypothesis in ``[0, 1]``, ``(n,)`` float64.
-        valid: ``(n,)`` bool, False where the instance had too few points or no hypothesis.
-    """
-
-    poses: torch.Tensor
-    scores: torch.Tensor
-    valid: torch.Tensor
+__all__ = ["ClassicBaseline", "PoseEstimate"]
 
 
 class ClassicBaseline:
@@ -231,7 +216,7 @@ class ClassicBaseline:
         K: torch.Tensor,
         masks: torch.Tensor,
         obj_ids: Sequence[int] | torch.Tensor,
-    ) -> BaselineEstimate:
+    ) -> PoseEstimate:
         """Estimate the pose of every masked instance of one image.
 
         Args:
@@ -241,7 +226,7 @@ class ClassicBaseline:
             obj_ids: object id of each instance, ``(n,)``.
 
         Returns:
-            A :class:`BaselineEstimate`.
+            A :class:`PoseEstimate`.
 
         Raises:
             ShapeError: bad shapes.
@@ -265,7 +250,7 @@ class ClassicBaseline:
             pose, score = self._estimate_one(d, Kd, masks[i], ids[i], i)
             if pose is not None:
                 poses[i], scores[i], valid[i] = pose, score, True
-        return BaselineEstimate(poses, scores, valid)
+        return PoseEstimate(poses, scores, valid)
 
     def _estimate_one(
         self, depth: torch.Tensor, K: torch.Tensor, mask: torch.Tensor, obj_id: int, index: int
@@ -320,61 +305,34 @@ class ClassicBaseline:
         *,
         split: str = "test",
         targets: Sequence[Target] | None = None,
+        detections: Sequence[Any] | None = None,
+        max_images: int | None = None,
+        progress: bool = False,
     ) -> PoseResults:
-        """Estimate every target instance of a BOP split from its ground-truth visible mask.
+        """Estimate every target instance of a split (:func:`~poseflow.eval.predict_dataset`).
 
         Args:
             dataset: the dataset folder or a :class:`~poseflow.data.bop.BOPDataset`.
             split: the split folder, when ``dataset`` is a path.
             targets: restrict to these targets; default the dataset's ``test_targets_bop19.json``
                 when present, else every GT instance.
+            detections: masks from a BOP segmentation file instead of the ground truth.
+            max_images: stop after this many images.
+            progress: show a progress bar.
 
         Returns:
             :class:`~poseflow.eval.results.PoseResults` with one estimate per valid instance of
-            a target object, and the wall-clock time of each image (mask loading excluded).
+            a target object, and the wall-clock time of each image (image loading excluded).
         """
-        ds = (
-            dataset
-            if isinstance(dataset, BOPDataset)
-            else BOPDataset(dataset, split, load_rgb=False, load_masks=True)
+        return predict_dataset(
+            lambda rgb, depth, K, masks, obj_ids: self.estimate(depth, K, masks, obj_ids),
+            dataset,
+            split=split,
+            object_ids=sorted(self.models),
+            targets=targets,
+            detections=detections,
+            load_rgb=False,
+            max_images=max_images,
+            timer=self.timer,
+            progress=progress,
         )
-        if targets is None and (ds.root / "test_targets_bop19.json").is_file():
-            targets = [
-                Target(t.scene_id, t.im_id, t.obj_id, t.inst_count) for t in ds.test_targets()
-            ]
-        if targets is None:
-            images = {(s, i): None for s in ds.scene_ids for i in ds.scene(s).im_ids}
-        else:
-            images = {}
-            for t in targets:
-                images.setdefault((t.scene_id, t.im_id), set()).add(t.obj_id)  # type: ignore[union-attr]
-        parts = []
-        for (s, i), wanted in sorted(images.items()):
-            scene = ds.scene(s)
-            gts = scene.gt_of(i)
-            sel = [g for g, gt in enumerate(gts) if wanted is None or gt.obj_id in wanted]
-            sel = [g for g in sel if gts[g].obj_id in self.models]
-            if not sel:
-                continue
-            masks = torch.stack([scene.load_mask(i, g, visible=True) for g in sel])
-            depth = scene.load_depth_image(i)
-            K = torch.as_tensor(scene.camera[i].K, dtype=torch.float64)
-            start = time.perf_counter()
-            with self.timer.image():
-                est = self.estimate(depth, K, masks, [gts[g].obj_id for g in sel])
-            elapsed = time.perf_counter() - start
-            keep = est.valid
-            if not bool(keep.any()):
-                continue
-            k = int(keep.sum())
-            parts.append(
-                PoseResults.from_columns(
-                    [s] * k,
-                    [i] * k,
-                    [gts[g].obj_id for g, v in zip(sel, keep.tolist()) if v],
-                    est.scores[keep],
-                    est.poses[keep],
-                    elapsed,
-                )
-            )
-        return PoseResults.concat(parts)

@@ -4,6 +4,8 @@
   symmetry sets discretised as the BOP toolkit does (:func:`symmetry_transforms`);
 - the recall protocol (:func:`assign`, :func:`match`) and the dataset-level
   :func:`evaluate_bop` returning AR, AR_VSD, AR_MSSD, AR_MSPD, per object and per threshold;
+- :func:`predict_dataset`, the loop that runs any estimator over a BOP split (ground-truth or
+  detected masks) into results;
 - BOP 2019 results CSV files (:func:`read_results`, :func:`write_results`);
 - the paper's correspondence-inlier metric (:func:`correspondence_inliers`);
 - the per-image stage breakdown (:class:`StageTimer`) and qualitative overlays
@@ -25,6 +27,7 @@ from poseflow.eval.errors import (
 from poseflow.eval.evaluate import METRICS, EvalModel, evaluate_bop, gt_results, load_eval_models
 from poseflow.eval.inliers import InlierResult, correspondence_inliers, mutual_nearest_neighbors
 from poseflow.eval.overlay import ESTIMATE_COLOR, GT_COLOR, overlay_poses, write_overlay
+from poseflow.eval.predict import Estimator, PoseEstimate, predict_dataset
 from poseflow.eval.recall import Assignment, Recall, Target, assign, match, targets_from_gt
 from poseflow.eval.results import HEADER, PoseResults, read_results, write_results
 from poseflow.eval.symmetry import (
@@ -50,8 +53,10 @@ __all__ = [
     "VSD_TAUS",
     "VSD_THRESHOLDS",
     "Assignment",
+    "Estimator",
     "EvalModel",
     "InlierResult",
+    "PoseEstimate",
     "PoseResults",
     "Recall",
     "StageTimer",
@@ -69,6 +74,7 @@ __all__ = [
     "mssd",
     "mutual_nearest_neighbors",
     "overlay_poses",
+    "predict_dataset",
     "project_points",
     "read_results",
     "symmetries_from_model_info",

@@ -1,7 +1,7 @@
 """FunFlow6D: the model class, its configuration and its trainable network."""
 
 from poseflow.models.config import ABLATIONS, FunFlow6DConfig
-from poseflow.models.funflow6d import FunFlow6D, Observation, PoseEstimate, PreparedObject
+from poseflow.models.funflow6d import FunFlow6D, Observation, PreparedObject
 from poseflow.models.network import FunFlow6DNet, NetConfig
 
 __all__ = [
@@ -11,6 +11,5 @@ __all__ = [
     "FunFlow6DNet",
     "NetConfig",
     "Observation",
-    "PoseEstimate",
     "PreparedObject",
 ]

@@ -24,6 +24,7 @@ from torch import nn
 from poseflow._checks import check_tensor
 from poseflow.data.objects import ObjectModel
 from poseflow.errors import MissingWeightsError, ShapeError, ValueRangeError
+from poseflow.eval.predict import PoseEstimate, predict_dataset
 from poseflow.features import (
     QueryFeatureBank,
     lift_query_features,
@@ -48,7 +49,7 @@ from poseflow.models.config import FunFlow6DConfig
 from poseflow.models.network import FunFlow6DNet
 from poseflow.registration import multi_scale_icp, procrustes, ransac_procrustes
 
-__all__ = ["FunFlow6D", "Observation", "PoseEstimate", "PreparedObject"]
+__all__ = ["FunFlow6D", "Observation", "PreparedObject"]
 
 _MIN_POINTS = 16
 
@@ -97,23 +98,6 @@ class Observation:
     valid: torch.Tensor
     geometric: torch.Tensor | None
     appearance: torch.Tensor | None
-
-
-@dataclass
-class PoseEstimate:
-    """Poses of the instances of one image.
-
-    Attributes:
-        poses: model-to-camera transforms ``(B, 4, 4)``, metres (identity where invalid).
-        scores: confidences in ``[0, 1]`` ``(B,)``: the fraction of the flow's correspondences
-            that RANSAC keeps, times the fraction of target points that lie within the RANSAC
-            threshold of the model surface under the final pose.
-        valid: ``(B,)`` False where no pose could be estimated (too few points, no consensus).
-    """
-
-    poses: torch.Tensor
-    scores: torch.Tensor
-    valid: torch.Tensor
 
 
 class FunFlow6D(nn.Module):
@@ -517,6 +501,51 @@ class FunFlow6D(nn.Module):
             return PoseEstimate(poses, torch.where(ok, score, torch.zeros_like(score)), ok)
         finally:
             self.train(was_training)
+
+    def predict(
+        self,
+        dataset: str | Path | Any,
+        *,
+        split: str = "test",
+        detections: Sequence[Any] | None = None,
+        max_images: int | None = None,
+        seed: int = 0,
+        timer: Any = None,
+        progress: bool = False,
+    ) -> Any:
+        """Estimate every target instance of a BOP split; see :func:`poseflow.eval.predict_dataset`.
+
+        Args:
+            dataset: the dataset folder or a :class:`~poseflow.data.bop.BOPDataset`.
+            split: the split folder.
+            detections: masks from a BOP segmentation file instead of the ground truth.
+            max_images: stop after this many images.
+            seed: seeds the noise, sampling and RANSAC of every image.
+            timer: optional :class:`~poseflow.eval.timing.StageTimer`.
+            progress: show a progress bar.
+
+        Returns:
+            :class:`~poseflow.eval.results.PoseResults`, one row per valid estimate.
+        """
+        device = next(self.net.parameters()).device
+        g = torch.Generator(device=device).manual_seed(seed)
+
+        def estimator(rgb, depth, K, masks, obj_ids):
+            return self.estimate(
+                rgb.to(device), depth.to(device), K.to(device), masks.to(device), obj_ids,
+                generator=g, timer=timer,
+            )  # fmt: skip
+
+        return predict_dataset(
+            estimator,
+            dataset,
+            split=split,
+            object_ids=sorted(self.objects),
+            detections=detections,
+            max_images=max_images,
+            timer=timer,
+            progress=progress,
+        )
 
     def _solve_pose(
         self,

@@ -1,0 +1,132 @@
+"""Run any pose estimator over a BOP split and collect BOP results, timed per image.
+
+The loop that FunFlow6D, the classic baseline and the ``poseflow predict`` command share: for
+every image that holds target instances, all of its instances (ground-truth visible masks, or the
+masks of a detection file) go to the estimator in one call, and the estimates become
+:class:`~poseflow.eval.results.PoseResults` rows whose ``time`` is the image's wall-clock time.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+
+from poseflow.data.bop import BOPDataset, Detection
+from poseflow.eval.recall import Target
+from poseflow.eval.results import PoseResults
+
+__all__ = ["Estimator", "PoseEstimate", "predict_dataset"]
+
+
+@dataclass
+class PoseEstimate:
+    """Poses of the instances of one image, as every estimator in poseflow returns them.
+
+    Attributes:
+        poses: model-to-camera transforms ``(B, 4, 4)``, metres (identity where invalid).
+        scores: confidences in ``[0, 1]`` ``(B,)``, used to rank estimates (0 where invalid).
+        valid: ``(B,)`` False where no pose could be estimated (too few points, no consensus).
+    """
+
+    poses: torch.Tensor
+    scores: torch.Tensor
+    valid: torch.Tensor
+
+
+#: ``estimator(rgb (3,H,W) | None, depth (H,W) m, K (3,3), masks (B,H,W), obj_ids (B,))``.
+Estimator = Callable[..., PoseEstimate]
+
+
+def predict_dataset(
+    estimator: Estimator,
+    dataset: str | os.PathLike[str] | BOPDataset,
+    *,
+    split: str = "test",
+    object_ids: Sequence[int] | None = None,
+    targets: Sequence[Target] | None = None,
+    detections: Sequence[Detection] | None = None,
+    load_rgb: bool = True,
+    max_images: int | None = None,
+    timer: Any = None,
+    progress: bool = False,
+) -> PoseResults:
+    """Estimate the poses of the target instances of every image of a split.
+
+    Args:
+        estimator: called once per image as ``estimator(rgb, depth, K, masks, obj_ids)`` and
+            returning a :class:`PoseEstimate` (see :data:`Estimator`).
+        dataset: the dataset folder or a :class:`~poseflow.data.bop.BOPDataset`.
+        split: the split folder, when ``dataset`` is a path.
+        object_ids: objects the estimator knows (others are skipped); None: all.
+        targets: the targets; default the dataset's ``test_targets_bop19.json`` when present,
+            else every ground-truth instance.
+        detections: use these masks (e.g. a BOP segmentation file) instead of the ground truth.
+        load_rgb: read the colour image (False passes ``rgb=None``).
+        max_images: stop after this many images.
+        timer: optional :class:`~poseflow.eval.timing.StageTimer`; each image runs in
+            ``timer.image()``.
+        progress: show a progress bar.
+
+    Returns:
+        One row per valid estimate.
+    """
+    from tqdm.auto import tqdm
+
+    ds = dataset if isinstance(dataset, BOPDataset) else BOPDataset(dataset, split)
+    if targets is None and (ds.root / "test_targets_bop19.json").is_file():
+        targets = [Target(t.scene_id, t.im_id, t.obj_id, t.inst_count) for t in ds.test_targets()]
+    images: dict[tuple[int, int], set[int] | None] = {}
+    if targets is None:
+        images = {(s, i): None for s in ds.scene_ids for i in ds.scene(s).im_ids}
+    else:
+        for t in targets:
+            images.setdefault((t.scene_id, t.im_id), set()).add(t.obj_id)  # type: ignore[union-attr]
+    by_image: dict[tuple[int, int], list[Detection]] = {}
+    for d in detections or ():
+        by_image.setdefault((d.scene_id, d.im_id), []).append(d)
+    known = None if object_ids is None else {int(o) for o in object_ids}
+    keys = sorted(images.items())[:max_images]
+    parts = []
+    for (s, i), wanted in tqdm(keys, desc="predict", disable=not progress):
+        scene = ds.scene(s)
+
+        def usable(obj_id: int, wanted: set[int] | None = wanted) -> bool:
+            return (wanted is None or obj_id in wanted) and (known is None or obj_id in known)
+
+        if detections is None:
+            gts = scene.gt_of(i)
+            sel = [g for g, gt in enumerate(gts) if usable(gt.obj_id)]
+            obj_ids = [gts[g].obj_id for g in sel]
+            masks = [scene.load_mask(i, g, visible=True) for g in sel]
+        else:
+            dets = [d for d in by_image.get((s, i), []) if usable(d.obj_id)]
+            obj_ids = [d.obj_id for d in dets]
+            masks = [d.mask() for d in dets]
+        if not masks:
+            continue
+        depth = scene.load_depth_image(i)
+        rgb = scene.load_rgb_image(i) if load_rgb else None
+        K = torch.as_tensor(scene.camera[i].K, dtype=torch.float32)
+        start = time.perf_counter()
+        if timer is None:
+            est = estimator(rgb, depth, K, torch.stack(masks), obj_ids)
+        else:
+            with timer.image():
+                est = estimator(rgb, depth, K, torch.stack(masks), obj_ids)
+        elapsed = time.perf_counter() - start
+        ok = est.valid.cpu()
+        if not bool(ok.any()):
+            continue
+        k = int(ok.sum())
+        ids = [o for o, v in zip(obj_ids, ok.tolist()) if v]
+        parts.append(
+            PoseResults.from_columns(
+                [s] * k, [i] * k, ids, est.scores.cpu()[ok], est.poses.cpu()[ok], elapsed
+            )
+        )
+    return PoseResults.concat(parts)
