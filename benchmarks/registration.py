@@ -210,7 +210,7 @@ def main(argv: list[str] | None = None) -> None:
         "open3d": o3d.__version__,
         "ransac": bench_ransac(args, device, dtype),
         "icp": bench_icp(args, device, dtype),
-        "command": "python benchmarks/registration.py " + " ".join(sys.argv[1:]),
+        "command": " ".join(["python", "benchmarks/registration.py", *sys.argv[1:]]),
     }
     print(json.dumps(record))
 
