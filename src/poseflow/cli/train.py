@@ -1,0 +1,266 @@
+"""``poseflow train``: train FunFlow6D on the training images of a BOP dataset.
+
+Steps: prepare the dataset's objects (cached under ``RUN_DIR/model/objects/`` or ``--cache``),
+run the frozen encoders over the training instances once (``--copies`` augmented copies each;
+cached as ``RUN_DIR/train_set.safetensors`` and reused while the dataset, the feature settings
+and the options that shape the set are unchanged), train the network by flow matching
+(:func:`poseflow.models.training.train`; checkpoints and ``metrics.jsonl`` in
+``RUN_DIR/checkpoints``), and save the EMA weights with :meth:`FunFlow6D.save
+<poseflow.models.FunFlow6D.save>` to ``RUN_DIR/model``, the folder ``poseflow predict --model``
+takes.
+
+Under ``torchrun --nproc_per_node=K`` the same command trains with DDP: rank 0 prepares the
+objects and the training set first while the other ranks wait, then every rank reads the caches;
+only rank 0 writes. The wait is a process-group barrier (30 minutes at most); on a large dataset
+run ``poseflow train ... --data-only`` once in a single process first.
+
+Example::
+
+    poseflow synth data/synth --train 2000 --test 50
+    poseflow train data/synth --out runs/small --preset small --steps 20000 --copies 4
+    torchrun --nproc_per_node=4 -m poseflow.cli train data/synth --out runs/small --resume
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+from poseflow.cli.common import add_config_arguments, add_device_argument
+
+__all__ = ["NETWORK_FIELDS", "add_parser", "run"]
+
+#: Configuration fields that do not change the precomputed training set (the network, sampler
+#: and pose solver); every other field invalidates a cached ``train_set.safetensors``.
+NETWORK_FIELDS = (
+    "fusion",
+    "dit_preset",
+    "anchor",
+    "time_sampler",
+    "solver",
+    "steps",
+    "num_hypotheses",
+    "pose_solver",
+    "ransac_iterations",
+    "ransac_threshold",
+    "icp_thresholds",
+    "icp_iterations",
+    "net",
+)
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """Register the ``train`` subcommand on ``subparsers``; its ``run`` is :func:`run`."""
+    parser = subparsers.add_parser(
+        "train",
+        help="train FunFlow6D on a BOP dataset's training split",
+        description=(
+            "Prepare the objects, precompute the flow inputs of every training instance (cached "
+            "in RUN_DIR/train_set.safetensors), train by conditional flow matching and save the "
+            "model to RUN_DIR/model. Runs under torchrun (DDP) unchanged."
+        ),
+    )
+    parser.add_argument("dataset", help="BOP dataset folder")
+    parser.add_argument("--out", required=True, metavar="RUN_DIR", help="run folder RUN_DIR")
+    parser.add_argument("--split", default="train", help="training split (default: train)")
+    parser.add_argument("--steps", type=int, default=10_000, help="optimiser steps")
+    parser.add_argument("--batch-size", type=int, default=32, help="instances per step and process")
+    parser.add_argument("--lr", type=float, default=1e-4, help="peak learning rate")
+    parser.add_argument(
+        "--warmup-steps", type=int, default=None, help="linear warm-up (default: steps/10, ≤500)"
+    )
+    parser.add_argument(
+        "--copies", type=int, default=1, help="augmented copies of each instance (first clean)"
+    )
+    parser.add_argument(
+        "--max-images", type=int, default=None, metavar="N", help="use at most N images"
+    )
+    parser.add_argument(
+        "--min-visib-fract", type=float, default=0.1, help="skip less visible instances"
+    )
+    parser.add_argument(
+        "--precision", default="bf16", help="bf16, fp16 or fp32 autocast on CUDA (default bf16)"
+    )
+    parser.add_argument("--ckpt-every", type=int, default=1000, help="steps between checkpoints")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--resume", action="store_true", help="continue from RUN_DIR's latest checkpoint"
+    )
+    parser.add_argument(
+        "--cache",
+        default=None,
+        metavar="DIR",
+        help="folder holding the prepared objects (objects/); default RUN_DIR/model",
+    )
+    parser.add_argument(
+        "--data-only", action="store_true", help="stop after caching the training set"
+    )
+    parser.add_argument("--no-progress", action="store_true", help="hide the progress bars")
+    add_device_argument(parser)
+    add_config_arguments(parser)
+    parser.set_defaults(run=run)
+    return parser
+
+
+def _run_config(args: argparse.Namespace, out: Path) -> Any:
+    """The model configuration: from the options, or the saved run's when resuming."""
+    from poseflow.cli.common import build_config, config_requested
+    from poseflow.errors import ValueRangeError
+    from poseflow.flows import latest_checkpoint
+    from poseflow.models import FunFlow6DConfig
+
+    run_file = out / "run.json"
+    if args.resume and run_file.is_file():
+        saved = FunFlow6DConfig.from_json(json.loads(run_file.read_text())["config"])
+        if not config_requested(args):
+            return saved
+        config = build_config(args)
+        if config.to_json() != saved.to_json():
+            raise ValueRangeError(
+                f"the configuration differs from that of the run in {out} ({run_file}); drop "
+                "the configuration options to resume it, or train into a new --out"
+            )
+        return config
+    if not args.resume and latest_checkpoint(out / "checkpoints") is not None:
+        raise ValueRangeError(
+            f"{out} already holds the checkpoints of a run; pass --resume to continue it or "
+            "choose another --out"
+        )
+    return build_config(args)
+
+
+def _train_set_key(config: Any, root: Path, args: argparse.Namespace) -> dict[str, Any]:
+    from poseflow.cli.common import dataset_fingerprint
+
+    features = {k: v for k, v in config.to_json().items() if k not in NETWORK_FIELDS}
+    return {
+        "dataset": dataset_fingerprint(root, args.split),
+        "split": args.split,
+        "copies": args.copies,
+        "max_images": args.max_images,
+        "min_visib_fract": args.min_visib_fract,
+        "seed": args.seed,
+        "features": features,
+    }
+
+
+def _training_set(
+    model: Any, root: Path, args: argparse.Namespace, out: Path, *, write: bool, progress: bool
+) -> tuple[Any, bool]:
+    """Load the cached training set when its key matches, else build (and, on rank 0, save) it."""
+    from poseflow.models.training import FlowTrainingSet, build_training_set
+
+    key = _train_set_key(model.config, root, args)
+    path, meta = out / "train_set.safetensors", out / "train_set.json"
+    if path.is_file() and meta.is_file() and json.loads(meta.read_text()) == key:
+        return FlowTrainingSet.load(path), True
+    data = build_training_set(
+        model,
+        root,
+        split=args.split,
+        copies=args.copies,
+        min_visib_fract=args.min_visib_fract,
+        max_images=args.max_images,
+        seed=args.seed,
+        progress=progress,
+    )
+    if write:
+        meta.unlink(missing_ok=True)  # no key beside a half-written set
+        data.save(path)
+        meta.write_text(json.dumps(key, indent=1))
+    return data, False
+
+
+def run(args: argparse.Namespace) -> int:
+    """Prepare, build the training set, train and save; prints the times; returns 0."""
+    import torch
+    import torch.distributed as dist
+
+    from poseflow.cli.common import (
+        check_dataset,
+        load_object_models,
+        object_cache_dir,
+        resolve_device,
+    )
+    from poseflow.errors import ValueRangeError
+    from poseflow.flows import TrainConfig, barrier, destroy_distributed, init_distributed
+    from poseflow.models import FunFlow6D
+    from poseflow.models.training import train
+
+    start = time.perf_counter()
+    root = check_dataset(args.dataset, args.split)
+    out = Path(args.out)
+    if args.copies < 1 or args.steps < 1:
+        raise ValueRangeError("--copies and --steps must be at least 1")
+    warmup = min(500, args.steps // 10) if args.warmup_steps is None else args.warmup_steps
+    train_config = TrainConfig(
+        steps=args.steps,
+        batch_size=args.batch_size,
+        lr=args.lr,
+        warmup_steps=warmup,
+        precision=args.precision,
+        ckpt_every=args.ckpt_every,
+        seed=args.seed,
+        progress=not args.no_progress,
+    )
+    device = resolve_device(args.device)
+    had_group = dist.is_available() and dist.is_initialized()
+    ctx = init_distributed(device=device)
+    try:
+        config = _run_config(args, out)
+        torch.manual_seed(args.seed)
+        model = FunFlow6D(config)
+        cache = Path(args.cache) if args.cache is not None else out / "model"
+        show = not args.no_progress and ctx.is_main
+        times = {}
+        # Rank 0 computes and writes the caches first; the other ranks then read them.
+        if not ctx.is_main:
+            barrier(ctx)
+        t0 = time.perf_counter()
+        models = load_object_models(root, progress=show)
+        model.prepare_objects(models, cache_dir=object_cache_dir(cache, root), progress=show)
+        times["objects"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        data, reused = _training_set(model, root, args, out, write=ctx.is_main, progress=show)
+        times["training set"] = time.perf_counter() - t0
+        if ctx.is_main:
+            out.mkdir(parents=True, exist_ok=True)
+            record = {"config": config.to_json(), "train": train_config.to_json()}
+            record.update({"dataset": str(root), "split": args.split})
+            (out / "run.json").write_text(json.dumps(record, indent=1))
+            barrier(ctx)
+        where = "reused" if reused else "built"
+        if ctx.is_main:
+            print(f"training set {where}: {len(data)} instances from {root}/{args.split}")
+        if args.data_only:
+            if ctx.is_main:
+                print(f"cached in {out / 'train_set.safetensors'} ({_fmt(times)})")
+            return 0
+        t0 = time.perf_counter()
+        metrics = train(
+            model,
+            data,
+            config=train_config,
+            out_dir=out / "checkpoints",
+            resume=args.resume,
+            device=ctx.device,
+        )
+        times["training"] = time.perf_counter() - t0
+        if ctx.is_main:
+            model.save(out / "model")
+            loss = f", final loss {metrics['loss']:.4f}" if "loss" in metrics else ""
+            world = f" on {ctx.world_size} processes" if ctx.is_distributed else ""
+            print(f"trained {args.steps} steps{world} on {ctx.device}{loss}")
+            total = time.perf_counter() - start
+            print(f"model saved to {out / 'model'} in {total:.1f} s ({_fmt(times)})")
+        return 0
+    finally:
+        if not had_group:
+            destroy_distributed()
+
+
+def _fmt(times: dict[str, float]) -> str:
+    return ", ".join(f"{k} {v:.1f} s" for k, v in times.items())

@@ -1,0 +1,355 @@
+"""``poseflow prepare``, ``train`` and ``predict`` end to end on a tiny generated dataset."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+
+import pytest
+import torch
+
+from poseflow.cli import SUBCOMMANDS, main
+from poseflow.cli.common import (
+    add_config_arguments,
+    build_config,
+    check_dataset,
+    load_object_models,
+    models_fingerprint,
+    object_cache_dir,
+    parse_set,
+    resolve_device,
+)
+from poseflow.cli.predict import list_images
+from poseflow.data.bop import BOPDataset, Detection, write_detections
+from poseflow.data.rle import rle_encode
+from poseflow.data.synthetic import generate_dataset
+from poseflow.errors import MissingFileError, ValueRangeError
+from poseflow.eval.results import read_results
+from poseflow.models import FunFlow6D
+
+NET = '{"fusion_heads": 2, "posenc_dim": 16, "posenc_frequencies": 2}'
+#: The tiny configuration, as command-line options. ``pose_solver=svd`` always yields a pose, so
+#: that an untrained model still writes rows (RANSAC finds no consensus in its noise).
+TINY = [
+    *("--num-points", "32", "--crop-size", "32", "--query-views", "2", "--preset", "tiny"),
+    *("--set", "steps=2", "--set", "ransac_iterations=100", "--set", f"net={NET}"),
+    *("--set", "pose_solver=svd"),
+]
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    root = tmp_path_factory.mktemp("bop") / "ds"
+    return generate_dataset(
+        root, num_train_images=2, num_test_images=1, width=160, height=120, progress=False
+    )
+
+
+@pytest.fixture(scope="module")
+def run_dir(dataset, tmp_path_factory):
+    out = tmp_path_factory.mktemp("run")
+    prep = ["prepare", str(dataset), "--out", str(out / "model"), *TINY, "--no-progress"]
+    assert main(prep) == 0
+    argv = ["train", str(dataset), "--out", str(out), "--steps", "3", "--batch-size", "4"]
+    assert main([*argv, *TINY, "--device", "cpu", "--no-progress"]) == 0
+    return out
+
+
+def _object_files(out, dataset):
+    return sorted(object_cache_dir(out, dataset).glob("obj_*/object.safetensors"))
+
+
+# ------------------------------------------------------------------------------ the pipeline
+
+
+def test_subcommands_are_registered(capsys):
+    assert {"synth", "prepare", "train", "predict", "eval"} <= set(SUBCOMMANDS)
+    for name in ("prepare", "train", "predict"):
+        with pytest.raises(SystemExit) as exc:
+            main([name, "--help"])
+        assert exc.value.code == 0
+        out = capsys.readouterr().out
+        assert f"usage: poseflow {name}" in out and "DATASET" in out.upper()
+        assert ("--device" in out) == (name != "prepare")
+
+
+def test_prepare_caches_every_object_and_the_model_reuses_the_cache(run_dir, dataset, capsys):
+    files = _object_files(run_dir / "model", dataset)
+    assert [f.parent.name for f in files] == ["obj_000001", "obj_000002", "obj_000003"]
+    stamps = [f.stat().st_mtime_ns for f in files]
+    # Preparing again into the trained model's folder takes its config.json: every object is a
+    # cache hit, nothing is rewritten.
+    capsys.readouterr()
+    assert main(["prepare", str(dataset), "--out", str(run_dir / "model"), "--no-progress"]) == 0
+    assert [f.stat().st_mtime_ns for f in files] == stamps
+    out = capsys.readouterr().out
+    assert "num_points=32" in out and "obj_000002" in out
+
+
+def test_prepare_refuses_config_options_for_a_trained_model(run_dir, dataset, capsys):
+    argv = ["prepare", str(dataset), "--out", str(run_dir / "model"), "--num-points", "64"]
+    assert main(argv) == 2
+    assert "fixes the configuration" in capsys.readouterr().err
+
+
+def test_train_saves_a_loadable_model_and_its_run(run_dir):
+    model = FunFlow6D.load(run_dir / "model")
+    cfg = model.config
+    assert (cfg.num_points, cfg.dit_preset, cfg.steps, cfg.pose_solver) == (32, "tiny", 2, "svd")
+    assert cfg.net == json.loads(NET)
+    run = json.loads((run_dir / "run.json").read_text())
+    assert run["config"] == cfg.to_json() and run["train"]["steps"] == 3
+    assert (run_dir / "checkpoints" / "step-00000003.json").is_file()
+    key = json.loads((run_dir / "train_set.json").read_text())
+    assert key["split"] == "train" and "fusion" not in key["features"]
+
+
+def test_resume_reuses_the_training_set_and_continues(run_dir, dataset, tmp_path, capsys):
+    out = tmp_path / "run"
+    shutil.copytree(run_dir, out)
+    data_stamp = (out / "train_set.safetensors").stat().st_mtime_ns
+    capsys.readouterr()
+    argv = ["train", str(dataset), "--out", str(out), "--steps", "4", "--batch-size", "4"]
+    assert main([*argv, "--resume", "--no-progress"]) == 0  # config from run.json
+    text = capsys.readouterr().out
+    assert "training set reused: " in text and "trained 4 steps" in text
+    assert (out / "train_set.safetensors").stat().st_mtime_ns == data_stamp
+    assert (out / "checkpoints" / "step-00000004.json").is_file()
+    # Without --resume an existing run is not overwritten; a changed config does not resume.
+    assert main([*argv, "--no-progress"]) == 2
+    assert "--resume" in capsys.readouterr().err
+    assert main([*argv, "--resume", *TINY[:-2], "--no-progress"]) == 2  # not svd any more
+    assert "differs from that of the run" in capsys.readouterr().err
+
+
+def test_changed_features_rebuild_the_training_set(run_dir, dataset, tmp_path, capsys):
+    out = tmp_path / "run"
+    out.mkdir()
+    for name in ("train_set.safetensors", "train_set.json"):
+        shutil.copy(run_dir / name, out / name)
+    shutil.copytree(run_dir / "model" / "objects", out / "model" / "objects")
+    capsys.readouterr()
+    base = ["train", str(dataset), "--out", str(out), *TINY, "--no-progress", "--data-only"]
+    assert main(base) == 0
+    assert "training set reused" in capsys.readouterr().out  # same key
+    assert main([*base, "--set", "fusion=sum"]) == 0  # a network-only field: still reused
+    assert "training set reused" in capsys.readouterr().out
+    assert main([*base, "--copies", "2"]) == 0
+    text = capsys.readouterr().out
+    assert "training set built" in text
+    key = json.loads((out / "train_set.json").read_text())
+    assert key["copies"] == 2
+    assert not (out / "checkpoints").exists()  # --data-only trains nothing
+
+
+def test_predict_writes_a_bop_csv_and_the_stage_timing(run_dir, dataset, tmp_path, capsys):
+    csv, timing = tmp_path / "res" / "ff_synth-test.csv", tmp_path / "timing.json"
+    argv = ["predict", str(dataset), "--model", str(run_dir / "model"), "--out", str(csv)]
+    assert main([*argv, "--timing", str(timing), "--no-progress", "--device", "cpu"]) == 0
+    results = read_results(csv)
+    work = list_images(dataset, "test", targets=True)
+    expected = sorted(o for w in work for o in w.obj_ids)
+    assert sorted(results.obj_ids.tolist()) == expected  # svd: every instance has a pose
+    assert set(results.scene_ids.tolist()) == {0} and set(results.im_ids.tolist()) == {0}
+    assert torch.isfinite(results.poses).all() and (results.times > 0).all()
+    R = results.poses[:, :3, :3]
+    eye = torch.eye(3, dtype=R.dtype).expand_as(R)
+    assert torch.allclose(R @ R.transpose(1, 2), eye, atol=1e-6)
+    # translations were written in mm and read back in metres: objects 0.3-1.5 m away
+    assert ((results.poses[:, 2, 3] > 0.2) & (results.poses[:, 2, 3] < 2.0)).all()
+    report = json.loads(timing.read_text())
+    assert report["num_images"] == 1 and report["method"] == "funflow6d"
+    for stage in ("geometric_encoder", "appearance_encoder", "flow_net", "icp"):
+        assert report["stages_ms"][stage] > 0
+    assert "written to" in capsys.readouterr().out
+
+
+def test_predict_from_detections_with_sampler_options(run_dir, dataset, tmp_path):
+    ds = BOPDataset(dataset, "test")
+    scene = ds.scene(0)
+    dets = [
+        Detection(0, 0, g.obj_id, 0.5, (0, 0, 1, 1), rle_encode(scene.load_mask(0, k)), 0.25)
+        for k, g in enumerate(scene.gt_of(0))
+    ]
+    dets.append(Detection(0, 0, 1, 0.9, (0, 0, 1, 1), rle_encode(torch.zeros(7, 9)), 0.25))
+    path = tmp_path / "dets.json"
+    write_detections(path, dets)
+    csv = tmp_path / "det.csv"
+    argv = ["predict", str(dataset), "--model", str(run_dir / "model"), "--out", str(csv)]
+    argv += ["--detections", str(path), "--all-instances", "--hypotheses", "2"]
+    argv += ["--steps", "3", "--solver", "heun", "--no-progress", "--seed", "1"]
+    with pytest.warns(UserWarning, match="differs from the image"):
+        assert main(argv) == 0
+    results = read_results(csv)
+    assert len(results) == len(dets) - 1  # the mask of the wrong size is skipped
+    assert (results.scores <= 0.5).all()  # pose score times detection score
+    assert (results.times >= 0.25).all()  # the detector's time is added to the image's
+
+
+def test_predict_options_are_checked_before_any_work(run_dir, dataset, tmp_path, capsys):
+    base = ["predict", str(dataset), "--out", str(tmp_path / "r.csv"), "--no-progress"]
+    assert main(base) == 2
+    assert "--model MODEL_DIR is needed" in capsys.readouterr().err
+    assert main([*base, "--model", str(tmp_path / "nothing")]) == 2
+    assert "holds no FunFlow6D checkpoint" in capsys.readouterr().err
+    assert main([*base, "--model", str(run_dir / "model"), "--solver", "leapfrog"]) == 2
+    assert "unknown sampler" in capsys.readouterr().err
+    assert not (tmp_path / "r.csv").exists()
+
+
+@pytest.mark.parametrize("command", ["prepare", "train", "predict"])
+def test_missing_dataset_is_a_clear_error(command, tmp_path, capsys):
+    missing = tmp_path / "no_such_dataset"
+    argv = [command, str(missing), "--out", str(tmp_path / "o")]
+    if command == "predict":
+        argv += ["--method", "baseline"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert f"poseflow {command}: error: dataset folder {missing} does not exist" in err
+
+
+def test_missing_split_and_models_are_clear_errors(dataset, tmp_path, capsys):
+    assert main(["train", str(dataset), "--out", str(tmp_path), "--split", "train_pbr"]) == 2
+    assert "has no split 'train_pbr'" in capsys.readouterr().err
+    empty = tmp_path / "empty"
+    (empty / "test").mkdir(parents=True)
+    assert main(["predict", str(empty), "--method", "baseline", "--out", "x.csv"]) == 2
+    assert "models_info.json is missing" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_baseline_predicts_without_a_model(dataset, tmp_path, capsys):
+    csv, timing = tmp_path / "base.csv", tmp_path / "t.json"
+    argv = ["predict", str(dataset), "--method", "baseline", "--out", str(csv)]
+    assert main([*argv, "--timing", str(timing), "--no-progress"]) == 0
+    results = read_results(csv)
+    assert len(results) >= 3 and (results.scores > 0).all()
+    report = json.loads(timing.read_text())
+    assert report["method"] == "baseline" and report["stages_ms"]["icp"] > 0
+
+
+@pytest.mark.slow
+def test_train_under_torchrun(dataset, tmp_path):
+    torchrun = shutil.which("torchrun", path=os.path.dirname(sys.executable))
+    if torchrun is None:
+        pytest.skip("torchrun is not installed")
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    out = tmp_path / "ddp"
+    cmd = [torchrun, "--nproc_per_node=2", f"--master_port={port}", "-m", "poseflow.cli"]
+    cmd += ["train", str(dataset), "--out", str(out), "--steps", "2", "--batch-size", "2"]
+    cmd += [*TINY, "--device", "cpu", "--no-progress"]
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    proc = subprocess.Popen(
+        cmd,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+        start_new_session=True,
+    )
+    try:
+        stdout, stderr = proc.communicate(timeout=300)
+    finally:
+        if proc.poll() is None:  # timed out: stop torchrun and its workers
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    assert proc.returncode == 0, stderr[-3000:]
+    assert "on 2 processes" in stdout
+    assert stdout.count("model saved to") == 1  # only rank 0 writes and reports
+    assert FunFlow6D.load(out / "model").config.num_points == 32
+
+
+# ------------------------------------------------------------------------------ helpers
+
+
+def _config_args(argv):
+    parser = argparse.ArgumentParser()
+    add_config_arguments(parser)
+    return parser.parse_args(argv)
+
+
+def test_build_config_applies_file_then_flags_then_set(tmp_path):
+    path = tmp_path / "cfg.json"
+    path.write_text(json.dumps({"num_points": 64, "fusion": "cross", "steps": 7}))
+    args = _config_args(["--config", str(path), "--fusion", "sum", "--set", "steps=9"])
+    cfg = build_config(args)
+    assert (cfg.num_points, cfg.fusion, cfg.steps) == (64, "sum", 9)
+    assert build_config(_config_args(["--set", "icp_thresholds=[]"])).icp_thresholds == ()
+
+
+@pytest.mark.parametrize(
+    ("argv", "error", "match"),
+    [
+        (["--set", "colour=red"], ValueRangeError, "unknown FunFlow6D config keys"),
+        (["--set", "steps"], ValueRangeError, "KEY=VALUE"),
+        (["--num-points", "4"], ValueRangeError, "num_points"),
+        (["--set", "num_points=many"], ValueRangeError, "invalid FunFlow6D configuration"),
+        (["--config", "/no/such/cfg.json"], MissingFileError, "no such file"),
+    ],
+)
+def test_bad_configuration_is_reported(argv, error, match):
+    with pytest.raises(error, match=match):
+        build_config(_config_args(argv))
+
+
+def test_bad_config_file_is_reported(tmp_path):
+    path = tmp_path / "cfg.json"
+    path.write_text("{num_points: 3")
+    with pytest.raises(ValueRangeError, match="not valid JSON"):
+        build_config(_config_args(["--config", str(path)]))
+
+
+def test_parse_set_keeps_non_json_values_as_strings():
+    assert parse_set(["appearance_encoder=dinov2:vits14", "a=1.5", "b=[1, 2]"]) == {
+        "appearance_encoder": "dinov2:vits14",
+        "a": 1.5,
+        "b": [1, 2],
+    }
+
+
+def test_resolve_device():
+    assert resolve_device("cpu") == torch.device("cpu")
+    with pytest.raises(ValueRangeError, match="not a torch device"):
+        resolve_device("abacus")
+    if not torch.cuda.is_available():
+        assert resolve_device("auto") == torch.device("cpu")
+        with pytest.raises(ValueRangeError, match="CUDA is not available"):
+            resolve_device("cuda")
+    else:
+        assert resolve_device("cuda").type == "cuda"
+
+
+def test_object_models_are_in_metres_with_their_ids(dataset):
+    models = load_object_models(dataset, obj_ids=[2])
+    info = BOPDataset(dataset, "test").models_info()[2]
+    assert list(models) == [2] and models[2].name == "obj_000002"
+    assert models[2].diameter == pytest.approx(info.diameter, rel=1e-3)
+    with pytest.raises(ValueRangeError, match=r"objects \[9\]"):
+        load_object_models(dataset, obj_ids=[9])
+
+
+def test_models_fingerprint_follows_the_content(dataset, tmp_path):
+    copy = tmp_path / "copy"
+    shutil.copytree(dataset / "models", copy / "models")
+    assert models_fingerprint(copy) == models_fingerprint(dataset)
+    with open(copy / "models" / "obj_000001.ply", "ab") as f:
+        f.write(b"\n")
+    assert models_fingerprint(copy) != models_fingerprint(dataset)
+    assert check_dataset(copy) == copy
+
+
+def test_list_images_follows_targets_and_limits(dataset):
+    everything = list_images(dataset, "train")
+    assert len(everything) == 2 and all(len(w.obj_ids) == len(w.sources) for w in everything)
+    assert len(list_images(dataset, "train", max_images=1)) == 1
+    targeted = list_images(dataset, "test", targets=True)
+    targets = json.loads((dataset / "test_targets_bop19.json").read_text())
+    assert {o for w in targeted for o in w.obj_ids} == {t["obj_id"] for t in targets}
