@@ -23,7 +23,7 @@ import numpy as np
 import open3d as o3d
 import torch
 
-from poseflow.cli.demo import make_scenes
+from poseflow.cli.registration_demo import make_scenes
 from poseflow.geometry.se3 import (
     compose,
     inverse_transform,

@@ -1,55 +1,38 @@
-"""``poseflow demo``: the registration demo runs end to end on a tiny setting."""
+"""``poseflow demo``: the pose demo runs end to end with a tiny model and writes its outputs."""
 
 from __future__ import annotations
 
-import argparse
-
 import pytest
+import torch
 
-from poseflow.cli import demo
-from poseflow.errors import ValueRangeError
-
-
-def _parse(*argv: str) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(prog="poseflow")
-    demo.add_parser(parser.add_subparsers(dest="command"))
-    return parser.parse_args(["demo", *argv])
+from poseflow.cli import main
+from poseflow.eval import read_results
+from poseflow.models import FunFlow6D, FunFlow6DConfig
 
 
-TINY = ("--instances", "2", "--points", "150", "--model-points", "1000", "--iterations", "200",
-        "--flow-noise", "0.002")  # fmt: skip
+@pytest.mark.slow
+def test_pose_demo_writes_results_timing_and_overlays(tmp_path, capsys):
+    torch.manual_seed(0)
+    cfg = FunFlow6DConfig(
+        num_points=32, crop_size=32, query_views=2, dit_preset="tiny", steps=2,
+        ransac_iterations=100, net={"fusion_heads": 2, "posenc_dim": 16, "posenc_frequencies": 2},
+    )  # fmt: skip
+    FunFlow6D(cfg).save(tmp_path / "model")
+    out = tmp_path / "out"
+    code = main(
+        ["demo", "--model", str(tmp_path / "model"), "--images", "1", "--out", str(out),
+         "--no-baseline"]
+    )  # fmt: skip
+    assert code == 0
+    text = capsys.readouterr().out
+    assert "FunFlow6D" in text and "AR_MSSD" in text and "flow_net" in text
+    assert len(read_results(out / "funflow6d.csv")) >= 0
+    assert (out / "timing.json").is_file() and (out / "timing.png").is_file()
+    assert len(list((out / "overlays").glob("*.png"))) == 1
 
 
-@pytest.mark.parametrize("open3d", [False, True])
-def test_demo_runs_and_prints_a_table(capsys, open3d):
-    args = _parse(*TINY, *(() if open3d else ("--no-open3d",)))
-    assert args.run is demo.run
-    assert args.run(args) == 0
-    out = capsys.readouterr().out
-    lines = out.splitlines()
-    assert "2 objects, 150 correspondences" in lines[0]
-    rows = [line.split() for line in lines[2:4]]
-    assert [row[0] for row in rows] == ["0", "1"]
-    # RANSAC then ICP recover the generated poses to a few degrees at most (small clouds).
-    assert all(float(row[2]) < 2.0 and float(row[4]) < 3.0 for row in rows), out
-    assert ("Open3D" in out) == open3d
-    assert "median rotation error" in out and "time for all 2" in out
-
-
-def test_scenes_are_consistent():
-    scenes = demo.make_scenes(3, 100, model_points=300, outliers=0.3, noise=0.0, seed=1)
-    assert scenes.observed.shape == scenes.predicted.shape == (3, 100, 3)
-    assert scenes.model.shape == (3, 300, 3) and scenes.pose.shape == (3, 4, 4)
-    assert (scenes.outlier.sum(-1) == 30).all()
-    # Without noise, the inlier predictions are exactly the observations in the object frame.
-    from poseflow.geometry.se3 import inverse_transform, transform_points
-
-    back = transform_points(inverse_transform(scenes.pose), scenes.observed)
-    good = ~scenes.outlier
-    assert (back - scenes.predicted)[good].abs().max() < 1e-9
-    assert (back - scenes.predicted)[~good].norm(dim=-1).median() > 0.01
-
-
-def test_bad_arguments_raise():
-    with pytest.raises(ValueRangeError):
-        demo.run(_parse("--instances", "0"))
+def test_missing_model_is_a_clear_error(tmp_path, capsys):
+    code = main(["demo", "--model", str(tmp_path / "none"), "--images", "1", "--out",
+                 str(tmp_path / "o")])  # fmt: skip
+    assert code == 2
+    assert "poseflow train" in capsys.readouterr().err
