@@ -1,5 +1,6 @@
 """Geometry: SE(3) algebra and point-cloud primitives, batch-first, on any device and dtype."""
 
+from poseflow.geometry.neighbors import NeighborIndex, NeighborTracker, nearest_neighbors
 from poseflow.geometry.pointcloud import (
     BackprojectedCloud,
     backproject_depth,
@@ -28,6 +29,8 @@ from poseflow.geometry.se3 import (
 
 __all__ = [
     "BackprojectedCloud",
+    "NeighborIndex",
+    "NeighborTracker",
     "backproject_depth",
     "cloud_diameter",
     "compose",
@@ -38,6 +41,7 @@ __all__ = [
     "farthest_point_sample",
     "from_Rt",
     "inverse_transform",
+    "nearest_neighbors",
     "pixels_to_crop",
     "project_points",
     "random_rotation",
