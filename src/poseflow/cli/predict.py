@@ -1,12 +1,13 @@
 r"""``poseflow predict``: estimate the poses of a BOP split and write the BOP results CSV.
 
 The instances of an image come from its ground-truth visible masks (default) or from a BOP
-detection/segmentation file (``--detections``, e.g. the public CNOS or ZebraPose masks); all
-instances of one image go through one batched :meth:`FunFlow6D.estimate
-<poseflow.models.FunFlow6D.estimate>` call. The CSV (:func:`poseflow.eval.results.write_results`)
-holds one line per valid estimate, poses in millimetres with ``R`` row-major, and the wall-clock
-seconds of the image (image loading excluded; plus the detector's reported time when the
-detections file gives one, as the BOP challenge counts it). ``--method baseline`` runs the
+detection/segmentation file (``--detections``, e.g. the public CNOS or ZebraPose masks); the
+images are walked by :func:`poseflow.eval.predict.predict_dataset`, so that all instances of one
+image go through one batched :meth:`FunFlow6D.estimate <poseflow.models.FunFlow6D.estimate>`
+call. The CSV (:func:`poseflow.eval.results.write_results`) holds one line per valid estimate,
+poses in millimetres with ``R`` row-major, and the wall-clock seconds of the image (image loading
+excluded; plus the detector's reported time when the detections file gives one, as the BOP
+challenge counts it). ``--method baseline`` runs the
 classic FPFH/RANSAC/ICP baseline (:class:`poseflow.baselines.ClassicBaseline`) instead and needs
 no model. ``--timing`` writes the per-stage breakdown of :class:`poseflow.eval.timing.StageTimer`.
 
@@ -23,15 +24,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import time
 import warnings
-from dataclasses import dataclass
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 from poseflow.cli.common import add_device_argument
 
-__all__ = ["ImageWork", "add_parser", "list_images", "run"]
+__all__ = ["add_parser", "run", "select_targets"]
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -113,131 +113,83 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     return parser
 
 
-@dataclass
-class ImageWork:
-    """The instances to estimate in one image.
-
-    Attributes:
-        scene_id: scene id.
-        im_id: image id.
-        obj_ids: object of each instance.
-        sources: per instance, the ground-truth index (int) or the
-            :class:`~poseflow.data.bop.Detection` whose mask to use.
-        extra_time: seconds to add to the image's time (the detector's), 0 when unknown.
-    """
-
-    scene_id: int
-    im_id: int
-    obj_ids: list[int]
-    sources: list[Any]
-    extra_time: float = 0.0
-
-
-def list_images(
-    root: str | Path,
-    split: str,
+def select_targets(
+    dataset: Any,
     *,
-    detections: str | Path | None = None,
     targets: str | Path | bool | None = None,
-    score_threshold: float = 0.0,
-    max_images: int | None = None,
-) -> list[ImageWork]:
-    """The images of a split and the instances to estimate in each, in (scene, image) order.
+    detections: Sequence[Any] | None = None,
+) -> list[Any]:
+    """The targets to estimate: from a targets file, or every instance of the split.
 
     Args:
-        root: the dataset folder.
-        split: the split folder.
-        detections: a BOP detections file, or None for the ground-truth instances.
-        targets: a targets file, True for ``root/test_targets_bop19.json``, or None for all.
-        score_threshold: drop detections scoring below this.
-        max_images: keep the first N images.
+        dataset: the :class:`~poseflow.data.bop.BOPDataset` of the split.
+        targets: a targets JSON, True for ``test_targets_bop19.json`` in the dataset folder, or
+            None for every instance: every ground-truth instance, or with ``detections`` every
+            detection.
+        detections: the detections that replace the ground-truth masks, if any.
 
     Returns:
-        One :class:`ImageWork` per image with at least one instance.
+        :class:`~poseflow.eval.recall.Target` records sorted by scene, image and object.
     """
-    from poseflow.data.bop import BOPDataset, BOPDetectionDataset, read_test_targets
+    from poseflow.data.bop import read_test_targets
+    from poseflow.eval.recall import Target
 
-    root = Path(root)
-    work: dict[tuple[int, int], ImageWork] = {}
-    if detections is not None:
-        dets = BOPDetectionDataset(
-            root, split, detections, score_threshold=score_threshold, targets=targets or None
-        ).detections
-        for d in dets:
-            item = work.setdefault((d.scene_id, d.im_id), ImageWork(d.scene_id, d.im_id, [], []))
-            item.obj_ids.append(d.obj_id)
-            item.sources.append(d)
-            item.extra_time = max(item.extra_time, d.time)
+    if targets:
+        path = dataset.root / "test_targets_bop19.json" if targets is True else Path(targets)
+        found = [
+            Target(t.scene_id, t.im_id, t.obj_id, t.inst_count) for t in read_test_targets(path)
+        ]
     else:
-        ds = BOPDataset(root, split)
-        if targets:
-            path = root / "test_targets_bop19.json" if targets is True else Path(targets)
-            wanted: dict[tuple[int, int], set[int]] | None = {}
-            for t in read_test_targets(path):
-                wanted.setdefault((t.scene_id, t.im_id), set()).add(t.obj_id)
-            keys = sorted(wanted)
+        counts: dict[tuple[int, int, int], int] = {}
+        if detections is not None:
+            for d in detections:
+                key = (d.scene_id, d.im_id, d.obj_id)
+                counts[key] = counts.get(key, 0) + 1
         else:
-            wanted = None
-            keys = [(s, i) for s in ds.scene_ids for i in ds.scene(s).im_ids]
-        for s, i in keys:
-            objs = None if wanted is None else wanted[(s, i)]
-            gts = ds.scene(s).gt_of(i)
-            sel = [g for g, gt in enumerate(gts) if objs is None or gt.obj_id in objs]
-            if sel:
-                work[(s, i)] = ImageWork(s, i, [gts[g].obj_id for g in sel], sel)
-    items = [work[k] for k in sorted(work)]
-    return items if max_images is None else items[: max(0, max_images)]
+            for s in dataset.scene_ids:
+                scene = dataset.scene(s)
+                for i in scene.im_ids:
+                    for gt in scene.gt_of(i):
+                        key = (s, i, gt.obj_id)
+                        counts[key] = counts.get(key, 0) + 1
+        found = [Target(s, i, o, n) for (s, i, o), n in counts.items()]
+    return sorted(found, key=lambda t: (t.scene_id, t.im_id, t.obj_id))
 
 
-def _masks(
-    scene: Any, item: ImageWork, shape: tuple[int, int]
-) -> tuple[Any, list[int], list[float]]:
-    """An image's instance masks ``(n, H, W)`` with the object ids and scores of those loaded.
+def _detections(args: argparse.Namespace, dataset: Any, targets: Any) -> list[Any]:
+    """Detections kept by the threshold and the targets, minus masks of the wrong size."""
+    from PIL import Image
 
-    The score is the detection's (1 for ground-truth masks); the masks are None when none loaded.
-    """
-    import torch
+    from poseflow.data.bop import BOPDataWarning, BOPDetectionDataset
 
-    from poseflow.data.bop import BOPDataWarning
-    from poseflow.errors import BOPFormatError
-
-    masks, ids, scores = [], [], []
-    for obj_id, source in zip(item.obj_ids, item.sources):
-        if isinstance(source, int):
-            m, score = scene.load_mask(item.im_id, source, visible=True), 1.0
-        else:
-            try:
-                m, score = source.mask(), source.score
-            except BOPFormatError as exc:
-                warnings.warn(f"{exc}; skipped", BOPDataWarning, stacklevel=2)
-                continue
-        if tuple(m.shape) != shape:
+    dets = BOPDetectionDataset(
+        dataset.root,
+        args.split,
+        args.detections,
+        score_threshold=args.score_threshold,
+        targets=targets or None,
+    ).detections
+    sizes: dict[tuple[int, int], tuple[int, int]] = {}
+    kept = []
+    for d in dets:
+        key = (d.scene_id, d.im_id)
+        if key not in sizes:
+            with Image.open(dataset.scene(d.scene_id).depth_path(d.im_id)) as im:
+                sizes[key] = (im.height, im.width)
+        size = tuple(int(x) for x in d.segmentation["size"]) if d.segmentation else None
+        if size != sizes[key]:
             warnings.warn(
-                f"scene {item.scene_id} image {item.im_id} obj {obj_id}: mask "
-                f"{tuple(m.shape)} differs from the image {shape}; skipped",
+                f"detection of obj {d.obj_id} in scene {d.scene_id} image {d.im_id}: mask "
+                f"{size} differs from the image {sizes[key]}; skipped",
                 BOPDataWarning,
                 stacklevel=2,
             )
             continue
-        masks.append(m.bool())
-        ids.append(obj_id)
-        scores.append(float(score))
-    return (torch.stack(masks) if masks else None), ids, scores
+        kept.append(d)
+    return kept
 
 
-def _only(item: ImageWork, obj_ids: Any) -> ImageWork:
-    """``item`` restricted to the instances of objects in ``obj_ids``."""
-    keep = [k for k, o in enumerate(item.obj_ids) if o in obj_ids]
-    return ImageWork(
-        item.scene_id,
-        item.im_id,
-        [item.obj_ids[k] for k in keep],
-        [item.sources[k] for k in keep],
-        item.extra_time,
-    )
-
-
-def _default_targets(args: argparse.Namespace, root: Path) -> str | bool | None:
+def _targets_option(args: argparse.Namespace, root: Path) -> str | bool | None:
     if args.all_instances:
         return None
     if args.targets is not None:
@@ -290,96 +242,88 @@ def _cache_dir(args: argparse.Namespace, root: Path) -> Path | None:
 def run(args: argparse.Namespace) -> int:
     """Estimate, write the CSV (and the timing JSON); prints a summary; returns 0."""
     import torch
-    from tqdm.auto import tqdm
 
     from poseflow.cli.common import check_dataset, load_object_models, resolve_device
     from poseflow.data.bop import BOPDataset
-    from poseflow.eval.results import PoseResults, write_results
+    from poseflow.eval.predict import predict_dataset
+    from poseflow.eval.results import write_results
     from poseflow.eval.timing import StageTimer
 
     root = check_dataset(args.dataset, args.split)
     device = resolve_device(args.device)
     show = not args.no_progress
     model = _load_model(args, device) if args.method == "funflow6d" else None
-    items = list_images(
-        root,
-        args.split,
-        detections=args.detections,
-        targets=_default_targets(args, root),
-        score_threshold=args.score_threshold,
-        max_images=args.max_images,
-    )
-    needed = sorted({o for item in items for o in item.obj_ids})
-    infos = BOPDataset(root, args.split).models_info()
+    ds = BOPDataset(root, args.split)
+    wanted = _targets_option(args, root)
+    detections = _detections(args, ds, wanted) if args.detections is not None else None
+    targets = select_targets(ds, targets=wanted, detections=detections)
+    images = set(sorted({(t.scene_id, t.im_id) for t in targets})[: args.max_images])
+    infos = ds.models_info()
+    needed = sorted({t.obj_id for t in targets if (t.scene_id, t.im_id) in images})
     missing = [o for o in needed if o not in infos]
     if missing:
         warnings.warn(f"objects {missing} have no model; their instances are skipped", stacklevel=1)
-    needed = [o for o in needed if o in infos]
-    objects = load_object_models(root, obj_ids=needed, progress=show)
+    objects = load_object_models(root, obj_ids=[o for o in needed if o in infos], progress=show)
     import open3d  # noqa: F401  (both methods use it: import it before any clock starts)
 
     timer = StageTimer()
     if model is not None:
         model.prepare_objects(objects, cache_dir=_cache_dir(args, root), progress=show)
         generator = torch.Generator(device=device).manual_seed(args.seed)
-    elif objects:
+
+        def estimator(rgb: Any, depth: Any, K: Any, masks: Any, obj_ids: Any) -> Any:
+            return model.estimate(
+                rgb.to(device),
+                depth.to(device),
+                K.to(device),
+                masks.to(device),
+                obj_ids,
+                generator=generator,
+                timer=timer,
+            )
+
+    else:
         from poseflow.baselines import ClassicBaseline
 
-        baseline = ClassicBaseline(objects, seed=args.seed, timer=timer)
+        baseline = ClassicBaseline(objects, seed=args.seed, timer=timer) if objects else None
         # Its per-object descriptor banks are built on first use: build them now, so that
         # neither the first image's time nor the stage breakdown includes them.
-        for obj_id in tqdm(objects, desc="baseline banks", disable=not show):
+        for obj_id in objects:
             baseline._bank(obj_id)
         timer.reset()
-    items = [w for w in (_only(item, objects) for item in items) if w.obj_ids]
-    ds = BOPDataset(root, args.split, load_masks=False)
-    parts, instances, images = [], 0, 0
-    bar = tqdm(items, desc=f"predict ({args.method})", disable=not show)
-    for item in bar:
-        scene = ds.scene(item.scene_id)
-        depth = scene.load_depth_image(item.im_id)
-        masks, ids, det_scores = _masks(scene, item, tuple(depth.shape))
-        if masks is None:
-            continue
-        K = torch.as_tensor(scene.camera[item.im_id].K, dtype=torch.float32)
-        if model is not None:
-            rgb = scene.load_rgb_image(item.im_id).to(device)
-            depth, K, masks = depth.to(device), K.to(device), masks.to(device)
-        _sync(device)
-        start = time.perf_counter()
-        with timer.image():
-            if model is not None:
-                est = model.estimate(rgb, depth, K, masks, ids, generator=generator, timer=timer)
-            else:
-                est = baseline.estimate(depth, K, masks, ids)
-        _sync(device)
-        elapsed = time.perf_counter() - start + max(item.extra_time, 0.0)
-        images += 1
-        instances += len(ids)
-        valid = est.valid.detach().cpu()
-        if bool(valid.any()):
-            scores = est.scores.detach().cpu().double() * torch.tensor(det_scores).double()
-            parts.append(
-                PoseResults.from_columns(
-                    [item.scene_id] * int(valid.sum()),
-                    [item.im_id] * int(valid.sum()),
-                    [o for o, v in zip(ids, valid.tolist()) if v],
-                    scores[valid],
-                    est.poses.detach().cpu()[valid],
-                    elapsed,
-                )
-            )
-        bar.set_postfix(ms_per_image=f"{timer.breakdown()['total_ms']:.0f}")
-    bar.close()
-    results = PoseResults.concat(parts)
+
+        def estimator(rgb: Any, depth: Any, K: Any, masks: Any, obj_ids: Any) -> Any:
+            return baseline.estimate(depth, K, masks, obj_ids)
+
+    instances = 0
+
+    def counted(rgb: Any, depth: Any, K: Any, masks: Any, obj_ids: Any) -> Any:
+        nonlocal instances
+        instances += len(obj_ids)
+        return estimator(rgb, depth, K, masks, obj_ids)
+
+    results = predict_dataset(
+        counted,
+        ds,
+        split=args.split,
+        object_ids=sorted(objects),
+        targets=targets,
+        detections=detections,
+        load_rgb=model is not None,
+        max_images=args.max_images,
+        timer=timer,
+        progress=show,
+    )
+    if detections:
+        results = _add_detection_time(results, detections)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     write_results(out, results)
-    mean = results.average_time()
     print(
-        f"{args.method}: {images} images, {instances} instances, {len(results)} poses "
+        f"{args.method}: {timer.num_images} images, {instances} instances, {len(results)} poses "
         f"({instances - len(results)} invalid) written to {out}"
     )
+    mean = results.average_time()
     if mean >= 0:
         print(f"mean time per image: {1000 * mean:.1f} ms on {device}")
     if args.timing is not None:
@@ -392,8 +336,24 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _sync(device: Any) -> None:
+def _add_detection_time(results: Any, detections: Any) -> Any:
+    """``results`` with each image's time raised by the detector's time for it (if known)."""
     import torch
 
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
+    from poseflow.eval.results import PoseResults
+
+    extra: dict[tuple[int, int], float] = {}
+    for d in detections:
+        key = (d.scene_id, d.im_id)
+        extra[key] = max(extra.get(key, 0.0), d.time)
+    add = [
+        extra.get((s, i), 0.0) for s, i in zip(results.scene_ids.tolist(), results.im_ids.tolist())
+    ]
+    return PoseResults(
+        results.scene_ids,
+        results.im_ids,
+        results.obj_ids,
+        results.scores,
+        results.poses,
+        results.times + torch.tensor(add, dtype=results.times.dtype),
+    )
