@@ -264,7 +264,7 @@ def main() -> None:
     timings["UMAP transform 2000 points, poseflow"] = t_ours
     timings["UMAP transform 2000 points, umap-learn"] = t_ref
     speedup = t_ref / t_ours
-    timings["query lifting per object, s (render+encode, all views)"] = {
+    timings["query features per object, s (render+encode, or cache load)"] = {
         k: v / len(objects) for k, v in query_s.items()
     }
 
