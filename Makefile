@@ -5,7 +5,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 export OMP_NUM_THREADS ?= 2
 
-.PHONY: demo test test-slow lint bench venv sysdeps clean
+.PHONY: demo test test-slow lint bench bench-quick venv sysdeps clean
 
 sysdeps:
 	@$(PYTHON) -c "import ctypes.util,sys; sys.exit(0 if all(ctypes.util.find_library(l) for l in ('usb-1.0','GL','EGL')) else 1)" \
@@ -32,8 +32,13 @@ lint: $(STAMP)
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
 
+BENCHMARKS := registration data networks features eval
+
 bench: $(STAMP)
-	$(PY) benchmarks/registration.py
+	for b in $(BENCHMARKS); do $(PY) benchmarks/$$b.py || exit 1; done
+
+bench-quick: $(STAMP)
+	for b in $(BENCHMARKS); do $(PY) benchmarks/$$b.py --quick || exit 1; done
 
 demo: $(STAMP)
 	$(PY) -m poseflow.cli demo

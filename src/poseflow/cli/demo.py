@@ -17,12 +17,9 @@ import time
 from pathlib import Path
 from typing import Any
 
-from poseflow.cli import registration_demo
+from poseflow.assets import DEMO_CHECKPOINT
 
-__all__ = ["DEMO_MODEL", "add_parser", "run"]
-
-#: The checkpoint shipped with the package (see the README for the command that trained it).
-DEMO_MODEL = Path(__file__).resolve().parent.parent / "assets" / "demo_model"
+__all__ = ["add_parser", "run"]
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -36,13 +33,44 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     parser.add_argument("--out", default="demo_output", help="folder for everything written")
     parser.add_argument("--images", type=int, default=6, help="test images to generate")
     parser.add_argument("--seed", type=int, default=2026, help="seed of the scenes and the model")
-    parser.add_argument("--model", default=str(DEMO_MODEL), help="FunFlow6D checkpoint folder")
+    parser.add_argument("--model", default=str(DEMO_CHECKPOINT), help="FunFlow6D checkpoint folder")
     parser.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda")
     parser.add_argument("--no-baseline", action="store_true", help="skip the classic baseline")
     parser.add_argument("--no-overlays", action="store_true", help="write no overlay pictures")
     parser.set_defaults(run=run)
-    registration_demo.add_parser(parser.add_subparsers(dest="demo", metavar="{registration}"))
+    _add_registration_parser(parser.add_subparsers(dest="demo", metavar="{registration}"))
     return parser
+
+
+def _add_registration_parser(subparsers: argparse._SubParsersAction) -> None:
+    """Register ``demo registration`` (:func:`poseflow.cli.registration_demo.run`)."""
+    parser = subparsers.add_parser(
+        "registration",
+        help="recover generated object poses with poseflow and Open3D, and compare",
+        description=(
+            "Registration demo: batched RANSAC-Procrustes + coarse-to-fine ICP on generated "
+            "correspondences with outliers; errors against the true poses and time against "
+            "Open3D on the same data."
+        ),
+    )
+    parser.add_argument("--instances", type=int, default=8, help="objects (batch size)")
+    parser.add_argument("--points", type=int, default=1000, help="correspondences per object")
+    parser.add_argument("--model-points", type=int, default=5000, help="model cloud size")
+    parser.add_argument("--outliers", type=float, default=0.4, help="fraction of wrong pairs")
+    parser.add_argument("--noise", type=float, default=0.0005, help="depth noise std, metres")
+    parser.add_argument(
+        "--flow-noise", type=float, default=0.004, help="noise std of the predictions, metres"
+    )
+    parser.add_argument("--iterations", type=int, default=1000, help="RANSAC hypotheses")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--no-open3d", action="store_true", help="skip the Open3D comparison")
+    parser.set_defaults(run=_run_registration)
+
+
+def _run_registration(args: argparse.Namespace) -> int:
+    from poseflow.cli.registration_demo import run as run_registration
+
+    return run_registration(args)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -1,5 +1,8 @@
 """``poseflow demo registration``: the registration stage of the paper on generated data.
 
+Its arguments are declared in :mod:`poseflow.cli.demo`, so that ``poseflow --help`` does not
+import torch.
+
 For a few object instances with known poses, putative correspondences between the observed cloud
 (camera frame) and its predicted canonical coordinates, 40% of them wrong, go through poseflow's
 batched RANSAC-Procrustes and coarse-to-fine ICP against the model cloud; the recovered poses are
@@ -18,36 +21,10 @@ from dataclasses import dataclass
 
 import torch
 
-__all__ = ["Scenes", "add_parser", "blob_shapes", "make_scenes", "run", "sample_surface"]
+__all__ = ["Scenes", "blob_shapes", "make_scenes", "run", "sample_surface"]
 
 #: Radius of the generated objects, in metres (objects about 20 cm across).
 OBJECT_RADIUS = 0.1
-
-
-def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
-    """Register the ``registration`` demo on ``subparsers``; its ``run`` is :func:`run`."""
-    parser = subparsers.add_parser(
-        "registration",
-        help="recover generated object poses with poseflow and Open3D, and compare",
-        description=(
-            "Registration demo: batched RANSAC-Procrustes + coarse-to-fine ICP on generated "
-            "correspondences with outliers; errors against the true poses and time against "
-            "Open3D on the same data."
-        ),
-    )
-    parser.add_argument("--instances", type=int, default=8, help="objects (batch size)")
-    parser.add_argument("--points", type=int, default=1000, help="correspondences per object")
-    parser.add_argument("--model-points", type=int, default=5000, help="model cloud size")
-    parser.add_argument("--outliers", type=float, default=0.4, help="fraction of wrong pairs")
-    parser.add_argument("--noise", type=float, default=0.0005, help="depth noise std, metres")
-    parser.add_argument(
-        "--flow-noise", type=float, default=0.004, help="noise std of the predictions, metres"
-    )
-    parser.add_argument("--iterations", type=int, default=1000, help="RANSAC hypotheses")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--no-open3d", action="store_true", help="skip the Open3D comparison")
-    parser.set_defaults(run=run)
-    return parser
 
 
 @dataclass

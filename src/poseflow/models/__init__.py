@@ -1,11 +1,13 @@
 """FunFlow6D: the model class, its configuration and its trainable network."""
 
+from poseflow.assets import DEMO_CHECKPOINT
 from poseflow.models.config import ABLATIONS, FunFlow6DConfig
 from poseflow.models.funflow6d import FunFlow6D, Observation, PreparedObject
 from poseflow.models.network import FunFlow6DNet, NetConfig
 
 __all__ = [
     "ABLATIONS",
+    "DEMO_CHECKPOINT",
     "FunFlow6D",
     "FunFlow6DConfig",
     "FunFlow6DNet",
