@@ -97,3 +97,18 @@ def test_prepared_objects_are_cached(tiny_model, box, tmp_path):
     assert torch.equal(a.points, b.points) and torch.allclose(a.geometric, b.geometric)
     x = a.bank.pooled()
     assert torch.allclose(a.reducer.transform(x), b.reducer.transform(x), atol=1e-4)
+
+
+def test_noise_conditioning_can_be_switched_off(tiny_model, scene):
+    obs = tiny_model.observe(scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 1])
+    inputs = tiny_model.flow_inputs(obs, scene["poses"])
+    x = torch.randn_like(inputs["x_1"])
+    off = FunFlow6D(tiny_model.config.replace(noise_conditioning=False))
+    off.load_state_dict(tiny_model.state_dict())
+    off.eval()
+    for p in off.net.dit.parameters():  # leave the zero initialisation so outputs vary
+        torch.nn.init.normal_(p, std=0.05)
+    a = off(x=x, t=torch.rand(2), x_0=torch.randn_like(x), **inputs)
+    b = off(x=x, t=torch.rand(2).fill_(0.5), x_0=torch.randn_like(x), **inputs)
+    c = off(x=x, t=torch.full((2,), 0.5), x_0=torch.zeros_like(x), **inputs)
+    assert torch.allclose(b, c, atol=1e-6) and not torch.allclose(a, b, atol=1e-4)

@@ -42,6 +42,10 @@ class FunFlow6DConfig:
         anchor: ``"pinned"``: the query sits at its canonical coordinates along the whole path
             in training and sampling; ``"noise"``: the paper's equations read literally (the
             anchor is interpolated in training and stays at its noise sample in sampling).
+        noise_conditioning: give each point's noise coordinates ``X(0)`` to the positional
+            encoder, as the paper does. With them, ``X(1) - X(0) = (X(t) - X(0)) / t`` can be read
+            off the input for ``t > 0``, so training concentrates on small ``t``; False replaces
+            them by zeros (see ``benchmarks/RESULTS.md`` for both).
         time_sampler: training-time distribution (``"uniform"`` is the paper's).
         solver: ODE solver (``"euler"`` is the paper's, also ``"midpoint"``, ``"heun"``,
             ``"rk4"``).
@@ -67,6 +71,7 @@ class FunFlow6DConfig:
     fusion: str = "gated"
     dit_preset: str = "small"
     anchor: str = "pinned"
+    noise_conditioning: bool = True
     time_sampler: str = "uniform"
     solver: str = "euler"
     steps: int = 50

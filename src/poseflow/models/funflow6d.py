@@ -425,8 +425,14 @@ class FunFlow6D(nn.Module):
 
     def velocity(self, *, x: torch.Tensor, t: torch.Tensor, **inputs: torch.Tensor) -> torch.Tensor:
         """The velocity-model call used in training: ``Ψ(t, X(t) | C)`` ``(B, 2N, 3)``."""
-        keys = ("geometric", "semantic", "points", "normals", "x_0", "mask")
-        return self.net(x=x, t=t, **{k: inputs[k] for k in keys})
+        keys = ("geometric", "semantic", "points", "normals", "mask")
+        return self.net(
+            x=x, t=t, x_0=self._noise_condition(inputs["x_0"]), **{k: inputs[k] for k in keys}
+        )
+
+    def _noise_condition(self, x_0: torch.Tensor) -> torch.Tensor:
+        """``X(0)`` as the positional encoder sees it (zeros without noise conditioning)."""
+        return x_0 if self.config.noise_conditioning else torch.zeros_like(x_0)
 
     def forward(self, **kwargs: Any) -> torch.Tensor:
         """Same as :meth:`velocity`, so the model plugs into :class:`~poseflow.flows.CFMTrainer`."""
@@ -477,7 +483,7 @@ class FunFlow6D(nn.Module):
                     semantic=rep["semantic"],
                     points=rep["points"],
                     normals=rep["normals"],
-                    x_0=x_0,
+                    x_0=self._noise_condition(x_0),
                     mask=rep["mask"],
                 )
             dit = _timed(self.net.dit, timer)
