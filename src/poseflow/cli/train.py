@@ -210,15 +210,15 @@ def run(args: argparse.Namespace) -> int:
     had_group = dist.is_available() and dist.is_initialized()
     ctx = init_distributed(device=device)
     try:
+        # Rank 0 computes and writes the caches (and run.json) first; the other ranks then read.
+        if not ctx.is_main:
+            barrier(ctx)
         config = _run_config(args, out)
         torch.manual_seed(args.seed)
         model = FunFlow6D(config)
         cache = Path(args.cache) if args.cache is not None else out / "model"
         show = not args.no_progress and ctx.is_main
         times = {}
-        # Rank 0 computes and writes the caches first; the other ranks then read them.
-        if not ctx.is_main:
-            barrier(ctx)
         t0 = time.perf_counter()
         models = load_object_models(root, progress=show)
         model.prepare_objects(models, cache_dir=object_cache_dir(cache, root), progress=show)
@@ -230,7 +230,9 @@ def run(args: argparse.Namespace) -> int:
             out.mkdir(parents=True, exist_ok=True)
             record = {"config": config.to_json(), "train": train_config.to_json()}
             record.update({"dataset": str(root), "split": args.split})
-            (out / "run.json").write_text(json.dumps(record, indent=1))
+            tmp = out / "run.json.tmp"
+            tmp.write_text(json.dumps(record, indent=1))
+            tmp.replace(out / "run.json")
             barrier(ctx)
         where = "reused" if reused else "built"
         if ctx.is_main:
