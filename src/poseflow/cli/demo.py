@@ -78,6 +78,7 @@ def run(args: argparse.Namespace) -> int:
     import torch
 
     from poseflow.baselines import ClassicBaseline
+    from poseflow.cli.common import object_cache_dir
     from poseflow.cli.eval import format_table
     from poseflow.data.bop import BOPDataset
     from poseflow.data.demo_objects import demo_objects
@@ -96,9 +97,6 @@ def run(args: argparse.Namespace) -> int:
 
     print(f"[1/5] loading FunFlow6D from {args.model}")
     model = FunFlow6D.load(args.model, device=args.device)
-    models = dict(enumerate(demo_objects(), start=1))
-    shipped = Path(args.model) / "objects"
-    model.prepare_objects(models, cache_dir=shipped if shipped.is_dir() else out / "objects")
 
     print(f"[2/5] rendering {args.images} test images of the demo objects")
     root = generate_dataset(
@@ -108,6 +106,9 @@ def run(args: argparse.Namespace) -> int:
         seed=args.seed,
         progress=True,
     )
+    models = dict(enumerate(demo_objects(), start=1))
+    shipped = object_cache_dir(args.model, root)
+    model.prepare_objects(models, cache_dir=shipped if shipped.is_dir() else out / "objects")
 
     print("[3/5] FunFlow6D: estimating every target instance")
     timer = StageTimer()

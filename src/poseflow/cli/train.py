@@ -73,6 +73,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         "--warmup-steps", type=int, default=None, help="linear warm-up (default: steps/10, ≤500)"
     )
     parser.add_argument(
+        "--ema-decay", type=float, default=0.999, help="decay of the weight EMA that is saved"
+    )
+    parser.add_argument(
         "--copies", type=int, default=1, help="augmented copies of each instance (first clean)"
     )
     parser.add_argument(
@@ -201,6 +204,7 @@ def run(args: argparse.Namespace) -> int:
         batch_size=args.batch_size,
         lr=args.lr,
         warmup_steps=warmup,
+        ema_decay=args.ema_decay,
         precision=args.precision,
         ckpt_every=args.ckpt_every,
         seed=args.seed,
