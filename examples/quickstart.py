@@ -10,7 +10,7 @@ The core (what the README shows) is :func:`quickstart`:
 5. estimate the poses of every instance of a test image in one call and compare them with the
    ground truth.
 
-Without ``--model`` the checkpoint shipped with poseflow (``poseflow.cli.demo.DEMO_MODEL``) is
+Without ``--model`` the checkpoint shipped with poseflow (``poseflow.assets.DEMO_CHECKPOINT``) is
 used when it is installed; otherwise a ``small`` model is trained for 300 steps on 40 generated
 images, which takes about 10 minutes on one CPU core and is far from accurate (errors of tens of
 degrees): pass ``--model`` a folder written by ``poseflow train`` for meaningful errors.
@@ -28,6 +28,7 @@ from pathlib import Path
 
 import torch
 
+from poseflow.assets import DEMO_CHECKPOINT
 from poseflow.data.bop import BOPDataset, BOPImageDataset
 from poseflow.data.objects import ObjectModel
 from poseflow.data.synthetic import generate_dataset
@@ -82,12 +83,10 @@ def main(argv: Sequence[str] | None = None) -> dict:
     config = TINY if args.quick else FunFlow6DConfig()
     model_dir = args.model
     if model_dir is None and not args.quick:
-        from poseflow.cli.demo import DEMO_MODEL
-
-        if (DEMO_MODEL / "model.safetensors").is_file():
-            model_dir = str(DEMO_MODEL)
+        if (DEMO_CHECKPOINT / "model.safetensors").is_file():
+            model_dir = str(DEMO_CHECKPOINT)
         else:
-            print(f"no checkpoint at {DEMO_MODEL}: training a small model here (about 10 min)")
+            print(f"no checkpoint at {DEMO_CHECKPOINT}: training a small model (about 10 min)")
     steps, size = (20, 3) if args.quick else (300, 40)
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(args.out or tmp)
