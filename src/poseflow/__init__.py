@@ -24,6 +24,8 @@ _SUBPACKAGES = (
     "flows",
     "eval",
     "models",
+    "baselines",
+    "assets",
     "cli",
 )
 

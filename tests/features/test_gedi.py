@@ -10,10 +10,10 @@ from poseflow.features.gedi import (
     GeDiEncoder,
     GeDiNet,
     ball_query,
-    farthest_point_sample,
     local_reference_frame,
     quaternion_to_rotation,
 )
+from poseflow.geometry.pointcloud import farthest_point_sample
 from poseflow.geometry.se3 import random_rotation
 
 
@@ -64,7 +64,7 @@ def test_lrf_planar_patch_is_finite() -> None:
 
 def test_fps_and_ball_query_against_brute_force() -> None:
     pts = torch.rand(2, 50, 3, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
-    idx = farthest_point_sample(pts, 10)
+    idx, _ = farthest_point_sample(pts, 10)
     for k in range(2):  # sequential reference
         chosen = [0]
         for _ in range(9):

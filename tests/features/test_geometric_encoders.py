@@ -11,7 +11,7 @@ from poseflow.features.geometric import (
     FPFHEncoder,
     GeometricEncoder,
     TorchScriptEncoder,
-    estimate_normals,
+    open3d_normals,
 )
 from poseflow.geometry.se3 import random_rotation
 
@@ -25,7 +25,7 @@ def _sphere(n: int, seed: int, dtype: torch.dtype = torch.float64) -> torch.Tens
 
 def test_fpfh_matches_open3d() -> None:
     pts = _sphere(300, 0)
-    normals = torch.from_numpy(estimate_normals(pts.numpy(), 0.01))
+    normals = torch.from_numpy(open3d_normals(pts.numpy(), 0.01))
     enc = FPFHEncoder(radius_fractions=(0.3,), max_nn=50)
     out = enc.encode(pts[None], normals[None], None, 0.1)[0]
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts.numpy()))

@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from poseflow.assets import DEMO_CHECKPOINT
+from poseflow.cli.common import add_device_argument
 
 __all__ = ["add_parser", "run"]
 
@@ -34,7 +35,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     parser.add_argument("--images", type=int, default=6, help="test images to generate")
     parser.add_argument("--seed", type=int, default=2026, help="seed of the scenes and the model")
     parser.add_argument("--model", default=str(DEMO_CHECKPOINT), help="FunFlow6D checkpoint folder")
-    parser.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda")
+    add_device_argument(parser)
     parser.add_argument("--no-baseline", action="store_true", help="skip the classic baseline")
     parser.add_argument("--no-overlays", action="store_true", help="write no overlay pictures")
     parser.set_defaults(run=run)
@@ -78,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
     import torch
 
     from poseflow.baselines import ClassicBaseline
-    from poseflow.cli.common import object_cache_dir
+    from poseflow.cli.common import object_cache_dir, resolve_device
     from poseflow.cli.eval import format_table
     from poseflow.data.bop import BOPDataset
     from poseflow.data.demo_objects import demo_objects
@@ -96,7 +97,7 @@ def run(args: argparse.Namespace) -> int:
     torch.manual_seed(args.seed)
 
     print(f"[1/5] loading FunFlow6D from {args.model}")
-    model = FunFlow6D.load(args.model, device=args.device)
+    model = FunFlow6D.load(args.model, device=resolve_device(args.device))
 
     print(f"[2/5] rendering {args.images} test images of the demo objects")
     root = generate_dataset(

@@ -32,12 +32,12 @@ from torch.nn import functional as F
 
 from poseflow.errors import MissingWeightsError, ShapeError, ValueRangeError
 from poseflow.features.geometric import check_geometric_inputs
+from poseflow.geometry.pointcloud import farthest_point_sample
 
 __all__ = [
     "GeDiEncoder",
     "GeDiNet",
     "ball_query",
-    "farthest_point_sample",
     "local_reference_frame",
     "quaternion_to_rotation",
 ]
@@ -122,36 +122,6 @@ def local_reference_frame(
     return torch.stack((x, y, z), dim=-1).to(dtype)
 
 
-def farthest_point_sample(xyz: torch.Tensor, n: int) -> torch.Tensor:
-    """Farthest-point sampling, starting from index 0, batched over patches.
-
-    Args:
-        xyz: points, shape ``(K, L, 3)``.
-        n: samples per patch (``n ≤ L``).
-
-    Returns:
-        Indices of shape ``(K, n)``.
-
-    Example:
-        >>> pts = torch.tensor([[[0.0, 0, 0], [0.1, 0, 0], [5.0, 0, 0], [2.0, 0, 0]]])
-        >>> farthest_point_sample(pts, 3)
-        tensor([[0, 2, 3]])
-    """
-    K, L, _ = xyz.shape
-    if n > L:
-        raise ValueRangeError(f"cannot sample {n} of {L} points")
-    idx = torch.zeros(K, n, dtype=torch.long, device=xyz.device)
-    dist = torch.full((K, L), float("inf"), dtype=xyz.dtype, device=xyz.device)
-    last = torch.zeros(K, dtype=torch.long, device=xyz.device)
-    rows = torch.arange(K, device=xyz.device)
-    for i in range(1, n):
-        d = (xyz - xyz[rows, last][:, None, :]).pow(2).sum(-1)
-        dist = torch.minimum(dist, d)
-        last = dist.argmax(dim=1)
-        idx[:, i] = last
-    return idx
-
-
 def ball_query(
     xyz: torch.Tensor, centres: torch.Tensor, radius: float, nsample: int
 ) -> torch.Tensor:
@@ -213,7 +183,7 @@ class _SetAbstraction(nn.Module):
                 grouped = torch.cat([grouped, features[:, :, None, :]], dim=1)
             new_xyz = None
         else:
-            centre_idx = farthest_point_sample(xyz, self.npoint)
+            centre_idx = farthest_point_sample(xyz.detach(), self.npoint)[0]
             rows = torch.arange(K, device=xyz.device)[:, None]
             new_xyz = xyz[rows, centre_idx]  # (K, S, 3)
             group = ball_query(xyz, new_xyz, self.radius, self.nsample)  # (K, S, n)

@@ -30,7 +30,7 @@ __all__ = [
     "GeometricEncoder",
     "TorchScriptEncoder",
     "check_geometric_inputs",
-    "estimate_normals",
+    "open3d_normals",
 ]
 
 
@@ -110,7 +110,7 @@ def check_geometric_inputs(
     return mask, diameter
 
 
-def estimate_normals(points: np.ndarray, radius: float, *, max_nn: int = 30) -> np.ndarray:
+def open3d_normals(points: np.ndarray, radius: float, *, max_nn: int = 30) -> np.ndarray:
     """Estimate unit normals with Open3D, oriented away from the cloud's centroid.
 
     Orienting away from the centroid gives a query model and an observed partial view the same
@@ -128,7 +128,7 @@ def estimate_normals(points: np.ndarray, radius: float, *, max_nn: int = 30) -> 
         >>> import numpy as np
         >>> pts = np.random.default_rng(0).normal(size=(200, 3))
         >>> pts /= np.linalg.norm(pts, axis=1, keepdims=True)
-        >>> n = estimate_normals(pts, 0.5)
+        >>> n = open3d_normals(pts, 0.5)
         >>> bool((np.sum(n * pts, axis=1) > 0.9).mean() > 0.9)
         True
     """
@@ -219,7 +219,7 @@ class FPFHEncoder:
             pts = np.ascontiguousarray(pts_np[b][valid])
             d = float(diameter[b])
             if nrm_np is None:
-                nrm = estimate_normals(pts, self.normal_radius_fraction * d)
+                nrm = open3d_normals(pts, self.normal_radius_fraction * d)
             else:
                 nrm = np.ascontiguousarray(nrm_np[b][valid])
             pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))

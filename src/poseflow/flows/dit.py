@@ -55,6 +55,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from poseflow._checks import check_mask, check_same, check_tensor
+from poseflow._masks import key_padding_mask
 from poseflow.errors import ShapeError, ValueRangeError
 
 __all__ = [
@@ -285,12 +286,6 @@ class _FinalLayer(nn.Module):
         return self.out(_modulate(self.norm(h), shift, scale))
 
 
-def _padding_keys(mask: torch.Tensor) -> torch.Tensor:
-    """``(B, S)`` validity → ``(B, 1, 1, S)`` SDPA key mask with no all-masked row."""
-    keep = mask | ~mask.any(dim=-1, keepdim=True)
-    return keep[:, None, None, :]
-
-
 class PointDiT(nn.Module):
     """Diffusion Transformer velocity net over point tokens.
 
@@ -392,7 +387,7 @@ class PointDiT(nn.Module):
             check_mask(mask, "mask", ("B", "L"), sizes)
             check_same(("x", x), ("mask", mask), dtype=False)
 
-        global_mask = None if mask is None else _padding_keys(mask)
+        global_mask = None if mask is None else key_padding_mask(mask)
         local_mask, split, split_masks = self._local_layout(mask, cloud_ids, num_query, sizes)
 
         c = self.time_embed(t)
@@ -424,7 +419,7 @@ class PointDiT(nn.Module):
             if mask is None:
                 return None, num_query, (None, None)
             head, tail = mask[:, :num_query], mask[:, num_query:]
-            return None, num_query, (_padding_keys(head), _padding_keys(tail))
+            return None, num_query, (key_padding_mask(head), key_padding_mask(tail))
         if cloud_ids is None:
             raise ValueRangeError(
                 "within-cloud attention needs num_query or cloud_ids; pass one, or build the "

@@ -304,9 +304,9 @@ class FunFlow6D(nn.Module):
             cloud = backproject_depth(depth.expand(B, *depth.shape), K, masks.bool())
             cloud_points, cloud_pixels, keep = cloud.points, cloud.pixels, cloud.mask
             if cloud_points.shape[1] == 0:  # every mask empty: one padded point each
-                cloud_points = torch.zeros(B, 1, 3)
-                cloud_pixels = torch.zeros(B, 1, 2, dtype=torch.long)
-                keep = torch.zeros(B, 1, dtype=torch.bool)
+                cloud_points = K.new_zeros(B, 1, 3)
+                cloud_pixels = torch.zeros(B, 1, 2, dtype=torch.long, device=K.device)
+                keep = torch.zeros(B, 1, dtype=torch.bool, device=K.device)
             if cloud_points.shape[1] >= 20:
                 keep = remove_statistical_outliers(cloud_points, keep, k=20)
             idx, valid_pts = farthest_point_sample(cloud_points, n, keep, generator=generator)
@@ -314,7 +314,9 @@ class FunFlow6D(nn.Module):
             pixels = torch.gather(cloud_pixels, 1, idx[..., None].expand(-1, -1, 2))
             valid = valid_pts.sum(dim=1) >= _MIN_POINTS
             normals = estimate_normals(points, valid_pts, k=min(16, n))
-        diameters = torch.tensor([self._object(i).diameter for i in obj_ids.tolist()])
+        diameters = torch.tensor(
+            [self._object(i).diameter for i in obj_ids.tolist()], device=points.device
+        )
         geometric = appearance = None
         v = valid  # encoders see only instances with enough points; the others stay zero
         if self.geometric_encoder is not None:

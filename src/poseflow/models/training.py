@@ -98,7 +98,7 @@ def augment(
         >>> d.shape, bool(m.sum() < 64)
         (torch.Size([8, 8]), True)
     """
-    noise = torch.randn(depth.shape, generator=generator) * depth_noise * depth.square()
+    noise = torch.randn(depth.shape, generator=generator).to(depth) * depth_noise * depth.square()
     depth = torch.where(depth > 0, depth + noise, depth)
     out = []
     for m in masks:
@@ -106,7 +106,7 @@ def augment(
         if r:
             k = 2 * r + 1
             m = -F.max_pool2d(-m[None, None].float(), k, stride=1, padding=r)[0, 0] > 0.5
-        drop = torch.rand(m.shape, generator=generator) < mask_noise
+        drop = (torch.rand(m.shape, generator=generator) < mask_noise).to(m.device)
         out.append(m & ~drop)
     return depth, torch.stack(out) if out else masks
 
