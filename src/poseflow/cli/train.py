@@ -39,6 +39,7 @@ NETWORK_FIELDS = (
     "fusion",
     "dit_preset",
     "anchor",
+    "noise_conditioning",
     "time_sampler",
     "solver",
     "steps",
