@@ -56,7 +56,7 @@ from poseflow.registration.icp import multi_scale_icp
 from poseflow.registration.ransac import ransac_procrustes
 from poseflow.render.raycast import Renderer
 
-__all__ = ["ClassicBaseline", "PoseEstimate"]
+__all__ = ["ClassicBaseline"]
 
 
 class ClassicBaseline:

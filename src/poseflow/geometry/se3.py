@@ -1,8 +1,9 @@
 """SE(3) algebra on batched homogeneous transforms.
 
 Transforms are ``(..., 4, 4)`` tensors whose last row is ``[0, 0, 0, 1]``; points are
-``(..., N, 3)``. Every function keeps the dtype and device of its inputs. Rotation conversions
-(axis-angle, quaternions) are kornia's: ``kornia.geometry.conversions``.
+``(..., N, 3)``. Every function keeps the dtype and device of its inputs. poseflow does not
+repeat kornia's rotation conversions (axis-angle, quaternions): use
+``kornia.geometry.conversions``.
 """
 
 from __future__ import annotations
