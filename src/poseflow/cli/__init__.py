@@ -18,7 +18,7 @@ from poseflow.errors import PoseflowError
 __all__ = ["build_parser", "main"]
 
 #: Subcommand modules under ``poseflow.cli``, in the order ``--help`` lists them.
-SUBCOMMANDS = ("demo", "synth", "prepare", "train", "predict", "eval")
+SUBCOMMANDS = ("demo", "synth", "prepare", "train", "predict", "eval", "bench")
 
 
 def build_parser() -> argparse.ArgumentParser:

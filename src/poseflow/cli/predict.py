@@ -23,6 +23,7 @@ Example::
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import warnings
 from collections.abc import Sequence
@@ -264,7 +265,8 @@ def run(args: argparse.Namespace) -> int:
     if missing:
         warnings.warn(f"objects {missing} have no model; their instances are skipped", stacklevel=1)
     objects = load_object_models(root, obj_ids=[o for o in needed if o in infos], progress=show)
-    import open3d  # noqa: F401  (both methods use it: import it before any clock starts)
+    with contextlib.suppress(ImportError):  # import it (when there) before any clock starts
+        import open3d  # noqa: F401
 
     timer = StageTimer()
     if model is not None:

@@ -80,6 +80,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         "--copies", type=int, default=1, help="augmented copies of each instance (first clean)"
     )
     parser.add_argument(
+        "--crop-jitter",
+        type=float,
+        default=0.1,
+        help="jitter of the appearance crop in augmented copies, fraction of its side",
+    )
+    parser.add_argument(
         "--max-images", type=int, default=None, metavar="N", help="use at most N images"
     )
     parser.add_argument(
@@ -144,6 +150,7 @@ def _train_set_key(config: Any, root: Path, args: argparse.Namespace) -> dict[st
         "dataset": dataset_fingerprint(root, args.split),
         "split": args.split,
         "copies": args.copies,
+        "crop_jitter": args.crop_jitter if args.copies > 1 else 0.0,
         "max_images": args.max_images,
         "min_visib_fract": args.min_visib_fract,
         "seed": args.seed,
@@ -166,6 +173,7 @@ def _training_set(
         root,
         split=args.split,
         copies=args.copies,
+        crop_jitter=args.crop_jitter,
         min_visib_fract=args.min_visib_fract,
         max_images=args.max_images,
         seed=args.seed,

@@ -50,6 +50,7 @@ from poseflow.geometry.pointcloud import (
 
 __all__ = [
     "QueryFeatureBank",
+    "jitter_boxes",
     "lift_query_features",
     "lift_target_features",
     "viewpoint_poses",
@@ -66,6 +67,8 @@ def lift_target_features(
     *,
     pixels: torch.Tensor | None = None,
     margin: float = 1.1,
+    jitter: float = 0.0,
+    generator: torch.Generator | None = None,
 ) -> torch.Tensor:
     """Appearance features of observed points from the crop around their barycentre.
 
@@ -79,6 +82,10 @@ def lift_target_features(
         pixels: each point's pixel ``(B, M, 2)`` (``(u, v)``, from the back-projection); None
             projects the points with ``K``.
         margin: crop side over the tight square around the points' projections.
+        jitter: training augmentation of the crop (a detector's imprecise box): each box is
+            shifted by up to ``jitter`` of its side along each axis and its side scaled by a
+            factor in ``[1 - jitter, 1 + jitter]``, uniformly; 0 (inference) leaves it exact.
+        generator: seeds the jitter.
 
     Returns:
         Features ``(B, M, G)`` in the images' dtype, zero on padded rows.
@@ -99,6 +106,8 @@ def lift_target_features(
     check_mask(mask, "mask", ("B", "M"), sizes)
     K = K.to(points.dtype)
     box = crop_box_around(points, K, mask, margin=margin)
+    if jitter > 0:
+        box = jitter_boxes(box, jitter, generator=generator)
     size = encoder.input_size
     crops = crop_resize(images, box.to(images.dtype), size)
     feats = encoder.encode(crops)
@@ -106,6 +115,39 @@ def lift_target_features(
     crop_uv = pixels_to_crop(uv, box, size).to(feats.dtype)
     out = sample_features(feats, crop_uv, (size, size))
     return torch.where(mask[..., None], out, torch.zeros((), dtype=out.dtype, device=out.device))
+
+
+def jitter_boxes(
+    box: torch.Tensor, amount: float, *, generator: torch.Generator | None = None
+) -> torch.Tensor:
+    """Square boxes moved and rescaled at random, as a detector's imprecision would.
+
+    Args:
+        box: boxes ``(B, 4)`` as ``(x0, y0, x1, y1)`` with equal sides.
+        amount: largest shift, as a fraction of the side, and largest relative change of the
+            side; in ``[0, 0.5)``.
+        generator: seeds the draw (made on the generator's device; the result is on ``box``'s).
+
+    Returns:
+        Square boxes ``(B, 4)``.
+
+    Example:
+        >>> b = jitter_boxes(torch.tensor([[0.0, 0.0, 10.0, 10.0]]), 0.1,
+        ...                  generator=torch.Generator().manual_seed(0))
+        >>> side = b[0, 2] - b[0, 0]
+        >>> bool(9.0 <= side <= 11.0), bool(torch.isclose(side, b[0, 3] - b[0, 1]))
+        (True, True)
+    """
+    if not 0 <= amount < 0.5:
+        raise ValueRangeError(f"jitter must be in [0, 0.5), got {amount}")
+    check_tensor(box, "box", ("B", 4))
+    where = generator.device if generator is not None else box.device
+    u = torch.rand(box.shape[0], 3, generator=generator, dtype=torch.float64, device=where)
+    u = (u * 2 - 1).to(box)
+    side = box[:, 2] - box[:, 0]
+    centre = (box[:, :2] + box[:, 2:]) / 2 + amount * side[:, None] * u[:, :2]
+    half = side * (1 + amount * u[:, 2]) / 2
+    return torch.cat([centre - half[:, None], centre + half[:, None]], dim=1)
 
 
 def viewpoint_poses(

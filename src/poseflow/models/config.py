@@ -28,6 +28,8 @@ class FunFlow6DConfig:
     Attributes:
         num_points: points ``N`` of the query cloud and of every target cloud (the flow state has
             ``2N`` points).
+        dense_points: a target's back-projected cloud is first cut to a random subset of at most
+            this many points (outlier removal and farthest-point sampling then run on it).
         geometric_encoder: ``"fpfh"`` (multi-scale FPFH, weight-free), ``"gedi:PATH"`` (GeDi
             weights from a local file) or ``"none"``.
         geometric_radii: FPFH/GeDi radii as fractions of the diameter (paper: 0.30 and 0.40).
@@ -61,6 +63,7 @@ class FunFlow6DConfig:
     """
 
     num_points: int = 256
+    dense_points: int = 4096
     geometric_encoder: str = "fpfh"
     geometric_radii: tuple[float, ...] = (0.30, 0.40)
     appearance_encoder: str = "dsift"
@@ -89,6 +92,11 @@ class FunFlow6DConfig:
         self.icp_thresholds = tuple(float(r) for r in self.icp_thresholds)
         if self.num_points < 8:
             raise ValueRangeError(f"num_points must be at least 8, got {self.num_points}")
+        if self.dense_points < self.num_points:
+            raise ValueRangeError(
+                f"dense_points ({self.dense_points}) must be at least num_points "
+                f"({self.num_points})"
+            )
         if self.pose_solver not in _SOLVERS:
             raise ValueRangeError(
                 f"pose_solver must be one of {_SOLVERS}, got {self.pose_solver!r}"

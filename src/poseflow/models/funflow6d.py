@@ -273,6 +273,7 @@ class FunFlow6D(nn.Module):
         *,
         generator: torch.Generator | None = None,
         timer: Any = None,
+        crop_jitter: float = 0.0,
     ) -> Observation:
         """Lift the masked depth of each instance to a cloud of ``N`` points with its features.
 
@@ -284,6 +285,8 @@ class FunFlow6D(nn.Module):
             obj_ids: object id of each mask ``(B,)``.
             generator: seeds the start of the farthest-point sampling.
             timer: optional :class:`~poseflow.eval.timing.StageTimer`.
+            crop_jitter: training augmentation of the appearance crop (see
+                :func:`~poseflow.features.lifting.jitter_boxes`); 0 at inference.
 
         Returns:
             The :class:`Observation`; instances with fewer than 16 valid points are flagged
@@ -307,6 +310,10 @@ class FunFlow6D(nn.Module):
                 cloud_points = K.new_zeros(B, 1, 3)
                 cloud_pixels = torch.zeros(B, 1, 2, dtype=torch.long, device=K.device)
                 keep = torch.zeros(B, 1, dtype=torch.bool, device=K.device)
+            if cloud_points.shape[1] > self.config.dense_points:
+                cloud_points, cloud_pixels, keep = _random_subset(
+                    cloud_points, cloud_pixels, keep, self.config.dense_points, generator
+                )
             if cloud_points.shape[1] >= 20:
                 keep = remove_statistical_outliers(cloud_points, keep, k=20)
             idx, valid_pts = farthest_point_sample(cloud_points, n, keep, generator=generator)
@@ -337,6 +344,8 @@ class FunFlow6D(nn.Module):
                         K,
                         valid_pts[v],
                         pixels=pixels[v].to(points.dtype),
+                        jitter=crop_jitter,
+                        generator=generator if crop_jitter > 0 else None,
                     )
         return Observation(obj_ids, points, normals, valid_pts, valid, geometric, appearance)
 
@@ -515,6 +524,7 @@ class FunFlow6D(nn.Module):
         dataset: str | Path | Any,
         *,
         split: str = "test",
+        targets: Sequence[Any] | None = None,
         detections: Sequence[Any] | None = None,
         max_images: int | None = None,
         seed: int = 0,
@@ -526,6 +536,8 @@ class FunFlow6D(nn.Module):
         Args:
             dataset: the dataset folder or a :class:`~poseflow.data.bop.BOPDataset`.
             split: the split folder.
+            targets: :class:`~poseflow.eval.recall.Target` records to estimate (default: the
+                split's ``test_targets_bop19.json`` when present, else every instance).
             detections: masks from a BOP segmentation file instead of the ground truth.
             max_images: stop after this many images.
             seed: seeds the noise, sampling and RANSAC of every image.
@@ -549,6 +561,7 @@ class FunFlow6D(nn.Module):
             dataset,
             split=split,
             object_ids=sorted(self.objects),
+            targets=targets,
             detections=detections,
             max_images=max_images,
             timer=timer,
@@ -661,6 +674,35 @@ class FunFlow6D(nn.Module):
         model = cls(FunFlow6DConfig.from_json(folder / "config.json"))
         model.net.load_state_dict(load_file(str(weights)))
         return model.to(device)
+
+
+def _random_subset(
+    points: torch.Tensor,
+    pixels: torch.Tensor,
+    mask: torch.Tensor,
+    size: int,
+    generator: torch.Generator | None,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """A uniform random subset of at most ``size`` valid points per cloud.
+
+    Args:
+        points: clouds ``(B, P, 3)``.
+        pixels: their pixels ``(B, P, 2)``.
+        mask: validity ``(B, P)`` bool.
+        size: points kept, ``< P``.
+        generator: seeds the draw (None: a fixed seed, so that repeated calls agree).
+
+    Returns:
+        ``(points, pixels, mask)`` with ``size`` columns; clouds with fewer valid points keep
+        them all (and padding).
+    """
+    if generator is None:
+        generator = torch.Generator(device=mask.device).manual_seed(0)
+    keys = torch.rand(mask.shape, generator=generator, device=mask.device)
+    keys = torch.where(mask, keys, 2.0)  # valid points first, in random order
+    idx = keys.topk(size, dim=1, largest=False).indices
+    take = lambda t: torch.gather(t, 1, idx[..., None].expand(-1, -1, t.shape[-1]))  # noqa: E731
+    return take(points), take(pixels), torch.gather(mask, 1, idx)
 
 
 def _bank_rows(bank: QueryFeatureBank, *, max_rows: int) -> torch.Tensor:

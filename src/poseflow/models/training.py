@@ -77,6 +77,9 @@ def augment(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Perturb a training observation the way real sensors and segmenters do.
 
+    (The third augmentation, jitter of the appearance crop, is applied by
+    :meth:`FunFlow6D.observe <poseflow.models.FunFlow6D.observe>`'s ``crop_jitter``.)
+
     Depth gets Gaussian noise (``depth_noise`` metres at 1 m, growing with ``z²``); each mask is
     eroded by a random radius up to ``max_erosion`` pixels and loses a random ``mask_noise``
     fraction of its pixels.
@@ -118,6 +121,7 @@ def build_training_set(
     *,
     split: str = "train",
     copies: int = 1,
+    crop_jitter: float = 0.1,
     min_visib_fract: float = 0.1,
     max_images: int | None = None,
     seed: int = 0,
@@ -130,6 +134,8 @@ def build_training_set(
         root: the BOP dataset folder.
         split: the split to read (``train`` for generated data, ``train_pbr`` for BOP's).
         copies: augmented copies of every instance (the first is not augmented).
+        crop_jitter: jitter of the appearance crop of the augmented copies (see
+            :func:`~poseflow.features.lifting.jitter_boxes`).
         min_visib_fract: skip instances less visible than this.
         max_images: use at most this many images.
         seed: seed of the augmentations and samplings.
@@ -157,7 +163,10 @@ def build_training_set(
             depth, masks = s["depth"], s["masks_visib"][keep]
             if copy:
                 depth, masks = augment(depth, masks, generator=g)
-            obs = model.observe(s["rgb"], depth, s["K"], masks, s["obj_ids"][keep], generator=g)
+            obs = model.observe(
+                s["rgb"], depth, s["K"], masks, s["obj_ids"][keep], generator=g,
+                crop_jitter=crop_jitter if copy else 0.0,
+            )  # fmt: skip
             inputs = model.flow_inputs(obs, s["poses"][keep])
             for k in TRAINING_KEYS:
                 parts[k].append(inputs[k][obs.valid])

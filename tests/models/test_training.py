@@ -1,0 +1,80 @@
+"""Training-time augmentations: sensor noise, mask damage, crop jitter and the dense-cloud cap."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from hypothesis import given
+from hypothesis import strategies as st
+
+from poseflow.errors import ValueRangeError
+from poseflow.features.lifting import jitter_boxes
+from poseflow.geometry.pointcloud import backproject_depth
+from poseflow.models.training import augment
+
+
+def test_augment_perturbs_valid_depth_and_shrinks_masks():
+    depth = torch.full((32, 32), 0.8)
+    depth[:4] = 0.0  # missing depth stays missing
+    masks = torch.zeros(2, 32, 32, dtype=torch.bool)
+    masks[0, 8:24, 8:24] = True
+    masks[1, 4:12, 20:30] = True
+    d, m = augment(depth, masks, generator=torch.Generator().manual_seed(0), max_erosion=2)
+    assert (d[:4] == 0).all() and not torch.equal(d[4:], depth[4:])
+    assert (d[4:] - depth[4:]).abs().max() < 0.05
+    assert (m & ~masks).sum() == 0 and m.sum() < masks.sum()
+
+
+@given(
+    st.floats(0.0, 0.45),
+    st.integers(0, 2**31 - 1),
+    st.sampled_from([torch.float32, torch.float64]),
+)
+def test_jittered_boxes_stay_square_and_within_the_amount(amount, seed, dtype):
+    g = torch.Generator().manual_seed(seed)
+    box = torch.tensor([[10.0, 20.0, 50.0, 60.0], [0.0, 0.0, 8.0, 8.0]], dtype=dtype)
+    out = jitter_boxes(box, amount, generator=g)
+    side, new_side = box[:, 2] - box[:, 0], out[:, 2] - out[:, 0]
+    tol = 1e-4 * side
+    assert out.dtype == dtype
+    assert torch.allclose(new_side, out[:, 3] - out[:, 1], atol=1e-4)
+    assert ((new_side - side).abs() <= amount * side + tol).all()
+    shift = (out[:, :2] + out[:, 2:]) / 2 - (box[:, :2] + box[:, 2:]) / 2
+    assert (shift.abs() <= amount * side[:, None] + tol[:, None]).all()
+
+
+def test_zero_jitter_is_the_identity_and_bad_amounts_fail():
+    box = torch.tensor([[1.0, 2.0, 5.0, 6.0]])
+    assert torch.equal(jitter_boxes(box, 0.0), box)
+    with pytest.raises(ValueRangeError):
+        jitter_boxes(box, 0.5)
+
+
+def test_crop_jitter_changes_appearance_not_geometry(tiny_model, scene):
+    args = (scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 1])
+    plain = tiny_model.observe(*args, generator=torch.Generator().manual_seed(0))
+    jittered = tiny_model.observe(
+        *args, generator=torch.Generator().manual_seed(0), crop_jitter=0.2
+    )
+    assert torch.equal(plain.points, jittered.points)
+    assert torch.equal(plain.geometric, jittered.geometric)
+    assert not torch.allclose(plain.appearance, jittered.appearance)
+
+
+def test_dense_cap_keeps_valid_observed_points(tiny_model, scene):
+    cap = tiny_model.config.num_points
+    config = tiny_model.config
+    args = (scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 1])
+    try:
+        tiny_model.config = config.replace(dense_points=cap)
+        obs = tiny_model.observe(*args, generator=torch.Generator().manual_seed(1))
+    finally:
+        tiny_model.config = config
+    assert obs.valid.all() and obs.mask.sum(1).min() >= 0.8 * cap
+    dense = backproject_depth(scene["depth"].expand(2, -1, -1), scene["K"], scene["masks"])
+    for b in range(2):  # every kept point is one of the instance's back-projected points
+        kept, cloud = obs.points[b][obs.mask[b]], dense.points[b][dense.mask[b]]
+        d = torch.cdist(kept, cloud, compute_mode="donot_use_mm_for_euclid_dist")
+        assert d.min(dim=1).values.max() < 1e-6
+    with pytest.raises(ValueRangeError):
+        config.replace(dense_points=cap - 1)
