@@ -18,7 +18,7 @@ settings.register_profile(
 settings.register_profile("dev", deadline=None, max_examples=50)
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
 
-DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+DEVICES = ["cpu"] + (["cuda:0"] if torch.cuda.is_available() else [])
 DTYPES = [torch.float32, torch.float64]
 
 #: Absolute tolerance of exact-in-theory results, keyed by dtype.
@@ -38,3 +38,9 @@ def dtype(request: pytest.FixtureRequest) -> torch.dtype:
 @pytest.fixture
 def tol(dtype: torch.dtype) -> float:
     return TOL[dtype]
+
+
+@pytest.fixture(scope="session")
+def o3d():
+    """Open3D, for tests that compare with it (skipped on machines without it, e.g. GPU hosts)."""
+    return pytest.importorskip("open3d")

@@ -34,7 +34,7 @@ class Constant:
         self.c = c
 
     def __call__(self, *, x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
-        return self.c.expand_as(x).to(x.dtype)
+        return self.c.to(x).expand_as(x)
 
 
 class Linear:
@@ -44,7 +44,7 @@ class Linear:
         self.A = A
 
     def __call__(self, *, x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
-        return x @ self.A.T.to(x.dtype)
+        return x @ self.A.T.to(x)
 
 
 def _linear_field(seed: int = 0) -> Linear:

@@ -5,7 +5,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import open3d as o3d
 import pytest
 import torch
 from hypothesis import given
@@ -71,7 +70,7 @@ def test_projection_inverts_backprojection(seed, B, H, W, hole, skew) -> None:
         assert (cloud.points[~cloud.mask] == 0).all() and (cloud.pixels[~cloud.mask] == 0).all()
 
 
-def test_backprojection_matches_open3d() -> None:
+def test_backprojection_matches_open3d(o3d) -> None:
     g = torch.Generator().manual_seed(1)
     depth = (0.5 + torch.rand(1, 30, 40, generator=g)).float()
     depth[0, 5:9, 3:20] = 0
@@ -271,7 +270,7 @@ def test_normals_plane_and_sphere(dtype, device) -> None:
     assert ((n.cpu() * radial).sum(-1) < -0.98).all()
 
 
-def test_normals_match_open3d_and_respect_mask() -> None:
+def test_normals_match_open3d_and_respect_mask(o3d) -> None:
     g = torch.Generator().manual_seed(4)
     pts = torch.rand(1, 500, 3, generator=g, dtype=torch.float64) * torch.tensor([1.0, 1.0, 0.05])
     pts[..., 2] += torch.sin(pts[..., 0] * 3)
@@ -288,7 +287,7 @@ def test_normals_match_open3d_and_respect_mask() -> None:
     assert (few == 0).all()
 
 
-def test_statistical_outliers_match_open3d() -> None:
+def test_statistical_outliers_match_open3d(o3d) -> None:
     g = torch.Generator().manual_seed(5)
     pts = torch.randn(1, 400, 3, generator=g, dtype=torch.float64) * 0.02
     pts[0, :20] += torch.randn(20, 3, generator=g, dtype=torch.float64) * 0.5

@@ -84,6 +84,8 @@ def init_distributed(
         device = f"cuda:{local_rank}" if torch.cuda.is_available() else "cpu"
     device = torch.device(device)
     if device.type == "cuda":
+        if device.index is None:  # a bare "cuda" means this process's current GPU
+            device = torch.device("cuda", torch.cuda.current_device())
         torch.cuda.set_device(device)
     if dist.is_available() and dist.is_initialized():
         return DistributedContext(
