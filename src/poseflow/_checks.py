@@ -99,15 +99,21 @@ def check_mask(mask: object, name: str, shape: Sequence[Dim], sizes: dict[str, i
 def check_same(*named: tuple[str, torch.Tensor], dtype: bool = True) -> None:
     """Check that tensors share one device (and one dtype, unless ``dtype=False``).
 
+    Under autocast on the tensors' device, floating-point dtypes may differ (mixed precision
+    mixes them by design).
+
     Example:
         >>> check_same(("a", torch.zeros(1)), ("b", torch.ones(1)))
     """
     first_name, first = named[0]
+    mixed = torch.is_autocast_enabled(first.device.type)
     for other_name, other in named[1:]:
         if other.device != first.device:
             raise ShapeError(
                 f"{other_name} is on {other.device} but {first_name} is on {first.device}"
             )
+        if mixed and other.is_floating_point() and first.is_floating_point():
+            continue
         if dtype and other.dtype != first.dtype:
             raise ShapeError(
                 f"{other_name} has dtype {other.dtype} but {first_name} has {first.dtype}"

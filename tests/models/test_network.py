@@ -1,3 +1,4 @@
+import pytest
 import torch
 
 from poseflow.models import FunFlow6DNet, NetConfig
@@ -63,3 +64,18 @@ def test_dit_preset_fields_can_be_overridden():
     net = FunFlow6DNet(NetConfig(**{**CFG.to_json(), "dit": {"hidden_dim": 48, "depth": 3}}))
     assert net.dit.config.hidden_dim == 48 and len(net.dit.blocks) == 3
     assert net.dit.config.cond_dim == CFG.feature_dim + CFG.posenc_dim
+
+
+@pytest.mark.parametrize("fusion", ["gated", "cross", "concat_mlp", "sum"])
+def test_autocast_with_one_identity_adapter(fusion):
+    # semantic_dim == feature_dim: an Identity adapter next to a Linear one, as in training on
+    # CUDA under bf16 autocast (run here on the CPU's autocast).
+    cfg = NetConfig(
+        geometric_dim=6, semantic_dim=8, feature_dim=8, fusion=fusion, fusion_heads=2,
+        posenc_dim=8, dit_preset="tiny",
+    )  # fmt: skip
+    inputs = _inputs()
+    inputs["semantic"] = torch.randn(2, 10, 8)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        v = FunFlow6DNet(cfg)(x=torch.randn(2, 10, 3), t=torch.rand(2), **inputs)
+    assert v.shape == (2, 10, 3) and torch.isfinite(v).all()

@@ -133,6 +133,9 @@ class FunFlow6DNet(nn.Module):
         n = L // 2
         g = self.geometric_in(geometric).reshape(2 * B, n, -1)
         s = self.semantic_in(semantic).reshape(2 * B, n, -1)
+        # Under autocast an Identity adapter keeps float32 while a Linear one gives bfloat16.
+        common = torch.promote_types(g.dtype, s.dtype)
+        g, s = g.to(common), s.to(common)
         fused = self.fusion(g, s, None if mask is None else mask.reshape(2 * B, n))
         fused = fused.reshape(B, L, -1)
         is_target = torch.arange(L, device=points.device).expand(B, L) >= n
