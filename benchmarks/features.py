@@ -17,7 +17,9 @@ the average number of inliers
   umap-learn's ``transform``, UMAP with poseflow's torch ``transform`` (the same fitted UMAP).
 
 Timings per instance (CPU here): encoders, target lifting, and the reducer transform of 2,000
-points, poseflow against umap-learn in the same run and on the same fitted UMAP.
+points, poseflow against umap-learn in the same run and on the same fitted UMAP; FPFH's torch
+backend against its Open3D backend, on one 2,000-point cloud and on a padded batch of 8 target
+clouds of 256 points (FunFlow6D's batch).
 
 Prints a table, one JSON line with every figure, writes ``features.json`` and a bar chart
 ``features.png`` to ``--out``, then the command. Run ``python benchmarks/features.py``
@@ -99,6 +101,22 @@ def _instances(root: Path, max_points: int, limit: int) -> list[dict]:
     return out
 
 
+def _target_batch(
+    instances: list[dict], objects: dict, size: int, n: int
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Up to ``size`` target clouds of at most ``n`` random points, padded; mask; diameters."""
+    gen = torch.Generator().manual_seed(0)
+    chosen = instances[:size]
+    points = torch.zeros(len(chosen), n, 3)
+    mask = torch.zeros(len(chosen), n, dtype=torch.bool)
+    for b, inst in enumerate(chosen):
+        pts = inst["points"]
+        keep = pts[torch.randperm(len(pts), generator=gen)[:n]]
+        points[b, : len(keep)], mask[b, : len(keep)] = keep, True
+    diameters = torch.tensor([objects[inst["obj_id"]].diameter for inst in chosen])
+    return points, mask, diameters
+
+
 def _inliers(fq: torch.Tensor, ft: torch.Tensor, obj, inst: dict) -> int:
     res = correspondence_inliers(
         fq.float(), ft.float(), obj.points.float(), inst["canonical"], obj.diameter
@@ -171,7 +189,7 @@ def main() -> None:
     results: dict[str, dict[str, float]] = {"geometric": {}, "appearance": {}, "reduction": {}}
 
     # geometric encoders
-    fpfh = FPFHEncoder()
+    fpfh = FPFHEncoder(backend="torch")
     q_fpfh = {
         oid: fpfh.encode(o.points[None].float(), None, None, o.diameter)[0]
         for oid, o in objects.items()
@@ -242,6 +260,17 @@ def main() -> None:
     obj = objects[inst["obj_id"]]
     q = obj.points[None].float()
     timings["FPFH, 2000 points"], _ = _ms(lambda: fpfh.encode(q, None, None, obj.diameter))
+    fpfh_o3d = FPFHEncoder(backend="open3d")
+    timings["FPFH (Open3D), 2000 points"], _ = _ms(
+        lambda: fpfh_o3d.encode(q, None, None, obj.diameter)
+    )
+    batch, batch_mask, batch_diam = _target_batch(instances, objects, 8, 256)
+    sizes = ("2000 points", f"{len(batch)} x 256 target points")
+    timings[f"FPFH, {sizes[1]}"], _ = _ms(lambda: fpfh.encode(batch, None, batch_mask, batch_diam))
+    timings[f"FPFH (Open3D), {sizes[1]}"], _ = _ms(
+        lambda: fpfh_o3d.encode(batch, None, batch_mask, batch_diam)
+    )
+    fpfh_ratio = {s: timings[f"FPFH, {s}"] / timings[f"FPFH (Open3D), {s}"] for s in sizes}
     crop = torch.rand(1, 3, 128, 128)
     timings["dense SIFT encode, 128x128 crop"], _ = _ms(lambda: sift.encode(crop))
     timings["DINOv2 ViT-S/14 encode, 224x224 crop"], _ = _ms(
@@ -279,6 +308,7 @@ def main() -> None:
         "avg_inliers": results,
         "timings_ms": timings,
         "umap_transform_speedup": speedup,
+        "fpfh_time_torch_over_open3d": fpfh_ratio,
     }
     lines = [f"{len(instances)} instances, average inliers (mutual NN, 3% of the diameter)"]
     for group, rows in results.items():
@@ -288,6 +318,10 @@ def main() -> None:
     for k, v in timings.items():
         lines.append(f"  {k:<58s} {v}" if isinstance(v, dict) else f"  {k:<58s} {v:10.1f}")
     lines.append(f"  UMAP transform speed-up (umap-learn / poseflow): {speedup:.1f}x")
+    lines.append(
+        "  FPFH time, torch / Open3D: "
+        + ", ".join(f"{size} {r:.2f}x" for size, r in fpfh_ratio.items())
+    )
     print("\n".join(lines))
     (out / "features.json").write_text(json.dumps(summary, indent=2))
     _plot(results, out / "features.png")

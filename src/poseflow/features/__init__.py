@@ -3,9 +3,11 @@
 The frozen half of FunFlow6D (paper, "Feature extraction"): per-point descriptors of the query
 model ``Q`` and of the observed target ``T``.
 
-- geometric encoders Φ (:class:`GeometricEncoder`): :class:`FPFHEncoder` (weight-free default),
-  :class:`GeDiEncoder` (GeDi in plain PyTorch, public weights from a local file),
-  :class:`TorchScriptEncoder` / :class:`CallableEncoder` for any other per-point encoder;
+- geometric encoders Φ (:class:`GeometricEncoder`): :class:`FPFHEncoder` (weight-free default;
+  Open3D's FPFH batched in PyTorch by :func:`compute_fpfh`, normals by
+  :func:`estimate_outward_normals`), :class:`GeDiEncoder` (GeDi in plain PyTorch, public weights
+  from a local file), :class:`TorchScriptEncoder` / :class:`CallableEncoder` for any other
+  per-point encoder;
 - appearance encoders Θ (:class:`AppearanceEncoder`): :class:`DINOv2Encoder` (transformers),
   :class:`DenseSIFTEncoder` (weight-free default);
 - lifting: :func:`lift_target_features` (crop around the barycentre), :func:`lift_query_features`
@@ -29,6 +31,8 @@ from poseflow.features.geometric import (
     FPFHEncoder,
     GeometricEncoder,
     TorchScriptEncoder,
+    compute_fpfh,
+    estimate_outward_normals,
 )
 from poseflow.features.lifting import (
     QueryFeatureBank,
@@ -55,6 +59,8 @@ __all__ = [
     "TorchScriptEncoder",
     "UMAPReducer",
     "cached_query_features",
+    "compute_fpfh",
+    "estimate_outward_normals",
     "lift_query_features",
     "lift_target_features",
     "load_reducer",
