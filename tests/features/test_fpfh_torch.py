@@ -179,30 +179,51 @@ def test_padded_cloud_equals_unpadded_and_padding_is_zero(device: torch.device, 
     assert torch.allclose(out[1, 30:100].norm(dim=-1), ones, atol=tol)
 
 
-def test_devices_and_dtypes_agree_with_open3d(device: torch.device, dtype) -> None:
+def test_devices_and_dtypes_agree_with_open3d(o3d, dtype) -> None:
     points, normals, diameter = _ellipsoid(3, 600)
     points, normals = points[None].to(dtype), normals[None].to(dtype)
     kwargs = {"normal_radius_fraction": 0.15}
     for nrm in (normals, None):
-        out = FPFHEncoder(backend="torch", **kwargs).encode(
-            points.to(device), None if nrm is None else nrm.to(device), None, diameter
-        )
-        assert out.dtype == dtype and out.device.type == device.type
+        out = FPFHEncoder(backend="torch", **kwargs).encode(points, nrm, None, diameter)
+        assert out.dtype == dtype
         ref = FPFHEncoder(backend="open3d", **kwargs).encode(points, nrm, None, diameter)
         # float32 inputs are widened to float64 by both backends; only the output is rounded.
         tol = 1e-12 if dtype == F64 else 1e-6
-        assert (out.cpu() - ref).abs().max() < tol
+        assert (out - ref).abs().max() < tol
 
 
-def test_estimated_normals_equal_open3d_normals(device: torch.device) -> None:
+def test_every_device_and_dtype_equals_the_cpu_float64_result(device: torch.device, dtype) -> None:
+    # The CPU float64 result is the one compared with Open3D above; no Open3D needed here.
+    points, normals, diameter = _ellipsoid(3, 600)
+    points, normals = points[None], normals[None]
+    kwargs = {"normal_radius_fraction": 0.15}
+    for nrm in (normals, None):
+        ref = FPFHEncoder(backend="torch", **kwargs).encode(points, nrm, None, diameter)
+        out = FPFHEncoder(backend="torch", **kwargs).encode(
+            points.to(device, dtype), None if nrm is None else nrm.to(device, dtype), None, diameter
+        )
+        assert out.dtype == dtype and out.device.type == device.type
+        tol = 1e-12 if dtype == F64 else 1e-6
+        assert (out.cpu().double() - ref).abs().max() < tol
+
+
+def test_estimated_normals_equal_open3d_normals(o3d) -> None:
     clouds = [_ellipsoid(seed, 800)[0] for seed in (4, 5)]
     points = torch.stack(clouds)
     radius = torch.tensor([0.008, 0.012], dtype=F64)
-    ours = estimate_outward_normals(points.to(device), radius=radius.to(device)).cpu()
+    ours = estimate_outward_normals(points, radius=radius)
     for b in range(2):
         ref = torch.from_numpy(open3d_normals(points[b].numpy(), float(radius[b])))
         assert (ours[b] - ref).norm(dim=-1).max() < 1e-7
     assert torch.allclose(ours.norm(dim=-1), torch.ones(2, 800, dtype=F64))
+
+
+def test_estimated_normals_agree_across_devices(device: torch.device) -> None:
+    points = torch.stack([_ellipsoid(seed, 800)[0] for seed in (4, 5)])
+    radius = torch.tensor([0.008, 0.012], dtype=F64)
+    ref = estimate_outward_normals(points, radius=radius)
+    ours = estimate_outward_normals(points.to(device), radius=radius.to(device)).cpu()
+    assert (ours - ref).norm(dim=-1).max() < 1e-9
 
 
 def test_estimated_normals_isolated_points_and_padding() -> None:
