@@ -73,6 +73,19 @@ def test_bad_settings_are_clear_errors(text, model_dir, tmp_path, capsys):
     assert "poseflow bench: error" in capsys.readouterr().err
 
 
+def test_set_changes_inference_fields_only(model_dir, dataset, tmp_path, capsys):
+    out = tmp_path / "out"
+    argv = ["bench", str(dataset), "--model", str(model_dir), "--out", str(out), "--samplers",
+            "euler:1", "--set", "icp_iterations=3", "--set", "num_hypotheses=2", "--no-eval",
+            "--no-progress"]  # fmt: skip
+    assert main(argv) == 0
+    config = json.loads((out / "bench.json").read_text())["config"]
+    assert config["icp_iterations"] == 3 and config["num_hypotheses"] == 2
+    assert "AR" not in json.loads((out / "bench.json").read_text())["settings"]["euler:1"]
+    assert main([*argv, "--set", "num_points=64"]) == 2
+    assert "num_points" in capsys.readouterr().err
+
+
 def test_generated_split_is_made_once(monkeypatch, tmp_path):
     calls = []
 

@@ -43,6 +43,18 @@ __all__ = [
 
 DEFAULT_SETTINGS = ("euler:50", "euler:10", "euler:5", "heun:5")
 
+#: Configuration fields ``--set`` may change: they act at inference only (the trained network and
+#: its features stay valid).
+INFERENCE_FIELDS = (
+    "num_hypotheses",
+    "dense_points",
+    "pose_solver",
+    "ransac_iterations",
+    "ransac_threshold",
+    "icp_thresholds",
+    "icp_iterations",
+)
+
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """Register the ``bench`` subcommand on ``subparsers``; its ``run`` is :func:`run`."""
@@ -71,6 +83,15 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     )
     parser.add_argument(
         "--hypotheses", type=int, default=None, metavar="H", help="noise samples per instance"
+    )
+    parser.add_argument(
+        "--set",
+        dest="set_fields",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help=f"change an inference-time config field ({', '.join(INFERENCE_FIELDS)}); "
+        "VALUE read as JSON, repeatable",
     )
     parser.add_argument("--warmup", type=int, default=1, help="untimed images per setting")
     parser.add_argument(
@@ -251,7 +272,12 @@ def run(args: argparse.Namespace) -> int:
 
     import torch
 
-    from poseflow.cli.common import load_object_models, object_cache_dir, resolve_device
+    from poseflow.cli.common import (
+        load_object_models,
+        object_cache_dir,
+        parse_set,
+        resolve_device,
+    )
     from poseflow.errors import ValueRangeError
     from poseflow.models import FunFlow6D
 
@@ -262,6 +288,14 @@ def run(args: argparse.Namespace) -> int:
         raise ValueRangeError(f"--warmup must be at least 0, got {args.warmup}")
     for text in args.samplers:
         parse_setting(text)  # fail before any work
+    changes = parse_set(args.set_fields)
+    if args.hypotheses is not None:
+        changes["num_hypotheses"] = args.hypotheses
+    other = sorted(set(changes) - set(INFERENCE_FIELDS))
+    if other:
+        raise ValueRangeError(
+            f"--set can change only {', '.join(INFERENCE_FIELDS)}; got {', '.join(other)}"
+        )
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     out = Path(args.out)
@@ -269,8 +303,7 @@ def run(args: argparse.Namespace) -> int:
     device = resolve_device(args.device)
     root = _dataset(args, out)
     model = FunFlow6D.load(args.model, device=device)
-    if args.hypotheses is not None:
-        model.config = model.config.replace(num_hypotheses=args.hypotheses)
+    model.config = model.config.replace(**changes)
     show = not args.no_progress
     cache = object_cache_dir(args.model, root)
     objects = load_object_models(root, progress=show)
@@ -332,6 +365,7 @@ def run(args: argparse.Namespace) -> int:
         "device": where,
         "model": str(args.model),
         "dataset": str(root),
+        "config": model.config.to_json(),
         "settings": rows,
         "fastest_equal_ar": best,
     }
