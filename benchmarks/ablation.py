@@ -85,6 +85,7 @@ def encoder_fingerprint(cfg: FunFlow6DConfig) -> dict[str, Any]:
         "geometric_radii": list(cfg.geometric_radii),
         "appearance_encoder": cfg.appearance_encoder,
         "crop_size": cfg.crop_size,
+        "dense_points": cfg.dense_points,
         "seed": TEST_SEED,
     }
 
