@@ -8,7 +8,9 @@ target's search structure is built once per call, and on CPU a
 nearest neighbour may have changed, with the same answers). Instances stop independently: an
 instance whose fitness and inlier RMSE both change less than ``relative_fitness`` and
 ``relative_rmse`` (Open3D's criteria) is frozen while the others go on. On CPU the solver's
-tensor ops run on the calling thread (see :func:`poseflow.registration._threads.serial_cpu_ops`).
+tensor ops run on the calling thread (see :func:`poseflow.registration._threads.serial_cpu_ops`)
+and the batch shrinks as instances stop; on CUDA, where small clouds make ICP launch-bound, every
+iteration is the same masked step, captured once as a CUDA graph and replayed (same results).
 """
 
 from __future__ import annotations
@@ -16,8 +18,9 @@ from __future__ import annotations
 import itertools
 import math
 import numbers
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 
@@ -79,7 +82,7 @@ class ICP:
         """Register; arguments and result as in :func:`icp`."""
         with serial_cpu_ops(source):
             problem = _Problem.make(source, target, init, source_mask, target_mask)
-            state = _run_scale(
+            state = _scale(
                 problem,
                 problem.init,
                 self.max_correspondence_distance,
@@ -159,12 +162,12 @@ class MultiScaleICP:
             T = problem.init
             iterations = torch.zeros(problem.B, dtype=torch.int64, device=T.device)
             for distance, max_it in scales[:-1]:
-                state = _run_scale(problem, T, distance, max_it, fit, rmse)
+                state = _scale(problem, T, distance, max_it, fit, rmse)
                 iterations += state.iterations
                 # An instance that found too few pairs at this scale keeps its previous estimate.
                 T = torch.where(state.valid[:, None, None], state.T, T)
             distance, max_it = scales[-1]
-            state = _run_scale(problem, T, distance, max_it, fit, rmse)
+            state = _scale(problem, T, distance, max_it, fit, rmse)
             state.iterations += iterations
             return problem.result(state)
 
@@ -357,13 +360,25 @@ class _Problem:
         RMSE ``(B',)``.
         """
         sel = slice(None) if items is None else items
-        source, valid, n_valid = self.source[sel], self.source_valid[sel], self.n_valid[sel]
-        moved = torch.baddbmm(T[:, None, :3, 3], source, T[:, :3, :3].transpose(1, 2))
+        moved = torch.baddbmm(T[:, None, :3, 3], self.source[sel], T[:, :3, :3].transpose(1, 2))
         dist, idx = tracker.query(moved, items)
-        inliers = (dist[..., 0] <= tracker.max_distance) & valid
+        return self._pairs(sel, dist, idx, tracker.max_distance)
+
+    def evaluate_unchecked(
+        self, T: torch.Tensor, distance: float
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """:meth:`evaluate` for the whole batch with no check and no host synchronisation."""
+        moved = torch.baddbmm(T[:, None, :3, 3], self.source, T[:, :3, :3].transpose(1, 2))
+        dist, idx = self.index._search(moved, 1, distance)
+        return self._pairs(slice(None), dist, idx, distance)
+
+    def _pairs(
+        self, sel: slice | torch.Tensor, dist: torch.Tensor, idx: torch.Tensor, distance: float
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        inliers = (dist[..., 0] <= distance) & self.source_valid[sel]
         matched = self.target[sel].gather(1, idx.expand(-1, -1, 3))
         count = inliers.sum(-1).to(dist.dtype)
-        fitness = count / n_valid.clamp_min(1)
+        fitness = count / self.n_valid[sel].clamp_min(1)
         d2 = torch.where(inliers, dist[..., 0], 0).square().sum(-1)
         return inliers, matched, fitness, (d2 / count.clamp_min(1)).sqrt()
 
@@ -379,6 +394,22 @@ class _Problem:
             num_iterations=state.iterations,
             valid=ok,
         )
+
+
+def _scale(
+    problem: _Problem,
+    T: torch.Tensor,
+    distance: float,
+    max_iterations: int,
+    relative_fitness: float,
+    relative_rmse: float,
+) -> _State:
+    """One scale of ICP: the early-exit loop on the CPU, fixed graph-replayed steps on CUDA."""
+    if T.device.type == "cuda":
+        return _run_scale_fixed(
+            problem, T, distance, max_iterations, relative_fitness, relative_rmse, capture=True
+        )
+    return _run_scale(problem, T, distance, max_iterations, relative_fitness, relative_rmse)
 
 
 def _run_scale(
@@ -431,6 +462,89 @@ def _run_scale(
         n_active = int(going.sum())
     valid = solvable & (inliers.sum(-1) >= 3)
     return _State(T, inliers, fitness, rmse, iterations, valid)
+
+
+def _run_scale_fixed(
+    problem: _Problem,
+    T: torch.Tensor,
+    distance: float,
+    max_iterations: int,
+    relative_fitness: float,
+    relative_rmse: float,
+    *,
+    capture: bool,
+) -> _State:
+    """:func:`_run_scale` as ``max_iterations`` identical steps with no host synchronisation.
+
+    Instances that stop are frozen by masks instead of leaving the batch, so every step runs the
+    same kernels on the same buffers: on CUDA (``capture``) the step is captured once as a CUDA
+    graph and replayed, which removes the launch overhead that dominates ICP on small clouds
+    there. Same results as :func:`_run_scale`.
+    """
+    dtype = T.dtype
+    T = T.clone()
+    inliers, matched, fitness, rmse = problem.evaluate_unchecked(T, distance)
+    B = problem.B
+    iterations = torch.zeros(B, dtype=torch.int64, device=T.device)
+    solvable = torch.ones(B, dtype=torch.bool, device=T.device)
+    active = inliers.sum(-1) >= 3
+    buffers = (T, inliers, matched, fitness, rmse, iterations, solvable, active)
+
+    def step() -> None:
+        T_new, ok = _solve(problem.source, matched, inliers.to(dtype))
+        T_new = torch.where(ok[:, None, None], T_new, T)
+        new_inliers, new_matched, new_fitness, new_rmse = problem.evaluate_unchecked(
+            T_new, distance
+        )
+        converged = ((new_fitness - fitness).abs() < relative_fitness) & (
+            (new_rmse - rmse).abs() < relative_rmse
+        )
+        going = ok & ~converged & (new_inliers.sum(-1) >= 3)
+        now = active.clone()
+        T.copy_(torch.where(now[:, None, None], T_new, T))
+        inliers.copy_(torch.where(now[:, None], new_inliers, inliers))
+        matched.copy_(torch.where(now[:, None, None], new_matched, matched))
+        fitness.copy_(torch.where(now, new_fitness, fitness))
+        rmse.copy_(torch.where(now, new_rmse, rmse))
+        iterations.add_((now & ok).to(torch.int64))
+        solvable.copy_(torch.where(now, ok, solvable))
+        active.copy_(now & going)
+
+    graph = _capture(step, buffers) if capture else None
+    for _ in range(max_iterations):
+        if graph is None:
+            step()
+        else:
+            graph.replay()
+    valid = solvable & (inliers.sum(-1) >= 3)
+    return _State(T, inliers, fitness, rmse, iterations, valid)
+
+
+#: Set False after a failed capture (e.g. a library call that cannot be captured), so that ICP
+#: runs its fixed steps eagerly from then on.
+_CUDA_GRAPHS = {"usable": True}
+
+
+def _capture(step: Callable[[], None], buffers: Sequence[torch.Tensor]) -> Any:
+    """``step`` captured as a CUDA graph, or None where capturing failed; ``buffers`` unchanged."""
+    if not _CUDA_GRAPHS["usable"]:
+        return None
+    saved = [b.clone() for b in buffers]
+    side = torch.cuda.Stream()
+    side.wait_stream(torch.cuda.current_stream())
+    with torch.cuda.stream(side):  # warm-up outside the capture (workspaces, handles)
+        step()
+    torch.cuda.current_stream().wait_stream(side)
+    graph = torch.cuda.CUDAGraph()
+    try:
+        with torch.cuda.graph(graph):
+            step()
+    except RuntimeError:
+        _CUDA_GRAPHS["usable"] = False
+        graph = None
+    for b, s in zip(buffers, saved):
+        b.copy_(s)
+    return graph
 
 
 def _check_distance(value: float, name: str) -> None:
