@@ -10,7 +10,7 @@ instance whose fitness and inlier RMSE both change less than ``relative_fitness`
 ``relative_rmse`` (Open3D's criteria) is frozen while the others go on. On CPU the solver's
 tensor ops run on the calling thread (see :func:`poseflow.registration._threads.serial_cpu_ops`)
 and the batch shrinks as instances stop; on CUDA, where small clouds make ICP launch-bound, every
-iteration is the same masked step, captured once as a CUDA graph and replayed (same results).
+iteration is the same masked step, captured once as CUDA graphs and replayed (same results).
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ from poseflow._checks import check_mask, check_same, check_tensor
 from poseflow.errors import ValueRangeError
 from poseflow.geometry.neighbors import NeighborIndex, NeighborTracker
 from poseflow.registration._threads import serial_cpu_ops
-from poseflow.registration.procrustes import _solve, _zero_masked
+from poseflow.registration.procrustes import _moments, _rigid, _solve, _well_posed, _zero_masked
 from poseflow.registration.result import RegistrationResult
 
 __all__ = ["ICP", "MultiScaleICP", "icp", "multi_scale_icp"]
@@ -474,25 +474,39 @@ def _run_scale_fixed(
     *,
     capture: bool,
 ) -> _State:
-    """:func:`_run_scale` as ``max_iterations`` identical steps with no host synchronisation.
+    """:func:`_run_scale` as ``max_iterations`` identical masked steps on fixed buffers.
 
     Instances that stop are frozen by masks instead of leaving the batch, so every step runs the
-    same kernels on the same buffers: on CUDA (``capture``) the step is captured once as a CUDA
-    graph and replayed, which removes the launch overhead that dominates ICP on small clouds
+    same kernels on the same buffers. On CUDA (``capture``) the two halves of a step, before and
+    after the 3 x 3 SVDs (which cannot be captured), are captured once as CUDA graphs and
+    replayed, which removes most of the launch overhead that dominates ICP on small clouds
     there. Same results as :func:`_run_scale`.
     """
-    dtype = T.dtype
+    dtype, B = T.dtype, problem.B
     T = T.clone()
     inliers, matched, fitness, rmse = problem.evaluate_unchecked(T, distance)
-    B = problem.B
     iterations = torch.zeros(B, dtype=torch.int64, device=T.device)
     solvable = torch.ones(B, dtype=torch.bool, device=T.device)
     active = inliers.sum(-1) >= 3
-    buffers = (T, inliers, matched, fitness, rmse, iterations, solvable, active)
+    state = (T, inliers, matched, fitness, rmse, iterations, solvable, active)
+    f64 = {"dtype": torch.float64, "device": T.device}
+    mu_s, mu_d = T.new_zeros(B, 3), T.new_zeros(B, 3)
+    cov, U, Vh = (torch.zeros(B, 3, 3, **f64) for _ in range(3))
+    S = torch.zeros(B, 3, **f64)
 
-    def step() -> None:
-        T_new, ok = _solve(problem.source, matched, inliers.to(dtype))
-        T_new = torch.where(ok[:, None, None], T_new, T)
+    def moments() -> None:
+        m_s, m_d, c, _, _ = _moments(problem.source, matched, inliers.to(dtype))
+        mu_s.copy_(m_s)
+        mu_d.copy_(m_d)
+        cov.copy_(c)
+
+    def svd() -> None:
+        for out, value in zip((U, S, Vh), torch.linalg.svd(cov)):
+            out.copy_(value)
+
+    def finish() -> None:
+        ok = _well_posed(inliers.to(dtype), mu_s, mu_d, S)
+        T_new = torch.where(ok[:, None, None], _rigid(mu_s, mu_d, U, S, Vh, ok), T)
         new_inliers, new_matched, new_fitness, new_rmse = problem.evaluate_unchecked(
             T_new, distance
         )
@@ -510,12 +524,19 @@ def _run_scale_fixed(
         solvable.copy_(torch.where(now, ok, solvable))
         active.copy_(now & going)
 
-    graph = _capture(step, buffers) if capture else None
+    def step() -> None:
+        moments()
+        svd()
+        finish()
+
+    graphs = _capture((moments, finish), step, state) if capture else None
     for _ in range(max_iterations):
-        if graph is None:
+        if graphs is None:
             step()
         else:
-            graph.replay()
+            graphs[0].replay()
+            svd()
+            graphs[1].replay()
     valid = solvable & (inliers.sum(-1) >= 3)
     return _State(T, inliers, fitness, rmse, iterations, valid)
 
@@ -525,26 +546,35 @@ def _run_scale_fixed(
 _CUDA_GRAPHS = {"usable": True}
 
 
-def _capture(step: Callable[[], None], buffers: Sequence[torch.Tensor]) -> Any:
-    """``step`` captured as a CUDA graph, or None where capturing failed; ``buffers`` unchanged."""
+def _capture(
+    parts: Sequence[Callable[[], None]], warm_up: Callable[[], None], state: Sequence[torch.Tensor]
+) -> list[Any] | None:
+    """Each of ``parts`` captured as a CUDA graph, or None where capturing failed.
+
+    ``warm_up`` runs once first, outside the capture (workspaces, library handles); ``state`` is
+    restored afterwards, so the tensors hold what they held before.
+    """
     if not _CUDA_GRAPHS["usable"]:
         return None
-    saved = [b.clone() for b in buffers]
+    saved = [t.clone() for t in state]
     side = torch.cuda.Stream()
     side.wait_stream(torch.cuda.current_stream())
-    with torch.cuda.stream(side):  # warm-up outside the capture (workspaces, handles)
-        step()
+    with torch.cuda.stream(side):
+        warm_up()
     torch.cuda.current_stream().wait_stream(side)
-    graph = torch.cuda.CUDAGraph()
+    graphs: list[Any] | None = []
     try:
-        with torch.cuda.graph(graph):
-            step()
+        for part in parts:
+            graph = torch.cuda.CUDAGraph()
+            with torch.cuda.graph(graph):
+                part()
+            graphs.append(graph)  # type: ignore[union-attr]
     except RuntimeError:
         _CUDA_GRAPHS["usable"] = False
-        graph = None
-    for b, s in zip(buffers, saved):
-        b.copy_(s)
-    return graph
+        graphs = None
+    for t, value in zip(state, saved):
+        t.copy_(value)
+    return graphs
 
 
 def _check_distance(value: float, name: str) -> None:

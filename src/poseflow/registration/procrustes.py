@@ -139,52 +139,89 @@ def _solve(
         ``(T, ok)``: transforms ``(B, 4, 4)`` in the points' dtype, the identity where ``ok``
         ``(B,)`` is False (fewer than 3 weighted points, collinear or coincident points).
     """
-    dtype = source.dtype
-    eps = torch.finfo(dtype).eps
+    mu_s, mu_d, cov64, xs, xs_w = _moments(source, target, weights)
+    U, S, Vh = torch.linalg.svd(cov64.detach() if cov64.requires_grad else cov64)
+    ok = _well_posed(weights, mu_s, mu_d, S)
+    if cov64.requires_grad:
+        # Differentiate a well-conditioned stand-in where the solution is not unique, so that the
+        # SVD's backward stays finite there (those instances get the identity and zero gradient).
+        stand_in = torch.diag(torch.tensor([3.0, 2.0, 1.0], dtype=torch.float64, device=U.device))
+        U, S, Vh = torch.linalg.svd(torch.where(ok[:, None, None], cov64, stand_in))
+    spread = (xs * xs_w).sum((1, 2)).to(torch.float64) if with_scaling else None
+    return _rigid(mu_s, mu_d, U, S, Vh, ok, spread=spread), ok
+
+
+def _moments(
+    source: torch.Tensor, target: torch.Tensor, weights: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Weighted moments of ``(B, N, 3)`` pairs with ``(B, N)`` weights.
+
+    Returns:
+        Centroids ``(B, 3)`` of source and target, the float64 cross-covariance ``(B, 3, 3)``, the
+        centred source ``(B, N, 3)`` and its weighted copy.
+    """
     total = weights.sum(-1, keepdim=True)  # (B, 1)
-    wn = (weights / total.clamp_min(torch.finfo(dtype).tiny)).unsqueeze(1)  # (B, 1, N)
+    wn = (weights / total.clamp_min(torch.finfo(source.dtype).tiny)).unsqueeze(1)  # (B, 1, N)
     mu_s = (wn @ source).squeeze(1)  # (B, 3)
     mu_d = (wn @ target).squeeze(1)
     xs = source - mu_s.unsqueeze(1)
     xd = target - mu_d.unsqueeze(1)
     xs_w = xs * wn.transpose(1, 2)
     cov = xd.transpose(1, 2) @ xs_w  # (B, 3, 3) = sum_i w_i xd_i xs_i^T
+    return mu_s, mu_d, cov.to(torch.float64), xs, xs_w
 
-    cov64 = cov.to(torch.float64)
-    U, S, Vh = torch.linalg.svd(cov64.detach() if cov64.requires_grad else cov64)
-    # Unique solution iff the cross-covariance has rank >= 2, judged against the rounding noise of
-    # the input dtype: the second singular value must stand out of the first, and the first out
-    # of the noise left by centring (coincident points).
+
+def _well_posed(
+    weights: torch.Tensor, mu_s: torch.Tensor, mu_d: torch.Tensor, S: torch.Tensor
+) -> torch.Tensor:
+    """``(B,)`` bool: the rotation is unique, from the cross-covariance's singular values ``S``.
+
+    Unique iff the cross-covariance has rank >= 2, judged against the rounding noise of the
+    input dtype: the second singular value must stand out of the first, and the first out of
+    the noise left by centring (coincident points).
+    """
+    eps = torch.finfo(mu_s.dtype).eps
     scale = (mu_s.square().sum(-1) + mu_d.square().sum(-1)).detach().to(torch.float64)
-    ok = (
+    return (
         ((weights > 0).sum(-1) >= 3)
         & (S[:, 1] > eps**0.5 * S[:, 0])
         & (S[:, 0] > eps * scale)
         & torch.isfinite(S).all(-1)
     )
-    if cov64.requires_grad:
-        # Differentiate a well-conditioned stand-in where the solution is not unique, so that the
-        # SVD's backward stays finite there (those instances get the identity and zero gradient).
-        stand_in = torch.diag(torch.tensor([3.0, 2.0, 1.0], dtype=torch.float64, device=cov.device))
-        U, S, Vh = torch.linalg.svd(torch.where(ok[:, None, None], cov64, stand_in))
+
+
+def _rigid(
+    mu_s: torch.Tensor,
+    mu_d: torch.Tensor,
+    U: torch.Tensor,
+    S: torch.Tensor,
+    Vh: torch.Tensor,
+    ok: torch.Tensor,
+    *,
+    spread: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """Transforms ``(B, 4, 4)`` in the centroids' dtype from the SVD of the cross-covariance.
+
+    ``spread`` (the weighted sum of squared centred source norms, ``(B,)``) adds the similarity
+    scale; instances that are not ``ok`` get the identity.
+    """
+    dtype = mu_s.dtype
     # det(U Vh) = det(U) det(Vh), each the triple product of its columns (or rows).
     sign = (_det3(U.detach()) * _det3(Vh.detach())).sign()
     D = torch.cat((torch.ones_like(S[:, :2]), torch.where(sign < 0, -1.0, 1.0)[:, None]), -1)
     R = (U * D.unsqueeze(1)) @ Vh  # U diag(D) Vh
-
-    if with_scaling:
-        spread = (xs * xs_w).sum((1, 2)).to(torch.float64)  # sum_i w_i |xs_i|^2
+    if spread is not None:
         R = R * ((S * D).sum(-1) / torch.where(ok, spread, 1.0))[:, None, None]
     t = mu_d.to(torch.float64) - (R @ mu_s.to(torch.float64).unsqueeze(-1)).squeeze(-1)
 
-    B = source.shape[0]
-    T = torch.zeros(B, 4, 4, dtype=dtype, device=source.device)
+    B = mu_s.shape[0]
+    T = torch.zeros(B, 4, 4, dtype=dtype, device=mu_s.device)
     T[:, 3, 3] = 1
     T[:, :3, :3] = torch.where(
         ok[:, None, None], R, torch.eye(3, dtype=torch.float64, device=R.device)
     ).to(dtype)
     T[:, :3, 3] = torch.where(ok[:, None], t, 0).to(dtype)
-    return T, ok
+    return T
 
 
 def _det3(M: torch.Tensor) -> torch.Tensor:
