@@ -418,19 +418,28 @@ class FunFlow6D(nn.Module):
     def _semantic(
         self, objs: list[PreparedObject], appearance: torch.Tensor, mask: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Reduced appearance features of the query and the target of every instance."""
+        """Reduced appearance features of the query and the target of every instance.
+
+        Instances of the same object go through its bank and reducer together.
+        """
         select = getattr(self.appearance_encoder, "query_pooling", "mean") == "select"
-        sem_q, sem_t = [], []
-        for b, obj in enumerate(objs):
-            feats_t = appearance[b : b + 1]
-            m = mask[b : b + 1]
-            if not bool(m.any()):
-                m = torch.ones_like(m)
-            bank = obj.bank
-            feats_q = bank.select(feats_t, m) if select else bank.pooled()[None].to(feats_t)
-            sem_q.append(obj.reducer.transform(feats_q.to(feats_t)))
-            sem_t.append(obj.reducer.transform(feats_t, m))
-        return torch.cat(sem_q), torch.cat(sem_t)
+        mask = mask | ~mask.any(dim=1, keepdim=True)  # an instance without points: use them all
+        sem_q = sem_t = None
+        for obj in {id(o): o for o in objs}.values():
+            rows = [b for b, o in enumerate(objs) if o is obj]
+            idx = torch.tensor(rows, device=appearance.device)
+            feats_t, m = appearance[idx], mask[idx]
+            if select:
+                feats_q = obj.bank.select(feats_t, m)
+            else:
+                feats_q = obj.bank.pooled().to(feats_t).expand(len(rows), -1, -1)
+            q = obj.reducer.transform(feats_q.to(feats_t))
+            t = obj.reducer.transform(feats_t, m)
+            if sem_q is None:
+                sem_q = q.new_zeros(len(objs), *q.shape[1:])
+                sem_t = t.new_zeros(len(objs), *t.shape[1:])
+            sem_q[idx], sem_t[idx] = q, t  # type: ignore[index]
+        return sem_q, sem_t  # type: ignore[return-value]
 
     # ------------------------------------------------------------------ training and inference
 
