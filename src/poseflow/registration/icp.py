@@ -438,10 +438,10 @@ def _run_scale(
         T_new, ok = _solve(problem.source[sel], matched[sel], inliers[sel].to(T.dtype))
         T_new = torch.where(ok[:, None, None], T_new, T[sel])
         new_inliers, new_matched, new_fitness, new_rmse = problem.evaluate(T_new, tracker, items)
-        converged = ((new_fitness - fitness[sel]).abs() < relative_fitness) & (
-            (new_rmse - rmse[sel]).abs() < relative_rmse
-        )
-        going = ok & ~converged & (new_inliers.sum(-1) >= 3)
+        going = _goes_on(
+            ok, new_inliers, fitness[sel], rmse[sel], new_fitness, new_rmse, relative_fitness,
+            relative_rmse,
+        )  # fmt: skip
         if items is None:
             T, inliers, matched, fitness, rmse = (
                 T_new,
@@ -462,6 +462,27 @@ def _run_scale(
         n_active = int(going.sum())
     valid = solvable & (inliers.sum(-1) >= 3)
     return _State(T, inliers, fitness, rmse, iterations, valid)
+
+
+def _goes_on(
+    ok: torch.Tensor,
+    new_inliers: torch.Tensor,
+    fitness: torch.Tensor,
+    rmse: torch.Tensor,
+    new_fitness: torch.Tensor,
+    new_rmse: torch.Tensor,
+    relative_fitness: float,
+    relative_rmse: float,
+) -> torch.Tensor:
+    """Which instances iterate on, ``(B,)`` bool: Open3D's stopping rule.
+
+    An instance goes on when its step was solvable, its fitness or inlier RMSE still moved by at
+    least the relative thresholds, and at least 3 pairs remain.
+    """
+    converged = ((new_fitness - fitness).abs() < relative_fitness) & (
+        (new_rmse - rmse).abs() < relative_rmse
+    )
+    return ok & ~converged & (new_inliers.sum(-1) >= 3)
 
 
 def _run_scale_fixed(
@@ -510,10 +531,9 @@ def _run_scale_fixed(
         new_inliers, new_matched, new_fitness, new_rmse = problem.evaluate_unchecked(
             T_new, distance
         )
-        converged = ((new_fitness - fitness).abs() < relative_fitness) & (
-            (new_rmse - rmse).abs() < relative_rmse
+        going = _goes_on(
+            ok, new_inliers, fitness, rmse, new_fitness, new_rmse, relative_fitness, relative_rmse
         )
-        going = ok & ~converged & (new_inliers.sum(-1) >= 3)
         now = active.clone()
         T.copy_(torch.where(now[:, None, None], T_new, T))
         inliers.copy_(torch.where(now[:, None], new_inliers, inliers))
