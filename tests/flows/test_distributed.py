@@ -21,6 +21,7 @@ from poseflow.flows.distributed import (
     barrier,
     destroy_distributed,
     init_distributed,
+    main_rank_succeeded,
 )
 
 # The job a user would launch with `torchrun --nproc_per_node=K job.py OUT BATCH`: nothing in it
@@ -155,3 +156,36 @@ def test_malformed_environment_raises(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("RANK", "5")
     with pytest.raises(ValueRangeError):
         init_distributed(device="cpu")
+
+
+OUTCOME_JOB = textwrap.dedent(
+    """
+    import sys
+
+    from poseflow.flows import destroy_distributed, init_distributed, main_rank_succeeded
+
+    ctx = init_distributed(device="cpu")
+    first = main_rank_succeeded(ctx, True)
+    second = main_rank_succeeded(ctx, not ctx.is_main)  # rank 0 fails, the others "succeed"
+    print(f"rank {ctx.rank}: {first} {second}", flush=True)
+    destroy_distributed()
+    """
+)
+
+
+@pytest.mark.slow
+def test_every_rank_learns_the_main_ranks_outcome(tmp_path: Path) -> None:
+    job = tmp_path / "outcome.py"
+    job.write_text(OUTCOME_JOB)
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    for key in ("RANK", "WORLD_SIZE", "LOCAL_RANK", "MASTER_ADDR", "MASTER_PORT"):
+        env.pop(key, None)
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2"]
+    proc = subprocess.run([*cmd, str(job)], env=env, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-4000:]
+    assert "rank 0: True False" in proc.stdout and "rank 1: True False" in proc.stdout
+
+
+def test_single_process_outcome_is_its_own() -> None:
+    assert main_rank_succeeded(DistributedContext(), True)
+    assert not main_rank_succeeded(DistributedContext(), False)

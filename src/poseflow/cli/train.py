@@ -11,8 +11,9 @@ takes.
 
 Under ``torchrun --nproc_per_node=K`` the same command trains with DDP: rank 0 prepares the
 objects and the training set first while the other ranks wait, then every rank reads the caches;
-only rank 0 writes. The wait is a process-group barrier (30 minutes at most); on a large dataset
-run ``poseflow train ... --data-only`` once in a single process first.
+only rank 0 writes. The wait is a collective of the process group (30 minutes at most), which also
+tells the other ranks at once when rank 0 fails; on a large dataset run ``poseflow train ...
+--data-only`` once in a single process first.
 
 Example::
 
@@ -197,8 +198,13 @@ def run(args: argparse.Namespace) -> int:
         object_cache_dir,
         resolve_device,
     )
-    from poseflow.errors import ValueRangeError
-    from poseflow.flows import TrainConfig, barrier, destroy_distributed, init_distributed
+    from poseflow.errors import PoseflowError, ValueRangeError
+    from poseflow.flows import (
+        TrainConfig,
+        destroy_distributed,
+        init_distributed,
+        main_rank_succeeded,
+    )
     from poseflow.models import FunFlow6D
     from poseflow.models.training import train
 
@@ -224,29 +230,36 @@ def run(args: argparse.Namespace) -> int:
     ctx = init_distributed(device=device)
     try:
         # Rank 0 computes and writes the caches (and run.json) first; the other ranks then read.
-        if not ctx.is_main:
-            barrier(ctx)
-        config = _run_config(args, out)
-        torch.manual_seed(args.seed)
-        model = FunFlow6D(config)
-        cache = Path(args.cache) if args.cache is not None else out / "model"
-        show = not args.no_progress and ctx.is_main
-        times = {}
-        t0 = time.perf_counter()
-        models = load_object_models(root, progress=show)
-        model.prepare_objects(models, cache_dir=object_cache_dir(cache, root), progress=show)
-        times["objects"] = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        data, reused = _training_set(model, root, args, out, write=ctx.is_main, progress=show)
-        times["training set"] = time.perf_counter() - t0
+        # Its failure reaches them at once (rather than leaving them at a barrier).
+        if not ctx.is_main and not main_rank_succeeded(ctx):
+            raise PoseflowError("rank 0 failed to prepare the objects or the training set")
+        try:
+            config = _run_config(args, out)
+            torch.manual_seed(args.seed)
+            model = FunFlow6D(config)
+            cache = Path(args.cache) if args.cache is not None else out / "model"
+            show = not args.no_progress and ctx.is_main
+            times = {}
+            t0 = time.perf_counter()
+            models = load_object_models(root, progress=show)
+            model.prepare_objects(models, cache_dir=object_cache_dir(cache, root), progress=show)
+            times["objects"] = time.perf_counter() - t0
+            t0 = time.perf_counter()
+            data, reused = _training_set(model, root, args, out, write=ctx.is_main, progress=show)
+            times["training set"] = time.perf_counter() - t0
+            if ctx.is_main:
+                out.mkdir(parents=True, exist_ok=True)
+                record = {"config": config.to_json(), "train": train_config.to_json()}
+                record.update({"dataset": str(root), "split": args.split})
+                tmp = out / "run.json.tmp"
+                tmp.write_text(json.dumps(record, indent=1))
+                tmp.replace(out / "run.json")
+        except BaseException:
+            if ctx.is_main:
+                main_rank_succeeded(ctx, False)
+            raise
         if ctx.is_main:
-            out.mkdir(parents=True, exist_ok=True)
-            record = {"config": config.to_json(), "train": train_config.to_json()}
-            record.update({"dataset": str(root), "split": args.split})
-            tmp = out / "run.json.tmp"
-            tmp.write_text(json.dumps(record, indent=1))
-            tmp.replace(out / "run.json")
-            barrier(ctx)
+            main_rank_succeeded(ctx, True)
         where = "reused" if reused else "built"
         if ctx.is_main:
             print(f"training set {where}: {len(data)} instances from {root}/{args.split}")

@@ -22,6 +22,7 @@ from poseflow.flows.distributed import (
     barrier,
     destroy_distributed,
     init_distributed,
+    main_rank_succeeded,
 )
 from poseflow.flows.dit import (
     PRESETS,
@@ -94,6 +95,7 @@ __all__ = [
     "latest_checkpoint",
     "load_checkpoint",
     "logit_normal_time",
+    "main_rank_succeeded",
     "nerf_embedding",
     "prune_checkpoints",
     "sample",

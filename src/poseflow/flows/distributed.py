@@ -24,6 +24,7 @@ __all__ = [
     "barrier",
     "destroy_distributed",
     "init_distributed",
+    "main_rank_succeeded",
 ]
 
 
@@ -121,6 +122,25 @@ def barrier(ctx: DistributedContext) -> None:
     """Wait for every rank (no-op for a single process)."""
     if ctx.is_distributed:
         dist.barrier()
+
+
+def main_rank_succeeded(ctx: DistributedContext, ok: bool = True) -> bool:
+    """A barrier that carries one bit: whether rank 0's part (``ok`` there) succeeded.
+
+    Every rank calls it; rank 0 passes its own outcome and the others learn it, so that a
+    failure on rank 0 (say, while it builds a cache the others will read) stops them at once
+    instead of leaving them at a barrier until its timeout. Returns ``ok`` for a single process.
+
+    Example:
+        >>> main_rank_succeeded(DistributedContext(), False)
+        False
+    """
+    if not ctx.is_distributed:
+        return ok
+    where = ctx.device if ctx.backend == "nccl" else torch.device("cpu")
+    flag = torch.tensor([int(ok) if ctx.is_main else 0], device=where)
+    dist.broadcast(flag, src=0)
+    return bool(flag.item())
 
 
 def all_reduce_mean(value: torch.Tensor, ctx: DistributedContext) -> torch.Tensor:
