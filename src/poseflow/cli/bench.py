@@ -43,18 +43,6 @@ __all__ = [
 
 DEFAULT_SETTINGS = ("euler:50", "euler:10", "euler:5", "heun:5")
 
-#: Configuration fields ``--set`` may change: they act at inference only (the trained network and
-#: its features stay valid).
-INFERENCE_FIELDS = (
-    "num_hypotheses",
-    "dense_points",
-    "pose_solver",
-    "ransac_iterations",
-    "ransac_threshold",
-    "icp_thresholds",
-    "icp_iterations",
-)
-
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """Register the ``bench`` subcommand on ``subparsers``; its ``run`` is :func:`run`."""
@@ -95,8 +83,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         action="append",
         default=[],
         metavar="KEY=VALUE",
-        help=f"change an inference-time config field ({', '.join(INFERENCE_FIELDS)}); "
-        "VALUE read as JSON, repeatable",
+        help="change an inference-time config field (num_hypotheses, dense_points, pose_solver, "
+        "ransac_*, icp_*; the sampler comes from --samplers); VALUE read as JSON, repeatable",
     )
     parser.add_argument("--warmup", type=int, default=1, help="untimed images per setting")
     parser.add_argument(
@@ -284,7 +272,7 @@ def run(args: argparse.Namespace) -> int:
         resolve_device,
     )
     from poseflow.errors import ValueRangeError
-    from poseflow.models import FunFlow6D
+    from poseflow.models import INFERENCE_FIELDS, FunFlow6D
 
     for name in ("images", "instances"):
         if getattr(args, name) < 1:

@@ -32,26 +32,19 @@ from typing import Any
 
 from poseflow.cli.common import add_config_arguments, add_device_argument
 
-__all__ = ["NETWORK_FIELDS", "add_parser", "run"]
+__all__ = ["add_parser", "run"]
 
-#: Configuration fields that do not change the precomputed training set (the network, sampler
-#: and pose solver); every other field invalidates a cached ``train_set.safetensors``.
-NETWORK_FIELDS = (
-    "fusion",
-    "dit_preset",
-    "anchor",
-    "noise_conditioning",
-    "time_sampler",
-    "solver",
-    "steps",
-    "num_hypotheses",
-    "pose_solver",
-    "ransac_iterations",
-    "ransac_threshold",
-    "icp_thresholds",
-    "icp_iterations",
-    "net",
-)
+
+def _network_fields() -> tuple[str, ...]:
+    """Configuration fields that leave the precomputed training set valid.
+
+    The network's fields and the inference-time ones, except the dense-cloud cap (it shapes the
+    observed clouds).
+    """
+    from poseflow.models.config import INFERENCE_FIELDS
+
+    network = ("fusion", "dit_preset", "anchor", "noise_conditioning", "time_sampler", "net")
+    return network + tuple(f for f in INFERENCE_FIELDS if f != "dense_points")
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -146,7 +139,8 @@ def _run_config(args: argparse.Namespace, out: Path) -> Any:
 def _train_set_key(config: Any, root: Path, args: argparse.Namespace) -> dict[str, Any]:
     from poseflow.cli.common import dataset_fingerprint
 
-    features = {k: v for k, v in config.to_json().items() if k not in NETWORK_FIELDS}
+    network = _network_fields()
+    features = {k: v for k, v in config.to_json().items() if k not in network}
     return {
         "dataset": dataset_fingerprint(root, args.split),
         "split": args.split,

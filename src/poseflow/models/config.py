@@ -15,7 +15,7 @@ from typing import Any
 from poseflow.errors import ValueRangeError
 from poseflow.models.network import NetConfig
 
-__all__ = ["ABLATIONS", "FunFlow6DConfig"]
+__all__ = ["ABLATIONS", "INFERENCE_FIELDS", "FunFlow6DConfig"]
 
 _SOLVERS = ("ransac", "svd")
 _ANCHORS = ("pinned", "noise")
@@ -140,6 +140,21 @@ class FunFlow6DConfig:
         if unknown:
             raise ValueRangeError(f"unknown FunFlow6D config keys: {unknown}")
         return cls(**data)
+
+
+#: Fields a trained model may change at inference: the sampler, the hypotheses, the pose solver
+#: and the dense-cloud cap (the network and its feature sizes stay valid).
+INFERENCE_FIELDS: tuple[str, ...] = (
+    "solver",
+    "steps",
+    "num_hypotheses",
+    "dense_points",
+    "pose_solver",
+    "ransac_iterations",
+    "ransac_threshold",
+    "icp_thresholds",
+    "icp_iterations",
+)
 
 
 #: The paper's ablation table (rows 3-8) in terms of the components poseflow ships. Rows differ
