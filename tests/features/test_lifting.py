@@ -3,6 +3,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from poseflow.errors import DegenerateInputError
 from poseflow.features.cache import FeatureCache, cached_query_features
@@ -145,3 +148,36 @@ def test_cache_roundtrip_and_keys(tmp_path) -> None:
     assert len(list((tmp_path / "cube").glob("*.safetensors"))) == 2
     with pytest.raises(ValueError):
         cache.key("../evil", pts, enc, {})
+
+
+def _select_one_by_one(bank, feats, mask, max_t):
+    """The selection rule written plainly, instance by instance (the reference)."""
+    q = F.normalize(bank.features, dim=-1)  # (N, K, G); every query point is used here
+    out = []
+    for b in range(len(feats)):
+        t = feats[b][mask[b]]
+        t = t[torch.linspace(0, len(t) - 1, min(len(t), max_t)).round().long()]
+        sim = torch.einsum("mg,nkg->mnk", F.normalize(t, dim=-1), q)
+        score = sim.masked_fill(~bank.visible[None], -2.0).amax(dim=1).mean(dim=0)  # (K,)
+        score = torch.where(bank.visible.any(dim=0), score, torch.full_like(score, -3.0))
+        per_point = torch.where(bank.visible, score[None], torch.full_like(score[None], -4.0))
+        out.append(bank.features[torch.arange(len(q)), per_point.argmax(dim=1)])
+    return torch.stack(out)
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), max_t=st.sampled_from([3, 7, 64]))
+def test_batched_select_equals_the_rule_applied_instance_by_instance(seed, max_t):
+    g = torch.Generator().manual_seed(seed)
+    N, K, G, B, M = 20, 6, 8, 4, 15
+    visible = torch.rand(N, K, generator=g) < 0.6
+    visible[:, 0] = True  # every point seen by some view: no filling involved
+    bank = QueryFeatureBank(
+        torch.rand(N, 3, generator=g), torch.randn(N, K, G, generator=g), visible,
+        torch.eye(4).expand(K, 4, 4),
+    )  # fmt: skip
+    feats = torch.randn(B, M, G, generator=g, dtype=torch.float64).float()
+    mask = torch.rand(B, M, generator=g) < 0.7
+    mask[:, 0] = True
+    out = bank.select(feats, mask, max_target_points=max_t)
+    assert torch.equal(out, _select_one_by_one(bank, feats, mask, max_t))

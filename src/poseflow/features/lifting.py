@@ -243,14 +243,17 @@ class QueryFeatureBank:
         )
 
     def _fill_unseen(self, feats: torch.Tensor, seen: torch.Tensor) -> torch.Tensor:
-        """Copy, to points no view sees, the feature of their nearest seen point."""
+        """Copy, to points no view sees, the feature of their nearest seen point.
+
+        ``feats`` is ``(N, G)`` or ``(B, N, G)``; ``seen`` ``(N,)``.
+        """
         if bool(seen.all()):
             return feats
         if not bool(seen.any()):
             raise DegenerateInputError("no view sees any point of the model")
         pts = self.points.to(feats.device)
         _, idx = nearest_neighbors(pts[None], pts[None], k=1, reference_mask=seen[None])
-        return torch.where(seen[:, None], feats, feats[idx[0, :, 0]])
+        return torch.where(seen[:, None], feats, feats.index_select(-2, idx[0, :, 0]))
 
     def pooled(self) -> torch.Tensor:
         """Mean over the views that see each point (unseen points: nearest seen point), ``(N, G)``.
@@ -306,29 +309,46 @@ class QueryFeatureBank:
             target_mask = torch.ones(target_features.shape[:2], dtype=torch.bool)
         target_mask = target_mask.to(target_features.device)
         check_mask(target_mask, "target_mask", ("B", "M"), sizes)
+        count = target_mask.sum(dim=1)
+        if bool((count == 0).any()):
+            empty = int((count == 0).nonzero()[0, 0])
+            raise DegenerateInputError(f"target instance {empty} has no valid point")
         dev, dt = target_features.device, target_features.dtype
         bank = self.features.to(device=dev, dtype=dt)
         visible = self.visible.to(dev)
         N, K, G = bank.shape
+        B, M = sizes["B"], sizes["M"]
         q_idx = torch.linspace(0, N - 1, min(N, max_query_points), device=dev).round().long()
         q_bank = F.normalize(bank[q_idx], dim=-1).reshape(-1, G)  # (n*K, G)
         q_vis = visible[q_idx]  # (n, K)
-        out = []
-        for b in range(sizes["B"]):
-            t = target_features[b][target_mask[b]]
-            if t.shape[0] == 0:
-                raise DegenerateInputError(f"target instance {b} has no valid point")
-            t_idx = torch.linspace(0, len(t) - 1, min(len(t), max_target_points), device=dev)
-            t = F.normalize(t[t_idx.round().long()], dim=-1)
-            sim = (t @ q_bank.T).reshape(len(t), -1, K)  # (m, n, K)
-            sim = sim.masked_fill(~q_vis[None], -2.0)
-            score = sim.amax(dim=1).mean(dim=0)  # (K,)
-            score = torch.where(q_vis.any(dim=0), score, torch.full_like(score, -3.0))
-            per_point = torch.where(visible, score[None], torch.full_like(score[None], -4.0))
-            best = per_point.argmax(dim=1)  # (N,)
-            feats = bank[torch.arange(N, device=dev), best]
-            out.append(self._fill_unseen(feats, visible.any(dim=1)))
-        return torch.stack(out)
+        n = len(q_idx)
+        # Each instance's valid points, or an evenly strided subset of max_target_points of them.
+        order = torch.argsort((~target_mask).to(torch.int8), dim=1, stable=True)  # valid first
+        step = (count.to(torch.float64) - 1) / max(max_target_points - 1, 1)
+        ranks = torch.arange(max_target_points, device=dev, dtype=torch.float64)
+        cols = order.gather(1, (ranks[None] * step[:, None]).round().long().clamp(max=M - 1))
+        strided = torch.zeros_like(target_mask).scatter_(1, cols, True)
+        used = torch.where((count <= max_target_points)[:, None], target_mask, strided)
+        # View scores: mean over used target points of the best similarity within each view,
+        # in chunks of instances that keep the (b, M, n, K) similarity block near 2**24 values.
+        t = F.normalize(target_features, dim=-1)
+        chunk = max(1, 2**24 // max(1, M * n * K))
+        score = torch.cat(
+            [
+                (t[i : i + chunk] @ q_bank.T)
+                .reshape(-1, M, n, K)
+                .masked_fill(~q_vis, -2.0)
+                .amax(dim=2)
+                .mul(used[i : i + chunk, :, None])
+                .sum(dim=1)
+                for i in range(0, B, chunk)
+            ]
+        ) / used.sum(dim=1, keepdim=True)  # (B, K)
+        score = torch.where(q_vis.any(dim=0), score, torch.full_like(score, -3.0))
+        per_point = torch.where(visible, score[:, None], torch.full_like(score[:, None], -4.0))
+        best = per_point.argmax(dim=2)  # (B, N)
+        feats = bank[torch.arange(N, device=dev), best]  # (B, N, G)
+        return self._fill_unseen(feats, visible.any(dim=1))
 
     def state(self) -> dict[str, torch.Tensor]:
         """The bank as named tensors (features in float16, visibility as uint8) for safetensors."""
