@@ -5,7 +5,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 export OMP_NUM_THREADS ?= 2
 
-.PHONY: demo test test-slow lint bench bench-quick venv sysdeps clean
+.PHONY: demo test test-slow lint bench bench-unseen bench-quick venv sysdeps clean
 
 sysdeps:
 	@$(PYTHON) -c "import ctypes.util,sys; sys.exit(0 if all(ctypes.util.find_library(l) for l in ('usb-1.0','GL','EGL')) else 1)" \
@@ -37,8 +37,13 @@ BENCHMARKS := registration data networks features eval accuracy pipeline ablatio
 bench: $(STAMP)
 	for b in $(BENCHMARKS); do $(PY) benchmarks/$$b.py || exit 1; done
 
+# The README recipe on a user's BOP folder: make bench-unseen DATASET=path/to/bop_dataset
+bench-unseen: $(STAMP)
+	@test -n "$(DATASET)" || { echo "usage: make bench-unseen DATASET=path/to/bop_dataset"; exit 2; }
+	$(PY) benchmarks/unseen.py $(DATASET)
+
 bench-quick: $(STAMP)
-	for b in $(BENCHMARKS); do $(PY) benchmarks/$$b.py --quick || exit 1; done
+	for b in $(BENCHMARKS) unseen; do $(PY) benchmarks/$$b.py --quick || exit 1; done
 
 demo: $(STAMP)
 	$(PY) -m poseflow.cli demo

@@ -1,0 +1,150 @@
+"""FunFlow6D against the classic baseline on a user's own BOP dataset, by the README's recipe.
+
+The recipe a new user follows, end to end, on any BOP folder with ``models/`` (millimetres) and a
+test split: ``poseflow synth`` renders training images of the dataset's own meshes (never its
+test images), ``poseflow train`` trains FunFlow6D on them, ``poseflow predict`` estimates every
+target of the test split with the trained model and with the classic baseline (ground-truth
+visible masks), once per seed, and ``poseflow eval`` scores both with the BOP 2019 AR. Prints
+the AR of both per object (mean and spread over the seeds), one JSON line and the command.
+
+Everything is written under ``--work`` (default ``runs/unseen/DATASET_NAME``) and reused when
+run again, so a second run with other seeds or ``--predict-args`` only predicts and scores.
+
+Run ``python benchmarks/unseen.py ../shared/devbench`` (about 30 minutes on one CPU core:
+synth, training at the README recipe, then 1-2 s per image and estimator). ``--quick`` (CI)
+generates a two-image test split of the demo objects as the "user's dataset" and trains a few
+steps on four generated images: it checks that the recipe runs, not its accuracy.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import tempfile
+from pathlib import Path
+
+import torch
+
+from poseflow.cli import main as poseflow
+
+REPO = Path(__file__).resolve().parents[1]
+METRICS = ("AR", "AR_VSD", "AR_MSSD", "AR_MSPD")
+
+
+def _run(command: list[str]) -> None:
+    print("$ poseflow " + " ".join(command), flush=True)
+    if poseflow(command) != 0:
+        sys.exit(f"poseflow {command[0]} failed")
+
+
+def _recipe(args: argparse.Namespace, dataset: Path, work: Path) -> Path:
+    """Synthesise training images of the dataset's models and train; returns the model folder."""
+    train_data, run = work / "train_data", work / "run"
+    if not (train_data / "train").is_dir():
+        _run([
+            "synth", str(train_data), "--objects", str(dataset / "models"),
+            "--mesh-scale", str(args.mesh_scale), "--train", str(args.train_images),
+            "--test", "0", "--seed", str(args.synth_seed), "--no-progress",
+        ])  # fmt: skip
+    model = run / "model"
+    if not (model / "model.safetensors").is_file():
+        _run([
+            "train", str(train_data), "--out", str(run), "--config", str(args.config),
+            "--steps", str(args.steps), "--batch-size", "16", "--lr", "1e-3",
+            "--ema-decay", "0.995", "--device", "cpu", "--no-progress", *args.train_args.split(),
+        ])  # fmt: skip
+    return model
+
+
+def _score(dataset: Path, csv: Path) -> dict:
+    report_path = csv.with_suffix(".json")
+    _run(["eval", str(dataset), str(csv), "--json", str(report_path)])
+    return json.loads(report_path.read_text())
+
+
+def _summary(reports: list[dict]) -> dict:
+    """Mean and spread (half the range) of each figure over the seeds' reports."""
+
+    def stats(values: list[float]) -> dict:
+        return {
+            "mean": round(statistics.fmean(values), 4),
+            "spread": round((max(values) - min(values)) / 2, 4),
+        }
+
+    out = {k: stats([r[k] for r in reports]) for k in METRICS}
+    objects = sorted(reports[0]["per_object"], key=int)
+    out["per_object"] = {
+        o: {k: stats([r["per_object"][o][k] for r in reports]) for k in METRICS} for o in objects
+    }
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("dataset", nargs="?", help="BOP dataset folder (models/ in mm, test/)")
+    parser.add_argument("--work", default=None, help="output folder (default runs/unseen/NAME)")
+    parser.add_argument("--config", default=str(REPO / "configs" / "demo_small.json"))
+    parser.add_argument("--train-images", type=int, default=400)
+    parser.add_argument("--steps", type=int, default=5000)
+    parser.add_argument("--mesh-scale", type=float, default=0.001, help="model units to metres")
+    parser.add_argument("--synth-seed", type=int, default=1)
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="predict seeds")
+    parser.add_argument("--max-images", type=int, default=None, help="test images per run")
+    parser.add_argument("--train-args", default="", help="more `poseflow train` flags, one string")
+    parser.add_argument(
+        "--predict-args", default="", help="more `poseflow predict` flags, one string"
+    )
+    parser.add_argument("--tag", default="", help="suffix of the result files of this setting")
+    parser.add_argument("--quick", action="store_true", help="tiny generated dataset (CI)")
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    with tempfile.TemporaryDirectory() as tmp:
+        if args.quick:
+            dataset = Path(tmp) / "user_dataset"
+            _run(["synth", str(dataset), "--train", "0", "--test", "2", "--seed", "5",
+                  "--width", "320", "--height", "240", "--no-progress"])  # fmt: skip
+            args.train_images, args.steps, args.seeds = 4, 20, [0]
+            work = Path(tmp) / "work"
+        elif args.dataset is None:
+            parser.error("give a BOP dataset folder, or --quick")
+        else:
+            dataset = Path(args.dataset).resolve()
+            work = Path(args.work or REPO / "runs" / "unseen" / dataset.name)
+        work.mkdir(parents=True, exist_ok=True)
+        model = _recipe(args, dataset, work)
+        extra = args.predict_args.split()
+        if args.max_images is not None:
+            extra += ["--max-images", str(args.max_images)]
+        reports: dict[str, list[dict]] = {"funflow6d": [], "baseline": []}
+        for seed in args.seeds:
+            for method in reports:
+                csv = work / f"{method}{args.tag}-seed{seed}_{dataset.name}-test.csv"
+                command = ["predict", str(dataset), "--out", str(csv), "--seed", str(seed)]
+                command += ["--method", method, "--no-progress", *extra]
+                if method == "funflow6d":
+                    command += ["--model", str(model)]
+                _run(command)
+                reports[method].append(_score(dataset, csv))
+        summary = {m: _summary(r) for m, r in reports.items()}
+    summary["dataset"], summary["seeds"] = dataset.name, args.seeds
+    f, b = summary["funflow6d"], summary["baseline"]
+    print(f"\n{dataset.name}: AR over seeds {args.seeds} (mean ± half range)")
+    print(f"{'object':<10} {'FunFlow6D':>16} {'baseline':>16}")
+    for o in f["per_object"]:
+        fo, bo = f["per_object"][o]["AR"], b["per_object"][o]["AR"]
+        print(
+            f"{o:<10} {fo['mean']:>9.3f} ± {fo['spread']:.3f} {bo['mean']:>9.3f} ± {bo['spread']:.3f}"
+        )
+    for k in METRICS:
+        print(
+            f"{k:<10} {f[k]['mean']:>9.3f} ± {f[k]['spread']:.3f} "
+            f"{b[k]['mean']:>9.3f} ± {b[k]['spread']:.3f}"
+        )
+    print(json.dumps(summary))
+    print("command:", " ".join([sys.executable, *sys.argv]))
+
+
+if __name__ == "__main__":
+    main()
