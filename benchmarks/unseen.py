@@ -132,16 +132,11 @@ def main() -> None:
     f, b = summary["funflow6d"], summary["baseline"]
     print(f"\n{dataset.name}: AR over seeds {args.seeds} (mean ± half range)")
     print(f"{'object':<10} {'FunFlow6D':>16} {'baseline':>16}")
+    cell = lambda s: f"{s['mean']:>9.3f} ± {s['spread']:.3f}"  # noqa: E731
     for o in f["per_object"]:
-        fo, bo = f["per_object"][o]["AR"], b["per_object"][o]["AR"]
-        print(
-            f"{o:<10} {fo['mean']:>9.3f} ± {fo['spread']:.3f} {bo['mean']:>9.3f} ± {bo['spread']:.3f}"
-        )
+        print(f"{o:<10} {cell(f['per_object'][o]['AR'])} {cell(b['per_object'][o]['AR'])}")
     for k in METRICS:
-        print(
-            f"{k:<10} {f[k]['mean']:>9.3f} ± {f[k]['spread']:.3f} "
-            f"{b[k]['mean']:>9.3f} ± {b[k]['spread']:.3f}"
-        )
+        print(f"{k:<10} {cell(f[k])} {cell(b[k])}")
     print(json.dumps(summary))
     print("command:", " ".join([sys.executable, *sys.argv]))
 
