@@ -6,10 +6,12 @@ import numpy as np
 import pytest
 import torch
 
+import poseflow.features
 from poseflow.errors import DegenerateInputError, ShapeError, ValueRangeError
 from poseflow.features.reducers import (
     IdentityReducer,
     PCAReducer,
+    Reducer,
     UMAPReducer,
     _membership,
     find_ab_params,
@@ -79,6 +81,66 @@ def test_save_load_roundtrip(tmp_path, device: torch.device) -> None:
         back = load_reducer(path, device=device)
         assert type(back) is type(red)
         assert torch.allclose(back.transform(x.to(device)).cpu(), red.transform(x), atol=1e-10)
+
+
+class _Shift(Reducer):
+    """A minimal subclass: subtracts the fitted mean (one array, one parameter)."""
+
+    _arrays = ("mean_",)
+    _params = ("normalize",)
+
+    def __init__(self, *, normalize: bool = False) -> None:
+        self.normalize = normalize
+
+    def _fit(self, x: torch.Tensor) -> None:
+        self.mean_ = x.mean(dim=0)
+
+    def _transform(self, x: torch.Tensor) -> torch.Tensor:
+        return x - self.mean_.to(x)
+
+
+def test_reducer_is_an_abstract_base_exported_by_features() -> None:
+    assert poseflow.features.Reducer is Reducer
+    assert "Reducer" in poseflow.features.__all__
+    with pytest.raises(TypeError, match="abstract"):
+        Reducer()  # type: ignore[abstract]
+
+    class OnlyFit(Reducer):
+        def _fit(self, x: torch.Tensor) -> None:
+            pass
+
+    with pytest.raises(TypeError, match="_transform"):
+        OnlyFit()  # type: ignore[abstract]
+    for cls in (IdentityReducer, PCAReducer, UMAPReducer):
+        assert issubclass(cls, Reducer)
+
+
+def test_reducer_subclass_gets_fit_transform_batching_and_validation() -> None:
+    x = torch.tensor([[1.0, 2.0], [3.0, 6.0], [5.0, 4.0]])
+    red = _Shift()
+    assert red.fit(x) is red and red.n_features_in_ == 2
+    assert torch.equal(red.transform(x), x - torch.tensor([3.0, 4.0]))
+    batch = torch.stack([x, 2 * x])
+    mask = torch.tensor([[True, True, False], [True, False, True]])
+    out = red.transform(batch, mask)
+    assert torch.equal(out[1, 2], 2 * x[2] - torch.tensor([3.0, 4.0]))
+    assert bool((out[0, 2] == 0).all() and (out[1, 1] == 0).all())
+    assert isinstance(red.transform(x.numpy()), np.ndarray)
+    with pytest.raises(ShapeError):
+        red.transform(torch.zeros(2, 5))
+    with pytest.raises(ValueRangeError, match="not fitted"):
+        _Shift().transform(x)
+
+
+def test_load_reducer_returns_the_saved_reducer_type(tmp_path) -> None:
+    x, _ = _clusters(60, 6, 9)
+    back = load_reducer(PCAReducer(2).fit(x).save(tmp_path / "pca"))
+    assert isinstance(back, Reducer) and type(back) is PCAReducer
+    assert load_reducer.__annotations__["return"] == "Reducer"
+    (tmp_path / "odd").mkdir()
+    (tmp_path / "odd" / "reducer.json").write_text('{"class": "_Shift", "params": {}}')
+    with pytest.raises(ValueRangeError, match="unknown reducer class"):
+        load_reducer(tmp_path / "odd")
 
 
 def test_find_ab_params_matches_umap_defaults() -> None:

@@ -18,9 +18,10 @@ batched over instances):
    training points, both with UMAP's ``1 / (1 + a d^{2b})`` kernel and gradient clipping), with
    the training embedding held fixed.
 
-:class:`PCAReducer` and :class:`IdentityReducer` share the API for the ablation. Fitted reducers
-save to a directory as ``reducer.safetensors`` (arrays) plus ``reducer.json`` (class and
-parameters), never a pickle, and :func:`load_reducer` brings them back on any device.
+:class:`PCAReducer` and :class:`IdentityReducer` share the API for the ablation; all three derive
+from the abstract :class:`Reducer`. Fitted reducers save to a directory as
+``reducer.safetensors`` (arrays) plus ``reducer.json`` (class and parameters), never a pickle,
+and :func:`load_reducer` brings them back on any device.
 
 Inputs may be numpy arrays ``(N, G)`` (numpy comes back) or torch tensors ``(N, G)`` or
 ``(B, M, G)`` with an optional mask ``(B, M)`` (torch comes back, on the input's device and in
@@ -31,8 +32,9 @@ from __future__ import annotations
 
 import json
 import math
+from abc import ABC, abstractmethod
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 import torch
@@ -49,6 +51,7 @@ from poseflow.errors import (
 __all__ = [
     "IdentityReducer",
     "PCAReducer",
+    "Reducer",
     "UMAPReducer",
     "find_ab_params",
     "load_reducer",
@@ -82,8 +85,32 @@ def find_ab_params(spread: float = 1.0, min_dist: float = 0.01) -> tuple[float, 
     return float(a), float(b)
 
 
-class _Reducer:
-    """Shared plumbing: input conversion, batching with masks, save/load."""
+_R = TypeVar("_R", bound="Reducer")
+
+
+class Reducer(ABC):
+    """Base class of the reducers: input conversion, batching with masks, save/load.
+
+    A subclass implements :meth:`_fit` (learn from the prepared training rows) and
+    :meth:`_transform` (project prepared rows) and lists, for :meth:`save` and
+    :func:`load_reducer`, its fitted tensors in ``_arrays``, its constructor parameters in
+    ``_params`` and its fitted scalars in ``_scalars``. Inputs reach both methods as a
+    ``(N, G)`` tensor, already L2-normalised along ``G`` when ``normalize`` is set.
+
+    Example:
+        >>> class Scale(Reducer):
+        ...     _params = ("factor",)
+        ...     normalize = False
+        ...     def __init__(self, factor: float = 2.0) -> None:
+        ...         self.factor = factor
+        ...     def _fit(self, x: torch.Tensor) -> None:
+        ...         pass
+        ...     def _transform(self, x: torch.Tensor) -> torch.Tensor:
+        ...         return self.factor * x
+        >>> Scale().fit_transform(torch.ones(2, 3))
+        tensor([[2., 2., 2.],
+                [2., 2., 2.]])
+    """
 
     _arrays: tuple[str, ...] = ()
     _params: tuple[str, ...] = ()
@@ -91,7 +118,7 @@ class _Reducer:
 
     normalize: bool
 
-    def fit(self, X: Any, y: None = None) -> _Reducer:
+    def fit(self: _R, X: torch.Tensor | np.ndarray, y: None = None) -> _R:
         """Fit on the query features ``X`` ``(N, G)``; returns ``self``."""
         feats = self._prepare(_as_tensor(X, "X"))
         if feats.shape[0] < 2:
@@ -100,7 +127,9 @@ class _Reducer:
         self.n_features_in_ = int(feats.shape[1])
         return self
 
-    def transform(self, X: Any, mask: torch.Tensor | None = None) -> Any:
+    def transform(
+        self, X: torch.Tensor | np.ndarray, mask: torch.Tensor | None = None
+    ) -> torch.Tensor | np.ndarray:
         """Project ``X`` ``(N, G)`` or ``(B, M, G)`` (with an optional mask ``(B, M)``).
 
         Returns:
@@ -130,7 +159,9 @@ class _Reducer:
             out = out_rows
         return out.cpu().numpy() if is_numpy else out
 
-    def fit_transform(self, X: Any, y: None = None) -> Any:
+    def fit_transform(
+        self, X: torch.Tensor | np.ndarray, y: None = None
+    ) -> torch.Tensor | np.ndarray:
         """Fit on ``X`` and project it."""
         return self.fit(X).transform(X)
 
@@ -155,7 +186,7 @@ class _Reducer:
         (path / "reducer.json").write_text(json.dumps(meta, indent=2))
         return path
 
-    def to(self, device: str | torch.device) -> _Reducer:
+    def to(self: _R, device: str | torch.device) -> _R:
         """Move the fitted arrays to ``device`` (in place); returns ``self``."""
         for k in self._arrays:
             if hasattr(self, k):
@@ -170,14 +201,16 @@ class _Reducer:
         check_tensor(x, "X", ("N", "G"), finite=True)
         return F.normalize(x, dim=-1) if self.normalize else x
 
+    @abstractmethod
     def _fit(self, x: torch.Tensor) -> None:
-        raise NotImplementedError
+        """Learn from the prepared training rows ``(N, G)``, setting the fitted attributes."""
 
+    @abstractmethod
     def _transform(self, x: torch.Tensor) -> torch.Tensor:
-        raise NotImplementedError
+        """Project prepared rows ``(N, G)`` to ``(N, D)``; the caller casts to the input's dtype."""
 
 
-def _as_tensor(X: Any, name: str) -> torch.Tensor:
+def _as_tensor(X: torch.Tensor | np.ndarray, name: str) -> torch.Tensor:
     if isinstance(X, torch.Tensor):
         return X
     if isinstance(X, np.ndarray):
@@ -185,7 +218,7 @@ def _as_tensor(X: Any, name: str) -> torch.Tensor:
     raise ShapeError(f"{name} must be a torch.Tensor or numpy array, got {type(X).__name__}")
 
 
-class IdentityReducer(_Reducer):
+class IdentityReducer(Reducer):
     """No projection (the ablation's "none"), optionally L2-normalising each feature.
 
     Example:
@@ -209,7 +242,7 @@ class IdentityReducer(_Reducer):
         return x
 
 
-class PCAReducer(_Reducer):
+class PCAReducer(Reducer):
     """Principal component analysis (SVD in float64), fit on the query features.
 
     Args:
@@ -257,7 +290,7 @@ class PCAReducer(_Reducer):
         return (x - mean) @ self.components_.to(device=x.device, dtype=x.dtype).T
 
 
-class UMAPReducer(_Reducer):
+class UMAPReducer(Reducer):
     """UMAP fitted with umap-learn, with a fast batched torch out-of-sample transform.
 
     Args:
@@ -504,10 +537,12 @@ def _membership(dist: torch.Tensor, target: float, iterations: int = 32) -> torc
     return torch.where(w.sum(dim=1, keepdim=True) > 0, w, torch.ones_like(w))
 
 
-_CLASSES = {c.__name__: c for c in (IdentityReducer, PCAReducer, UMAPReducer)}
+_CLASSES: dict[str, type[Reducer]] = {
+    c.__name__: c for c in (IdentityReducer, PCAReducer, UMAPReducer)
+}
 
 
-def load_reducer(path: str | Path, *, device: str | torch.device = "cpu") -> _Reducer:
+def load_reducer(path: str | Path, *, device: str | torch.device = "cpu") -> Reducer:
     """Load a reducer written by ``save`` onto ``device``.
 
     Args:
