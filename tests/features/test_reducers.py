@@ -1,13 +1,23 @@
 from __future__ import annotations
 
+import builtins
 import math
+import os
+import random
+import sys
+import types
 
 import numpy as np
 import pytest
 import torch
 
 import poseflow.features
-from poseflow.errors import DegenerateInputError, ShapeError, ValueRangeError
+from poseflow.errors import (
+    DegenerateInputError,
+    MissingDependencyError,
+    ShapeError,
+    ValueRangeError,
+)
 from poseflow.features.reducers import (
     IdentityReducer,
     PCAReducer,
@@ -207,3 +217,71 @@ def test_umap_fit_and_transform_match_umap_learn() -> None:
     # transform finds more inliers than umap-learn's (benchmarks/features.py)
     assert correct_ours >= 0.5 * correct_ref
     assert correct_ours > 40
+
+
+def test_fit_backend_names_are_checked() -> None:
+    with pytest.raises(ValueRangeError, match="fit_backend"):
+        UMAPReducer(fit_backend="cuml")
+
+
+def test_fit_backend_dispatch_with_torchdr_importable(monkeypatch) -> None:
+    monkeypatch.setitem(sys.modules, "torchdr", types.ModuleType("torchdr"))
+    assert UMAPReducer().resolve_fit_backend("cpu") == "umap-learn"
+    assert UMAPReducer().resolve_fit_backend(torch.device("cuda", 0)) == "torchdr"
+    assert UMAPReducer(fit_backend="torchdr").resolve_fit_backend("cpu") == "torchdr"
+    assert UMAPReducer(fit_backend="umap-learn").resolve_fit_backend("cuda") == "umap-learn"
+
+
+def test_fit_backend_dispatch_without_torchdr(monkeypatch) -> None:
+    monkeypatch.setitem(sys.modules, "torchdr", None)  # makes `import torchdr` fail
+    assert UMAPReducer().resolve_fit_backend("cuda") == "umap-learn"
+    with pytest.raises(MissingDependencyError, match=r"torchdr .*pip install 'poseflow\[gpu\]'"):
+        UMAPReducer(fit_backend="torchdr").resolve_fit_backend("cpu")
+    with pytest.raises(ImportError):  # also an ImportError, for code that catches those
+        UMAPReducer(fit_backend="torchdr", n_neighbors=5).fit(torch.rand(20, 4))
+
+
+def test_fit_backend_names_an_undeclared_torchdr_dependency(monkeypatch) -> None:
+    real_import = builtins.__import__
+
+    def fake_import(name, *args, **kwargs):
+        if name == "torchdr":
+            raise ModuleNotFoundError("No module named 'matplotlib'", name="matplotlib")
+        return real_import(name, *args, **kwargs)
+
+    monkeypatch.delitem(sys.modules, "torchdr", raising=False)
+    monkeypatch.setattr(builtins, "__import__", fake_import)
+    with pytest.raises(MissingDependencyError, match=r"matplotlib .*TorchDR.*poseflow\[gpu\]"):
+        UMAPReducer(fit_backend="torchdr").resolve_fit_backend("cpu")
+
+
+def test_torchdr_fit_on_cpu(tmp_path, dtype: torch.dtype) -> None:
+    pytest.importorskip("torchdr")
+    x, label = _clusters(160, 16, 10)
+    x = x.to(dtype)
+    params = {"n_neighbors": 10, "n_epochs": 60, "fit_backend": "torchdr", "random_state": 0}
+    state = (torch.get_rng_state(), np.random.get_state()[1].copy(), random.getstate())  # noqa: NPY002
+    hash_seed = os.environ.get("PYTHONHASHSEED")
+    red = UMAPReducer(2, **params).fit(x)
+    # TorchDR reseeds the global generators; the reducer must leave them as they were
+    assert torch.equal(torch.get_rng_state(), state[0])
+    assert np.array_equal(np.random.get_state()[1], state[1])  # noqa: NPY002
+    assert random.getstate() == state[2]
+    assert os.environ.get("PYTHONHASHSEED") == hash_seed
+    assert red.fit_backend_ == "torchdr" and not hasattr(red, "umap_model_")
+    emb = red.embedding_
+    assert emb.shape == (160, 2) and emb.dtype == dtype and bool(torch.isfinite(emb).all())
+    assert (red.a_, red.b_) == find_ab_params(1.0, 0.01)
+    assert torch.equal(UMAPReducer(2, **params).fit(x).embedding_, emb)  # seeded: repeatable
+    # the embedding keeps the clusters: 5 nearest embedded neighbours share the label
+    d = torch.cdist(emb.double(), emb.double()).fill_diagonal_(float("inf"))
+    same = (label[d.topk(5, largest=False).indices] == label[:, None]).double().mean()
+    assert same > 0.9
+    # new points land by their cluster, and the saved reducer transforms the same way
+    new = x[:40] + 0.05 * torch.randn(40, 16, generator=torch.Generator().manual_seed(11)).to(dtype)
+    y = red.transform(new)
+    nearest = torch.cdist(y.double(), emb.double()).argmin(dim=1)
+    assert (label[nearest] == label[:40]).double().mean() > 0.9
+    back = load_reducer(red.save(tmp_path / "umap"))
+    assert back.fit_backend == "torchdr"
+    assert torch.equal(back.transform(new), y)

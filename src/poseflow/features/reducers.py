@@ -1,9 +1,10 @@
 """Dimensionality reduction of appearance features, with the scikit-learn estimator API.
 
 The paper fits UMAP on the query features ``S_Q`` of an object only, then projects every target
-instance ``S_T`` into the same low-dimensional manifold. :class:`UMAPReducer` fits with umap-learn
-and projects new points with its own out-of-sample transform written in torch (CPU or CUDA,
-batched over instances):
+instance ``S_T`` into the same low-dimensional manifold. :class:`UMAPReducer` fits with TorchDR's
+GPU UMAP when the features are on CUDA and TorchDR is installed (``pip install
+'poseflow[gpu]'``), as the paper does, and with umap-learn otherwise; it projects new points with
+its own out-of-sample transform written in torch (CPU or CUDA, batched over instances):
 
 1. exact k nearest neighbours of each new point among the fitted training points (one matrix
    product per chunk, the reducer's metric);
@@ -30,10 +31,15 @@ its dtype; padded rows are zero).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
+import os
+import random
 from abc import ABC, abstractmethod
+from collections.abc import Iterator
 from pathlib import Path
+from types import ModuleType
 from typing import Any, TypeVar
 
 import numpy as np
@@ -58,6 +64,7 @@ __all__ = [
 ]
 
 _METRICS = ("cosine", "euclidean")
+_FIT_BACKENDS = ("auto", "torchdr", "umap-learn")
 
 
 def find_ab_params(spread: float = 1.0, min_dist: float = 0.01) -> tuple[float, float]:
@@ -300,7 +307,15 @@ class UMAPReducer(Reducer):
         metric: ``"cosine"`` (paper) or ``"euclidean"``.
         normalize: L2-normalise the input features before fitting and projecting.
         random_state: seed of the fit and of the transform's negative sampling.
-        n_epochs: umap-learn's fitting epochs (None: its default).
+        n_epochs: fitting epochs (None: umap-learn's default, 500 up to 10,000 samples and 200
+            above; TorchDR takes as many full-gradient iterations).
+        fit_backend: who fits the embedding: ``"auto"`` (TorchDR when the features are on CUDA
+            and TorchDR imports, else umap-learn), ``"torchdr"`` (always TorchDR, on the
+            features' device, CPU included) or ``"umap-learn"`` (always umap-learn, on the CPU).
+            Both fit the same fuzzy graph (TorchDR is given ``a`` and ``b`` of
+            :func:`find_ab_params` and, for the cosine metric, squared distances between the
+            L2-normalised features, which are twice the cosine distances and give the same
+            memberships); their optimisers differ, so the embeddings do too.
         transform_epochs: optimisation epochs of the torch transform after the membership-weighted
             initialisation. Default 0: on the feature benchmark (dense SIFT, mutual-NN inliers)
             the initialisation alone matched or beat umap-learn's ``transform`` (22.3 vs 18.5
@@ -315,6 +330,13 @@ class UMAPReducer(Reducer):
         negative_draws: random training points drawn per new point and epoch to estimate the
             repulsion.
         chunk_size: new points per kNN block (bounds memory to ``chunk_size × N`` distances).
+
+    Attributes:
+        train_: the (prepared) training features ``(N, G)``.
+        embedding_: their embedding ``(N, D)``, on the training features' device and dtype.
+        a_, b_: the low-dimensional kernel's parameters.
+        fit_backend_: ``"torchdr"`` or ``"umap-learn"``, who fitted in this process (not saved).
+        umap_model_: umap-learn's estimator, after a umap-learn fit in this process (not saved).
 
     Example:
         >>> g = torch.Generator().manual_seed(0)
@@ -333,6 +355,7 @@ class UMAPReducer(Reducer):
         "normalize",
         "random_state",
         "n_epochs",
+        "fit_backend",
         "transform_epochs",
         "negative_sample_rate",
         "learning_rate",
@@ -352,6 +375,7 @@ class UMAPReducer(Reducer):
         normalize: bool = True,
         random_state: int | None = 0,
         n_epochs: int | None = None,
+        fit_backend: str = "auto",
         transform_epochs: int = 0,
         negative_sample_rate: int = 5,
         learning_rate: float = 0.5,
@@ -361,6 +385,10 @@ class UMAPReducer(Reducer):
     ) -> None:
         if metric not in _METRICS:
             raise ValueRangeError(f"metric must be one of {_METRICS}, got {metric!r}")
+        if fit_backend not in _FIT_BACKENDS:
+            raise ValueRangeError(
+                f"fit_backend must be one of {_FIT_BACKENDS}, got {fit_backend!r}"
+            )
         if n_components < 1 or n_neighbors < 2 or transform_epochs < 0 or chunk_size < 1:
             raise ValueRangeError(
                 "need n_components >= 1, n_neighbors >= 2, transform_epochs >= 0, chunk_size >= 1"
@@ -372,6 +400,7 @@ class UMAPReducer(Reducer):
         self.normalize = normalize
         self.random_state = random_state
         self.n_epochs = n_epochs
+        self.fit_backend = fit_backend
         self.transform_epochs = transform_epochs
         self.negative_sample_rate = negative_sample_rate
         self.learning_rate = learning_rate
@@ -408,15 +437,82 @@ class UMAPReducer(Reducer):
         red.n_features_in_ = int(train.shape[1])
         return red
 
+    def resolve_fit_backend(self, device: str | torch.device) -> str:
+        """Name who fits features on ``device``: ``"torchdr"`` or ``"umap-learn"``.
+
+        Args:
+            device: the device of the features to fit.
+
+        Returns:
+            ``fit_backend`` when it names one; for ``"auto"``, ``"torchdr"`` on a CUDA device
+            when TorchDR imports, else ``"umap-learn"``.
+
+        Raises:
+            MissingDependencyError: ``fit_backend="torchdr"`` and TorchDR does not import.
+
+        Example:
+            >>> UMAPReducer().resolve_fit_backend("cpu")
+            'umap-learn'
+        """
+        if self.fit_backend == "torchdr":
+            _import_torchdr()
+            return "torchdr"
+        if self.fit_backend == "auto" and torch.device(device).type == "cuda":
+            with contextlib.suppress(MissingDependencyError):
+                _import_torchdr()
+                return "torchdr"
+        return "umap-learn"
+
     def _fit(self, x: torch.Tensor) -> None:
-        try:
-            import umap
-        except ImportError as err:
-            raise MissingDependencyError("umap-learn", "umap", "UMAPReducer.fit") from err
         if x.shape[0] <= self.n_neighbors:
             raise DegenerateInputError(
                 f"UMAP needs more than n_neighbors={self.n_neighbors} samples, got {x.shape[0]}"
             )
+        self.fit_backend_ = self.resolve_fit_backend(x.device)
+        if hasattr(self, "umap_model_"):
+            del self.umap_model_  # from an earlier umap-learn fit: it would describe old data
+        self.train_ = x.detach().clone()
+        if self.fit_backend_ == "torchdr":
+            emb = self._fit_torchdr(x.detach())
+        else:
+            emb = self._fit_umap_learn(x.detach())
+        self.embedding_ = emb.to(device=x.device, dtype=x.dtype)
+
+    def _epochs(self, n: int) -> int:
+        if self.n_epochs is not None:
+            return self.n_epochs
+        return 500 if n <= 10_000 else 200
+
+    def _fit_torchdr(self, x: torch.Tensor) -> torch.Tensor:
+        """Fit with TorchDR's UMAP on ``x``'s device; returns the embedding ``(N, D)``."""
+        torchdr = _import_torchdr()
+        self.a_, self.b_ = find_ab_params(1.0, self.min_dist)
+        if self.metric == "cosine":
+            x, metric = F.normalize(x, dim=-1), "sqeuclidean"
+        else:
+            metric = "euclidean"
+        with _restored_global_state():  # TorchDR seeds every global RNG when given a seed
+            model = torchdr.UMAP(
+                n_components=self.n_components,
+                n_neighbors=self.n_neighbors,
+                min_dist=self.min_dist,
+                a=self.a_,
+                b=self.b_,
+                metric=metric,
+                max_iter=self._epochs(x.shape[0]),
+                random_state=self.random_state,
+                backend=None,  # TorchDR's default, faiss, is not a dependency
+                distributed=False,  # never join a torchrun process group from here
+                verbose=False,
+            )
+            return torch.as_tensor(model.fit_transform(x)).detach()
+
+    def _fit_umap_learn(self, x: torch.Tensor) -> torch.Tensor:
+        """Fit with umap-learn on the CPU; returns the embedding ``(N, D)`` (float32, CPU)."""
+        try:
+            import umap
+        except ImportError as err:
+            raise MissingDependencyError("umap-learn", "umap", "UMAPReducer.fit") from err
         model = umap.UMAP(
             n_components=self.n_components,
             n_neighbors=self.n_neighbors,
@@ -425,14 +521,13 @@ class UMAPReducer(Reducer):
             random_state=self.random_state,
             n_epochs=self.n_epochs,
         )
-        data = x.detach().cpu().numpy().astype(np.float32)
+        data = x.cpu().numpy().astype(np.float32)
         threads = torch.get_num_threads()
         emb = model.fit_transform(data)
         torch.set_num_threads(threads)  # umap-learn's numba/threadpool set-up changes it
         self.umap_model_ = model
-        self.train_ = x.detach().clone()
-        self.embedding_ = torch.from_numpy(np.asarray(emb)).to(device=x.device, dtype=x.dtype)
         self.a_, self.b_ = float(model._a), float(model._b)
+        return torch.from_numpy(np.asarray(emb))
 
     def transform_umap_learn(self, X: np.ndarray) -> np.ndarray:
         """Project with umap-learn's own ``transform`` (the reference; needs the in-memory fit).
@@ -444,7 +539,9 @@ class UMAPReducer(Reducer):
             The projection ``(N, D)``, float32 numpy.
         """
         if not hasattr(self, "umap_model_"):
-            raise ValueRangeError("umap-learn's transform needs a reducer fitted in this process")
+            raise ValueRangeError(
+                "umap-learn's transform needs a reducer fitted with umap-learn in this process"
+            )
         x = self._prepare(_as_tensor(X, "X")).detach().cpu().numpy().astype(np.float32)
         return self.umap_model_.transform(x)
 
@@ -516,6 +613,51 @@ class UMAPReducer(Reducer):
             push = cn.sum(1, keepdim=True) * y - (cn[:, None, :] @ e_neg)[:, 0]
             y = y + alpha * (pull + push).clamp(-4.0, 4.0)  # umap-learn's step bound
         return y
+
+
+def _import_torchdr() -> ModuleType:
+    """Import TorchDR, the GPU UMAP of the ``gpu`` extra.
+
+    Returns:
+        The ``torchdr`` module.
+
+    Raises:
+        MissingDependencyError: TorchDR, or a package it imports without declaring it
+            (matplotlib), is not installed; the message names ``pip install 'poseflow[gpu]'``.
+    """
+    try:
+        import torchdr
+    except ImportError as err:
+        missing = err.name or "torchdr"
+        purpose = "UMAP on the GPU" if missing == "torchdr" else "TorchDR, which imports it"
+        raise MissingDependencyError(missing, "gpu", purpose) from err
+    return torchdr
+
+
+@contextlib.contextmanager
+def _restored_global_state() -> Iterator[None]:
+    """Restore the global RNGs, ``PYTHONHASHSEED`` and cuDNN's flags on exit.
+
+    TorchDR's estimators call its ``seed_everything`` when given a seed: it reseeds Python's,
+    NumPy's and torch's global generators (CPU and every GPU), sets ``PYTHONHASHSEED`` and turns
+    on ``cudnn.benchmark``; none of that may leak into the caller.
+    """
+    py_state = random.getstate()
+    np_state = np.random.get_state()  # noqa: NPY002 (the legacy global state is what TorchDR seeds)
+    hash_seed = os.environ.get("PYTHONHASHSEED")
+    cudnn = torch.backends.cudnn.benchmark, torch.backends.cudnn.deterministic
+    gpus = list(range(torch.cuda.device_count())) if torch.cuda.is_available() else []
+    try:
+        with torch.random.fork_rng(devices=gpus):
+            yield
+    finally:
+        random.setstate(py_state)
+        np.random.set_state(np_state)  # noqa: NPY002
+        if hash_seed is None:
+            os.environ.pop("PYTHONHASHSEED", None)
+        else:
+            os.environ["PYTHONHASHSEED"] = hash_seed
+        torch.backends.cudnn.benchmark, torch.backends.cudnn.deterministic = cudnn
 
 
 def _membership(dist: torch.Tensor, target: float, iterations: int = 32) -> torch.Tensor:
