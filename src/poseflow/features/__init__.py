@@ -12,9 +12,9 @@ model ``Q`` and of the observed target ``T``.
   :class:`DenseSIFTEncoder` (weight-free default);
 - lifting: :func:`lift_target_features` (crop around the barycentre), :func:`lift_query_features`
   (multi-view renderings → :class:`QueryFeatureBank`), cached per object by :class:`FeatureCache`;
-- reduction (:class:`Reducer`): :class:`UMAPReducer` (umap-learn fit, fast torch transform),
-  :class:`PCAReducer`, :class:`IdentityReducer`, saved without pickle and reloaded by
-  :func:`load_reducer`.
+- reduction (:class:`Reducer`): :class:`UMAPReducer` (umap-learn or, on CUDA, TorchDR fit; fast
+  torch transform), :class:`PCAReducer`, :class:`IdentityReducer`, saved without pickle and
+  reloaded by :func:`load_reducer`.
 """
 
 from poseflow.features.appearance import (
