@@ -12,6 +12,7 @@ from poseflow.fusion import (
     FUSIONS,
     ConcatMLPFusion,
     CrossAttentionFusion,
+    Fusion,
     FusionGates,
     GatedCrossAttentionFusion,
     SumFusion,
@@ -197,6 +198,24 @@ def test_build_fusion_names_and_errors():
         build_fusion("film")
     with pytest.raises(ValueRangeError):
         build_fusion("gated", dim=10, num_heads=4)
+
+
+def test_fusion_base_is_abstract_and_every_block_derives_from_it():
+    with pytest.raises(TypeError, match="abstract"):
+        Fusion(8)  # type: ignore[abstract]
+    for name in NAMES:
+        assert issubclass(FUSIONS[name], Fusion)
+        assert isinstance(build_fusion(name, dim=8), Fusion)
+
+    class Geometric(Fusion):
+        def _fuse(self, g, s, mask):
+            return 2 * g, None
+
+    g, s = streams(1, 3, 4, seed=0)
+    mask = torch.tensor([[True, True, False]])
+    out = Geometric(4)(g, s, mask)
+    assert torch.allclose(out[0, :2], torch.nn.functional.normalize(g[0, :2], dim=-1))
+    assert bool((out[0, 2] == 0).all())
 
 
 def test_bad_inputs_raise():

@@ -12,8 +12,9 @@ model ``Q`` and of the observed target ``T``.
   :class:`DenseSIFTEncoder` (weight-free default);
 - lifting: :func:`lift_target_features` (crop around the barycentre), :func:`lift_query_features`
   (multi-view renderings → :class:`QueryFeatureBank`), cached per object by :class:`FeatureCache`;
-- reduction: :class:`UMAPReducer` (umap-learn fit, fast torch transform), :class:`PCAReducer`,
-  :class:`IdentityReducer`, saved without pickle and reloaded by :func:`load_reducer`.
+- reduction (:class:`Reducer`): :class:`UMAPReducer` (umap-learn or, on CUDA, TorchDR fit; fast
+  torch transform), :class:`PCAReducer`, :class:`IdentityReducer`, saved without pickle and
+  reloaded by :func:`load_reducer`.
 """
 
 from poseflow.features.appearance import (
@@ -40,7 +41,13 @@ from poseflow.features.lifting import (
     lift_target_features,
     viewpoint_poses,
 )
-from poseflow.features.reducers import IdentityReducer, PCAReducer, UMAPReducer, load_reducer
+from poseflow.features.reducers import (
+    IdentityReducer,
+    PCAReducer,
+    Reducer,
+    UMAPReducer,
+    load_reducer,
+)
 
 __all__ = [
     "DINOV2_MODELS",
@@ -56,6 +63,7 @@ __all__ = [
     "IdentityReducer",
     "PCAReducer",
     "QueryFeatureBank",
+    "Reducer",
     "TorchScriptEncoder",
     "UMAPReducer",
     "cached_query_features",

@@ -1,9 +1,10 @@
 """Dimensionality reduction of appearance features, with the scikit-learn estimator API.
 
 The paper fits UMAP on the query features ``S_Q`` of an object only, then projects every target
-instance ``S_T`` into the same low-dimensional manifold. :class:`UMAPReducer` fits with umap-learn
-and projects new points with its own out-of-sample transform written in torch (CPU or CUDA,
-batched over instances):
+instance ``S_T`` into the same low-dimensional manifold. :class:`UMAPReducer` fits with TorchDR's
+GPU UMAP when the features are on CUDA and TorchDR is installed (``pip install
+'poseflow[gpu]'``), as the paper does, and with umap-learn otherwise; it projects new points with
+its own out-of-sample transform written in torch (CPU or CUDA, batched over instances):
 
 1. exact k nearest neighbours of each new point among the fitted training points (one matrix
    product per chunk, the reducer's metric);
@@ -18,9 +19,10 @@ batched over instances):
    training points, both with UMAP's ``1 / (1 + a d^{2b})`` kernel and gradient clipping), with
    the training embedding held fixed.
 
-:class:`PCAReducer` and :class:`IdentityReducer` share the API for the ablation. Fitted reducers
-save to a directory as ``reducer.safetensors`` (arrays) plus ``reducer.json`` (class and
-parameters), never a pickle, and :func:`load_reducer` brings them back on any device.
+:class:`PCAReducer` and :class:`IdentityReducer` share the API for the ablation; all three derive
+from the abstract :class:`Reducer`. Fitted reducers save to a directory as
+``reducer.safetensors`` (arrays) plus ``reducer.json`` (class and parameters), never a pickle,
+and :func:`load_reducer` brings them back on any device.
 
 Inputs may be numpy arrays ``(N, G)`` (numpy comes back) or torch tensors ``(N, G)`` or
 ``(B, M, G)`` with an optional mask ``(B, M)`` (torch comes back, on the input's device and in
@@ -29,10 +31,16 @@ its dtype; padded rows are zero).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
+import os
+import random
+from abc import ABC, abstractmethod
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from types import ModuleType
+from typing import Any, TypeVar
 
 import numpy as np
 import torch
@@ -49,12 +57,14 @@ from poseflow.errors import (
 __all__ = [
     "IdentityReducer",
     "PCAReducer",
+    "Reducer",
     "UMAPReducer",
     "find_ab_params",
     "load_reducer",
 ]
 
 _METRICS = ("cosine", "euclidean")
+_FIT_BACKENDS = ("auto", "torchdr", "umap-learn")
 
 
 def find_ab_params(spread: float = 1.0, min_dist: float = 0.01) -> tuple[float, float]:
@@ -82,8 +92,32 @@ def find_ab_params(spread: float = 1.0, min_dist: float = 0.01) -> tuple[float, 
     return float(a), float(b)
 
 
-class _Reducer:
-    """Shared plumbing: input conversion, batching with masks, save/load."""
+_R = TypeVar("_R", bound="Reducer")
+
+
+class Reducer(ABC):
+    """Base class of the reducers: input conversion, batching with masks, save/load.
+
+    A subclass implements :meth:`_fit` (learn from the prepared training rows) and
+    :meth:`_transform` (project prepared rows) and lists, for :meth:`save` and
+    :func:`load_reducer`, its fitted tensors in ``_arrays``, its constructor parameters in
+    ``_params`` and its fitted scalars in ``_scalars``. Inputs reach both methods as a
+    ``(N, G)`` tensor, already L2-normalised along ``G`` when ``normalize`` is set.
+
+    Example:
+        >>> class Scale(Reducer):
+        ...     _params = ("factor",)
+        ...     normalize = False
+        ...     def __init__(self, factor: float = 2.0) -> None:
+        ...         self.factor = factor
+        ...     def _fit(self, x: torch.Tensor) -> None:
+        ...         pass
+        ...     def _transform(self, x: torch.Tensor) -> torch.Tensor:
+        ...         return self.factor * x
+        >>> Scale().fit_transform(torch.ones(2, 3))
+        tensor([[2., 2., 2.],
+                [2., 2., 2.]])
+    """
 
     _arrays: tuple[str, ...] = ()
     _params: tuple[str, ...] = ()
@@ -91,7 +125,7 @@ class _Reducer:
 
     normalize: bool
 
-    def fit(self, X: Any, y: None = None) -> _Reducer:
+    def fit(self: _R, X: torch.Tensor | np.ndarray, y: None = None) -> _R:
         """Fit on the query features ``X`` ``(N, G)``; returns ``self``."""
         feats = self._prepare(_as_tensor(X, "X"))
         if feats.shape[0] < 2:
@@ -100,7 +134,9 @@ class _Reducer:
         self.n_features_in_ = int(feats.shape[1])
         return self
 
-    def transform(self, X: Any, mask: torch.Tensor | None = None) -> Any:
+    def transform(
+        self, X: torch.Tensor | np.ndarray, mask: torch.Tensor | None = None
+    ) -> torch.Tensor | np.ndarray:
         """Project ``X`` ``(N, G)`` or ``(B, M, G)`` (with an optional mask ``(B, M)``).
 
         Returns:
@@ -130,7 +166,9 @@ class _Reducer:
             out = out_rows
         return out.cpu().numpy() if is_numpy else out
 
-    def fit_transform(self, X: Any, y: None = None) -> Any:
+    def fit_transform(
+        self, X: torch.Tensor | np.ndarray, y: None = None
+    ) -> torch.Tensor | np.ndarray:
         """Fit on ``X`` and project it."""
         return self.fit(X).transform(X)
 
@@ -155,7 +193,7 @@ class _Reducer:
         (path / "reducer.json").write_text(json.dumps(meta, indent=2))
         return path
 
-    def to(self, device: str | torch.device) -> _Reducer:
+    def to(self: _R, device: str | torch.device) -> _R:
         """Move the fitted arrays to ``device`` (in place); returns ``self``."""
         for k in self._arrays:
             if hasattr(self, k):
@@ -170,14 +208,16 @@ class _Reducer:
         check_tensor(x, "X", ("N", "G"), finite=True)
         return F.normalize(x, dim=-1) if self.normalize else x
 
+    @abstractmethod
     def _fit(self, x: torch.Tensor) -> None:
-        raise NotImplementedError
+        """Learn from the prepared training rows ``(N, G)``, setting the fitted attributes."""
 
+    @abstractmethod
     def _transform(self, x: torch.Tensor) -> torch.Tensor:
-        raise NotImplementedError
+        """Project prepared rows ``(N, G)`` to ``(N, D)``; the caller casts to the input's dtype."""
 
 
-def _as_tensor(X: Any, name: str) -> torch.Tensor:
+def _as_tensor(X: torch.Tensor | np.ndarray, name: str) -> torch.Tensor:
     if isinstance(X, torch.Tensor):
         return X
     if isinstance(X, np.ndarray):
@@ -185,7 +225,7 @@ def _as_tensor(X: Any, name: str) -> torch.Tensor:
     raise ShapeError(f"{name} must be a torch.Tensor or numpy array, got {type(X).__name__}")
 
 
-class IdentityReducer(_Reducer):
+class IdentityReducer(Reducer):
     """No projection (the ablation's "none"), optionally L2-normalising each feature.
 
     Example:
@@ -209,7 +249,7 @@ class IdentityReducer(_Reducer):
         return x
 
 
-class PCAReducer(_Reducer):
+class PCAReducer(Reducer):
     """Principal component analysis (SVD in float64), fit on the query features.
 
     Args:
@@ -257,7 +297,7 @@ class PCAReducer(_Reducer):
         return (x - mean) @ self.components_.to(device=x.device, dtype=x.dtype).T
 
 
-class UMAPReducer(_Reducer):
+class UMAPReducer(Reducer):
     """UMAP fitted with umap-learn, with a fast batched torch out-of-sample transform.
 
     Args:
@@ -267,7 +307,15 @@ class UMAPReducer(_Reducer):
         metric: ``"cosine"`` (paper) or ``"euclidean"``.
         normalize: L2-normalise the input features before fitting and projecting.
         random_state: seed of the fit and of the transform's negative sampling.
-        n_epochs: umap-learn's fitting epochs (None: its default).
+        n_epochs: fitting epochs (None: umap-learn's default, 500 up to 10,000 samples and 200
+            above; TorchDR takes as many full-gradient iterations).
+        fit_backend: who fits the embedding: ``"auto"`` (TorchDR when the features are on CUDA
+            and TorchDR imports, else umap-learn), ``"torchdr"`` (always TorchDR, on the
+            features' device, CPU included) or ``"umap-learn"`` (always umap-learn, on the CPU).
+            Both fit the same fuzzy graph (TorchDR is given ``a`` and ``b`` of
+            :func:`find_ab_params` and, for the cosine metric, squared distances between the
+            L2-normalised features, which are twice the cosine distances and give the same
+            memberships); their optimisers differ, so the embeddings do too.
         transform_epochs: optimisation epochs of the torch transform after the membership-weighted
             initialisation. Default 0: on the feature benchmark (dense SIFT, mutual-NN inliers)
             the initialisation alone matched or beat umap-learn's ``transform`` (22.3 vs 18.5
@@ -282,6 +330,13 @@ class UMAPReducer(_Reducer):
         negative_draws: random training points drawn per new point and epoch to estimate the
             repulsion.
         chunk_size: new points per kNN block (bounds memory to ``chunk_size × N`` distances).
+
+    Attributes:
+        train_: the (prepared) training features ``(N, G)``.
+        embedding_: their embedding ``(N, D)``, on the training features' device and dtype.
+        a_, b_: the low-dimensional kernel's parameters.
+        fit_backend_: ``"torchdr"`` or ``"umap-learn"``, who fitted in this process (not saved).
+        umap_model_: umap-learn's estimator, after a umap-learn fit in this process (not saved).
 
     Example:
         >>> g = torch.Generator().manual_seed(0)
@@ -300,6 +355,7 @@ class UMAPReducer(_Reducer):
         "normalize",
         "random_state",
         "n_epochs",
+        "fit_backend",
         "transform_epochs",
         "negative_sample_rate",
         "learning_rate",
@@ -319,6 +375,7 @@ class UMAPReducer(_Reducer):
         normalize: bool = True,
         random_state: int | None = 0,
         n_epochs: int | None = None,
+        fit_backend: str = "auto",
         transform_epochs: int = 0,
         negative_sample_rate: int = 5,
         learning_rate: float = 0.5,
@@ -328,6 +385,10 @@ class UMAPReducer(_Reducer):
     ) -> None:
         if metric not in _METRICS:
             raise ValueRangeError(f"metric must be one of {_METRICS}, got {metric!r}")
+        if fit_backend not in _FIT_BACKENDS:
+            raise ValueRangeError(
+                f"fit_backend must be one of {_FIT_BACKENDS}, got {fit_backend!r}"
+            )
         if n_components < 1 or n_neighbors < 2 or transform_epochs < 0 or chunk_size < 1:
             raise ValueRangeError(
                 "need n_components >= 1, n_neighbors >= 2, transform_epochs >= 0, chunk_size >= 1"
@@ -339,6 +400,7 @@ class UMAPReducer(_Reducer):
         self.normalize = normalize
         self.random_state = random_state
         self.n_epochs = n_epochs
+        self.fit_backend = fit_backend
         self.transform_epochs = transform_epochs
         self.negative_sample_rate = negative_sample_rate
         self.learning_rate = learning_rate
@@ -375,15 +437,82 @@ class UMAPReducer(_Reducer):
         red.n_features_in_ = int(train.shape[1])
         return red
 
+    def resolve_fit_backend(self, device: str | torch.device) -> str:
+        """Name who fits features on ``device``: ``"torchdr"`` or ``"umap-learn"``.
+
+        Args:
+            device: the device of the features to fit.
+
+        Returns:
+            ``fit_backend`` when it names one; for ``"auto"``, ``"torchdr"`` on a CUDA device
+            when TorchDR imports, else ``"umap-learn"``.
+
+        Raises:
+            MissingDependencyError: ``fit_backend="torchdr"`` and TorchDR does not import.
+
+        Example:
+            >>> UMAPReducer().resolve_fit_backend("cpu")
+            'umap-learn'
+        """
+        if self.fit_backend == "torchdr":
+            _import_torchdr()
+            return "torchdr"
+        if self.fit_backend == "auto" and torch.device(device).type == "cuda":
+            with contextlib.suppress(MissingDependencyError):
+                _import_torchdr()
+                return "torchdr"
+        return "umap-learn"
+
     def _fit(self, x: torch.Tensor) -> None:
-        try:
-            import umap
-        except ImportError as err:
-            raise MissingDependencyError("umap-learn", "umap", "UMAPReducer.fit") from err
         if x.shape[0] <= self.n_neighbors:
             raise DegenerateInputError(
                 f"UMAP needs more than n_neighbors={self.n_neighbors} samples, got {x.shape[0]}"
             )
+        self.fit_backend_ = self.resolve_fit_backend(x.device)
+        if hasattr(self, "umap_model_"):
+            del self.umap_model_  # from an earlier umap-learn fit: it would describe old data
+        self.train_ = x.detach().clone()
+        if self.fit_backend_ == "torchdr":
+            emb = self._fit_torchdr(x.detach())
+        else:
+            emb = self._fit_umap_learn(x.detach())
+        self.embedding_ = emb.to(device=x.device, dtype=x.dtype)
+
+    def _epochs(self, n: int) -> int:
+        if self.n_epochs is not None:
+            return self.n_epochs
+        return 500 if n <= 10_000 else 200
+
+    def _fit_torchdr(self, x: torch.Tensor) -> torch.Tensor:
+        """Fit with TorchDR's UMAP on ``x``'s device; returns the embedding ``(N, D)``."""
+        torchdr = _import_torchdr()
+        self.a_, self.b_ = find_ab_params(1.0, self.min_dist)
+        if self.metric == "cosine":
+            x, metric = F.normalize(x, dim=-1), "sqeuclidean"
+        else:
+            metric = "euclidean"
+        with _restored_global_state():  # TorchDR seeds every global RNG when given a seed
+            model = torchdr.UMAP(
+                n_components=self.n_components,
+                n_neighbors=self.n_neighbors,
+                min_dist=self.min_dist,
+                a=self.a_,
+                b=self.b_,
+                metric=metric,
+                max_iter=self._epochs(x.shape[0]),
+                random_state=self.random_state,
+                backend=None,  # TorchDR's default, faiss, is not a dependency
+                distributed=False,  # never join a torchrun process group from here
+                verbose=False,
+            )
+            return torch.as_tensor(model.fit_transform(x)).detach()
+
+    def _fit_umap_learn(self, x: torch.Tensor) -> torch.Tensor:
+        """Fit with umap-learn on the CPU; returns the embedding ``(N, D)`` (float32, CPU)."""
+        try:
+            import umap
+        except ImportError as err:
+            raise MissingDependencyError("umap-learn", "umap", "UMAPReducer.fit") from err
         model = umap.UMAP(
             n_components=self.n_components,
             n_neighbors=self.n_neighbors,
@@ -392,14 +521,13 @@ class UMAPReducer(_Reducer):
             random_state=self.random_state,
             n_epochs=self.n_epochs,
         )
-        data = x.detach().cpu().numpy().astype(np.float32)
+        data = x.cpu().numpy().astype(np.float32)
         threads = torch.get_num_threads()
         emb = model.fit_transform(data)
         torch.set_num_threads(threads)  # umap-learn's numba/threadpool set-up changes it
         self.umap_model_ = model
-        self.train_ = x.detach().clone()
-        self.embedding_ = torch.from_numpy(np.asarray(emb)).to(device=x.device, dtype=x.dtype)
         self.a_, self.b_ = float(model._a), float(model._b)
+        return torch.from_numpy(np.asarray(emb))
 
     def transform_umap_learn(self, X: np.ndarray) -> np.ndarray:
         """Project with umap-learn's own ``transform`` (the reference; needs the in-memory fit).
@@ -411,7 +539,9 @@ class UMAPReducer(_Reducer):
             The projection ``(N, D)``, float32 numpy.
         """
         if not hasattr(self, "umap_model_"):
-            raise ValueRangeError("umap-learn's transform needs a reducer fitted in this process")
+            raise ValueRangeError(
+                "umap-learn's transform needs a reducer fitted with umap-learn in this process"
+            )
         x = self._prepare(_as_tensor(X, "X")).detach().cpu().numpy().astype(np.float32)
         return self.umap_model_.transform(x)
 
@@ -485,6 +615,51 @@ class UMAPReducer(_Reducer):
         return y
 
 
+def _import_torchdr() -> ModuleType:
+    """Import TorchDR, the GPU UMAP of the ``gpu`` extra.
+
+    Returns:
+        The ``torchdr`` module.
+
+    Raises:
+        MissingDependencyError: TorchDR, or a package it imports without declaring it
+            (matplotlib), is not installed; the message names ``pip install 'poseflow[gpu]'``.
+    """
+    try:
+        import torchdr
+    except ImportError as err:
+        missing = err.name or "torchdr"
+        purpose = "UMAP on the GPU" if missing == "torchdr" else "TorchDR, which imports it"
+        raise MissingDependencyError(missing, "gpu", purpose) from err
+    return torchdr
+
+
+@contextlib.contextmanager
+def _restored_global_state() -> Iterator[None]:
+    """Restore the global RNGs, ``PYTHONHASHSEED`` and cuDNN's flags on exit.
+
+    TorchDR's estimators call its ``seed_everything`` when given a seed: it reseeds Python's,
+    NumPy's and torch's global generators (CPU and every GPU), sets ``PYTHONHASHSEED`` and turns
+    on ``cudnn.benchmark``; none of that may leak into the caller.
+    """
+    py_state = random.getstate()
+    np_state = np.random.get_state()  # noqa: NPY002 (the legacy global state is what TorchDR seeds)
+    hash_seed = os.environ.get("PYTHONHASHSEED")
+    cudnn = torch.backends.cudnn.benchmark, torch.backends.cudnn.deterministic
+    gpus = list(range(torch.cuda.device_count())) if torch.cuda.is_available() else []
+    try:
+        with torch.random.fork_rng(devices=gpus):
+            yield
+    finally:
+        random.setstate(py_state)
+        np.random.set_state(np_state)  # noqa: NPY002
+        if hash_seed is None:
+            os.environ.pop("PYTHONHASHSEED", None)
+        else:
+            os.environ["PYTHONHASHSEED"] = hash_seed
+        torch.backends.cudnn.benchmark, torch.backends.cudnn.deterministic = cudnn
+
+
 def _membership(dist: torch.Tensor, target: float, iterations: int = 32) -> torch.Tensor:
     """UMAP's fuzzy membership of new points: ``exp(−d / σ)`` with ``Σ = target`` per row.
 
@@ -504,10 +679,12 @@ def _membership(dist: torch.Tensor, target: float, iterations: int = 32) -> torc
     return torch.where(w.sum(dim=1, keepdim=True) > 0, w, torch.ones_like(w))
 
 
-_CLASSES = {c.__name__: c for c in (IdentityReducer, PCAReducer, UMAPReducer)}
+_CLASSES: dict[str, type[Reducer]] = {
+    c.__name__: c for c in (IdentityReducer, PCAReducer, UMAPReducer)
+}
 
 
-def load_reducer(path: str | Path, *, device: str | torch.device = "cpu") -> _Reducer:
+def load_reducer(path: str | Path, *, device: str | torch.device = "cpu") -> Reducer:
     """Load a reducer written by ``save`` onto ``device``.
 
     Args:

@@ -11,6 +11,8 @@ Shape letters used in this file:
 ``F``       channels of the sinusoidal time features (``time_frequency_dim``)
 ==========  ==================================================================================
 
+The einops patterns below use the same letters in lower case (``e_h`` for ``E_h``).
+
 One token per point: ``token = W_x x_t + W_c C``; a sinusoidal embedding of ``t`` followed by an
 MLP gives ``c ∈ R^E``, which drives adaLN-Zero modulation (shift, scale and gate of both the
 attention and the MLP) in every block. The modulation layers are zero-initialised, so every block
@@ -52,6 +54,7 @@ from typing import Any, Literal
 
 import torch
 import torch.nn.functional as F
+from einops import rearrange
 from torch import nn
 
 from poseflow._checks import check_mask, check_same, check_tensor
@@ -227,8 +230,9 @@ class DiTBlock(nn.Module):
         split: int | None,
         split_masks: tuple[torch.Tensor | None, torch.Tensor | None],
     ) -> torch.Tensor:
-        b, n, e = x.shape
-        q, k, v = self.qkv(x).unflatten(-1, (3, self.num_heads, -1)).permute(2, 0, 3, 1, 4)
+        q, k, v = rearrange(
+            self.qkv(x), "b l (qkv h e_h) -> qkv b h l e_h", qkv=3, h=self.num_heads
+        )
         if split is None:
             out = F.scaled_dot_product_attention(q, k, v, attn_mask=attn_mask)
         else:
@@ -239,7 +243,7 @@ class DiTBlock(nn.Module):
                 q[:, :, split:], k[:, :, split:], v[:, :, split:], attn_mask=split_masks[1]
             )
             out = torch.cat([head, tail], dim=2)
-        return self.proj(out.transpose(1, 2).reshape(b, n, e))
+        return self.proj(rearrange(out, "b h l e_h -> b l (h e_h)"))
 
     def forward(
         self,

@@ -1,7 +1,9 @@
 """Cross-attention between two point-feature streams, with and without a sigmoid output gate.
 
 Shape letters: ``B`` batch, ``P`` query points, ``S`` key/value points, ``D`` channels, ``H`` heads
-(``D = H * D_h``).
+(``D = H * D_h``). Heads are split and merged with einops' ``rearrange``, whose patterns use
+the same letters in lower case (``"b n (h d_h) -> b h n d_h"``, ``n`` for ``P`` or ``S``) and
+spell out that head ``h`` owns channels ``h·D_h … (h+1)·D_h − 1``.
 
 :class:`GatedCrossAttention` is the branch of FunFlow6D's fusion block (paper, "Feature fusion via
 gated cross-attention"): queries from ``X_q``, keys and values from ``X_kv``, multi-head scaled
@@ -14,6 +16,7 @@ from __future__ import annotations
 
 import torch
 import torch.nn.functional as F
+from einops import rearrange
 from torch import nn
 
 from poseflow._checks import check_mask, check_same, check_tensor
@@ -92,16 +95,13 @@ class CrossAttention(nn.Module):
             check_mask(kv_mask, "kv_mask", ("B", "S"), sizes)
         if q_mask is not None:
             check_mask(q_mask, "q_mask", ("B", "P"), sizes)
-        b, p, d = x_q.shape
-        h = self.num_heads
-
-        def heads(y: torch.Tensor) -> torch.Tensor:
-            return y.unflatten(-1, (h, d // h)).transpose(1, 2)
-
-        q, k, v = heads(self.to_q(x_q)), heads(self.to_k(x_kv)), heads(self.to_v(x_kv))
+        q, k, v = (
+            rearrange(y, "b n (h d_h) -> b h n d_h", h=self.num_heads)
+            for y in (self.to_q(x_q), self.to_k(x_kv), self.to_v(x_kv))
+        )
         attn_mask = None if kv_mask is None else key_padding_mask(kv_mask)
         att = F.scaled_dot_product_attention(q, k, v, attn_mask=attn_mask)
-        att = att.transpose(1, 2).reshape(b, p, d)
+        att = rearrange(att, "b h p d_h -> b p (h d_h)")
         gate = self.gate(x_q)
         if gate is not None:
             att = gate * att

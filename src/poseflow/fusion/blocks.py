@@ -38,6 +38,7 @@ __all__ = [
     "FUSIONS",
     "ConcatMLPFusion",
     "CrossAttentionFusion",
+    "Fusion",
     "FusionGates",
     "GatedCrossAttentionFusion",
     "SumFusion",
@@ -61,8 +62,15 @@ class FusionGates(NamedTuple):
 FusionOutput = torch.Tensor | tuple[torch.Tensor, FusionGates | None]
 
 
-class _Fusion(nn.Module, ABC):
-    """Input checks, normalisation and masking shared by the fusion blocks."""
+class Fusion(nn.Module, ABC):
+    """Base class of the fusion blocks: input checks, normalisation and masking.
+
+    A subclass implements :meth:`_fuse` on the L2-normalised streams; :meth:`forward` checks the
+    inputs, normalises the result and zeroes padded points, so every block has the same call.
+
+    Args:
+        dim: channels ``D`` of both streams and of the output.
+    """
 
     def __init__(self, dim: int) -> None:
         super().__init__()
@@ -133,7 +141,7 @@ class _MLPHead(nn.Module):
         return self.norm(self.mlp(torch.cat([a, b], dim=-1)))
 
 
-class SumFusion(_Fusion):
+class SumFusion(Fusion):
     """Point-wise sum of the normalised streams, ``F = norm(G + S)`` (Flose's fusion).
 
     Args:
@@ -154,7 +162,7 @@ class SumFusion(_Fusion):
         return g + s, None
 
 
-class ConcatMLPFusion(_Fusion):
+class ConcatMLPFusion(Fusion):
     """Concatenation and MLP without attention, ``F = norm(LN(MLP([G | S])))``.
 
     Args:
@@ -177,7 +185,7 @@ class ConcatMLPFusion(_Fusion):
         return self.head(g, s), None
 
 
-class _BidirectionalFusion(_Fusion):
+class _BidirectionalFusion(Fusion):
     """Two cross-attention branches (G → S and S → G), concatenation, MLP, LN, L2 norm."""
 
     attention: type[CrossAttention] = CrossAttention
@@ -254,7 +262,7 @@ class GatedCrossAttentionFusion(_BidirectionalFusion):
 
 
 #: The fusion blocks by configuration name.
-FUSIONS: dict[str, type[_Fusion]] = {
+FUSIONS: dict[str, type[Fusion]] = {
     "gated": GatedCrossAttentionFusion,
     "cross": CrossAttentionFusion,
     "concat_mlp": ConcatMLPFusion,
@@ -262,7 +270,7 @@ FUSIONS: dict[str, type[_Fusion]] = {
 }
 
 
-def build_fusion(name: str, **kwargs: Any) -> nn.Module:
+def build_fusion(name: str, **kwargs: Any) -> Fusion:
     """Build a fusion block by name.
 
     Args:
