@@ -35,6 +35,7 @@ import torch
 from PIL import Image
 from scipy import ndimage
 
+from poseflow.data._arrays import as_numpy
 from poseflow.data.bop import (
     BOPWriter,
     ModelInfo,
@@ -131,14 +132,14 @@ class DepthNoise:
         Returns:
             Noisy depth ``(H, W)`` float32 in metres, 0 where missing.
         """
-        d = _numpy(depth, np.float64)
-        n = _numpy(normals, np.float64)
+        d = as_numpy(depth, np.float64)
+        n = as_numpy(normals, np.float64)
         if d.ndim != 2 or n.shape != (*d.shape, 3):
             raise ShapeError(f"depth must be (H, W) and normals (H, W, 3), got {d.shape} {n.shape}")
         rng = np.random.default_rng(rng)
         h, w = d.shape
         hit = np.isfinite(d) & (d > 0)
-        Kinv = np.linalg.inv(_numpy(K, np.float64).reshape(3, 3))
+        Kinv = np.linalg.inv(as_numpy(K, np.float64).reshape(3, 3))
         uu, vv = np.meshgrid(np.arange(w), np.arange(h))
         rays = np.stack([uu, vv, np.ones_like(uu)], axis=-1).astype(np.float64) @ Kinv.T
         rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
@@ -769,9 +770,3 @@ def generate_dataset(
     bar.close()
     write_test_targets(root / "test_targets_bop19.json", targets)
     return root
-
-
-def _numpy(x: Any, dtype: Any) -> np.ndarray:
-    if isinstance(x, torch.Tensor):
-        x = x.detach().cpu().numpy()
-    return np.asarray(x, dtype=dtype)
