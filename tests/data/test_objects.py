@@ -14,7 +14,6 @@ from PIL import Image
 
 from poseflow.data.bop import read_models_info
 from poseflow.data.objects import (
-    MeshFormatError,
     ObjectModel,
     discretize_symmetries,
     load_mesh,
@@ -24,7 +23,7 @@ from poseflow.data.objects import (
     write_bop_model,
     write_bop_models,
 )
-from poseflow.errors import ValueRangeError
+from poseflow.errors import MeshFormatError, ValueRangeError
 from poseflow.render import Light, Renderer, TexturedMesh
 
 HEADLIGHT_FLAT = Light(ambient=1.0, diffuse=0.0)
