@@ -20,6 +20,7 @@ import torch
 from poseflow.data.meshio import load_mesh
 from poseflow.errors import DegenerateInputError, ValueRangeError
 from poseflow.geometry.pointcloud import cloud_diameter, farthest_point_sample
+from poseflow.geometry.se3 import axis_angle_to_rotation
 from poseflow.render.mesh import TexturedMesh
 
 __all__ = [
@@ -139,12 +140,6 @@ def write_bop_models(
 # Symmetries
 
 
-def _rotation_about(axis: np.ndarray, angle: float) -> np.ndarray:
-    a = axis / np.linalg.norm(axis)
-    K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
-    return np.eye(3) + math.sin(angle) * K + (1 - math.cos(angle)) * (K @ K)
-
-
 def discretize_symmetries(
     discrete: Sequence[np.ndarray] = (),
     continuous: Sequence[tuple[np.ndarray, np.ndarray]] = (),
@@ -189,10 +184,11 @@ def discretize_symmetries(
         if not np.linalg.norm(axis) > 0:
             raise ValueRangeError("a continuous symmetry has a zero axis")
         n = math.ceil(math.pi / max_sym_disc_step)
-        for i in range(n):
+        angles = 2 * math.pi * np.arange(n) / n
+        for R in axis_angle_to_rotation(angles[:, None] * (axis / np.linalg.norm(axis))):
             T = np.eye(4)
-            T[:3, :3] = _rotation_about(axis, 2 * math.pi * i / n)
-            T[:3, 3] = offset - T[:3, :3] @ offset
+            T[:3, :3] = R
+            T[:3, 3] = offset - R @ offset
             cont.append(T)
     if not cont:
         return np.stack(disc)

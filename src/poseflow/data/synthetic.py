@@ -46,6 +46,7 @@ from poseflow.data.bop import (
 )
 from poseflow.errors import ShapeError, ValueRangeError
 from poseflow.geometry.pointcloud import cloud_diameter
+from poseflow.geometry.se3 import quaternion_to_rotation
 from poseflow.render.mesh import TexturedMesh, as_textured_mesh
 from poseflow.render.raycast import Light, Renderer
 
@@ -339,18 +340,6 @@ def _rot_z(a: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
-def _random_rotation(rng: np.random.Generator) -> np.ndarray:
-    q = rng.standard_normal(4)
-    w, x, y, z = q / np.linalg.norm(q)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-
-
 #: Rotations bringing each of the six model axes (+x, -x, +y, -y, +z, -z) to point down (-z).
 _FACE_DOWN = [
     np.array([[0, 0, 1], [0, 1, 0], [-1, 0, 0]], float),  # +x -> -z
@@ -365,7 +354,7 @@ _FACE_DOWN = [
 def _rest_rotation(rng: np.random.Generator, tilt_prob: float) -> np.ndarray:
     """A resting orientation: a random face down with random yaw, or any orientation."""
     if rng.random() < tilt_prob:
-        return _random_rotation(rng)
+        return quaternion_to_rotation(rng.standard_normal(4))
     return _rot_z(rng.uniform(0, 2 * np.pi)) @ _FACE_DOWN[int(rng.integers(6))]
 
 
