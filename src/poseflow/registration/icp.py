@@ -28,7 +28,13 @@ from poseflow._checks import check_mask, check_same, check_tensor
 from poseflow.errors import ValueRangeError
 from poseflow.geometry.neighbors import NeighborIndex, NeighborTracker
 from poseflow.registration._threads import serial_cpu_ops
-from poseflow.registration.procrustes import _moments, _rigid, _solve, _well_posed, _zero_masked
+from poseflow.registration.procrustes import (
+    is_well_posed,
+    procrustes_moments,
+    rigid_from_svd,
+    solve_procrustes,
+    zero_masked_points,
+)
 from poseflow.registration.result import RegistrationResult
 
 __all__ = ["ICP", "MultiScaleICP", "icp", "multi_scale_icp"]
@@ -338,8 +344,8 @@ class _Problem:
             if mask is not None:
                 check_mask(mask, name, ("B", letter), sizes)
                 check_same(("source", source), (name, mask), dtype=False)
-        source = _zero_masked(source, source_mask, "source")
-        target = _zero_masked(target, target_mask, "target")
+        source = zero_masked_points(source, source_mask, "source")
+        target = zero_masked_points(target, target_mask, "target")
         if source_mask is None:
             source_mask = torch.ones(B, N, dtype=torch.bool, device=source.device)
         return cls(
@@ -369,7 +375,7 @@ class _Problem:
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """:meth:`evaluate` for the whole batch with no check and no host synchronisation."""
         moved = torch.baddbmm(T[:, None, :3, 3], self.source, T[:, :3, :3].transpose(1, 2))
-        dist, idx = self.index._search(moved, 1, distance)
+        dist, idx = self.index.query_unchecked(moved, 1, distance)
         return self._pairs(slice(None), dist, idx, distance)
 
     def _pairs(
@@ -435,7 +441,7 @@ def _run_scale(
         # Only the instances still iterating are solved and searched.
         items = None if n_active == B else active.nonzero()[:, 0]
         sel = slice(None) if items is None else items
-        T_new, ok = _solve(problem.source[sel], matched[sel], inliers[sel].to(T.dtype))
+        T_new, ok = solve_procrustes(problem.source[sel], matched[sel], inliers[sel].to(T.dtype))
         T_new = torch.where(ok[:, None, None], T_new, T[sel])
         new_inliers, new_matched, new_fitness, new_rmse = problem.evaluate(T_new, tracker, items)
         going = _goes_on(
@@ -516,7 +522,7 @@ def _run_scale_fixed(
     S = torch.zeros(B, 3, **f64)
 
     def moments() -> None:
-        m_s, m_d, c, _, _ = _moments(problem.source, matched, inliers.to(dtype))
+        m_s, m_d, c, _, _ = procrustes_moments(problem.source, matched, inliers.to(dtype))
         mu_s.copy_(m_s)
         mu_d.copy_(m_d)
         cov.copy_(c)
@@ -526,8 +532,8 @@ def _run_scale_fixed(
             out.copy_(value)
 
     def finish() -> None:
-        ok = _well_posed(inliers.to(dtype), mu_s, mu_d, S)
-        T_new = torch.where(ok[:, None, None], _rigid(mu_s, mu_d, U, S, Vh, ok), T)
+        ok = is_well_posed(inliers.to(dtype), mu_s, mu_d, S)
+        T_new = torch.where(ok[:, None, None], rigid_from_svd(mu_s, mu_d, U, S, Vh, ok), T)
         new_inliers, new_matched, new_fitness, new_rmse = problem.evaluate_unchecked(
             T_new, distance
         )

@@ -18,8 +18,9 @@ import math
 import torch
 
 from poseflow.errors import ValueRangeError
+from poseflow.geometry.se3 import from_Rt
 from poseflow.registration._threads import serial_cpu_ops
-from poseflow.registration.procrustes import _check_pairs, _solve
+from poseflow.registration.procrustes import check_pairs, solve_procrustes
 from poseflow.registration.result import RegistrationResult
 
 __all__ = ["RANSACProcrustes", "ransac_procrustes"]
@@ -98,7 +99,7 @@ class RANSACProcrustes:
         mask: torch.Tensor | None,
         generator: torch.Generator | None,
     ) -> RegistrationResult:
-        source, target, w = _check_pairs(source, target, None, mask)
+        source, target, w = check_pairs(source, target, None, mask)
         valid = w > 0
         B, N = source.shape[:2]
         dtype, device = source.dtype, source.device
@@ -166,7 +167,7 @@ class RANSACProcrustes:
         best = torch.where(drawn < stop[:, None], counts, -1).argmax(1)  # first of the maxima
         best_samples = samples.gather(1, best.view(B, 1, 1).expand(B, 1, s))
         R, t, ok = _hypotheses(src, dst, best_samples)
-        T = _from_Rt(R[:, 0], t[:, 0])
+        T = from_Rt(R[:, 0], t[:, 0])
         found = possible & ok[:, 0] & (counts.gather(1, best[:, None])[:, 0] >= s)
 
         # Refit on the inlier set until it stops changing: each round lowers the truncated cost
@@ -174,7 +175,7 @@ class RANSACProcrustes:
         inliers, res2 = _inliers(src, dst, T, valid, tau2)
         active = found.clone()
         for _ in range(_MAX_REFITS):
-            T_new, ok_new = _solve(src, dst, inliers.to(dtype))
+            T_new, ok_new = solve_procrustes(src, dst, inliers.to(dtype))
             inliers_new, res2_new = _inliers(src, dst, T_new, valid, tau2)
             accept = active & ok_new
             T = torch.where(accept[:, None, None], T_new, T)
@@ -189,7 +190,7 @@ class RANSACProcrustes:
         # Undo the centring: x -> T (x - c_s) + c_d.
         R, t = T[:, :3, :3], T[:, :3, 3]
         t = t + centre_d - (R @ centre_s.unsqueeze(-1)).squeeze(-1)
-        return _finish(_from_Rt(R, t), inliers, res2, n_valid, stop, found)
+        return _finish(from_Rt(R, t), inliers, res2, n_valid, stop, found)
 
 
 def ransac_procrustes(
@@ -294,7 +295,7 @@ def _hypotheses(
     flat = samples.reshape(B, H * s, 1).expand(B, H * s, 3)
     ps = src.gather(1, flat).reshape(B * H, s, 3)
     pd = dst.gather(1, flat).reshape(B * H, s, 3)
-    T, ok = _solve(ps, pd, torch.ones(B * H, s, dtype=src.dtype, device=src.device))
+    T, ok = solve_procrustes(ps, pd, torch.ones(B * H, s, dtype=src.dtype, device=src.device))
     return T[:, :3, :3].reshape(B, H, 3, 3), T[:, :3, 3].reshape(B, H, 3), ok.reshape(B, H)
 
 
@@ -316,12 +317,6 @@ def _stopping_points(
     reached = drawn >= needed
     first = torch.where(reached.any(1), reached.to(torch.uint8).argmax(1) + 1, H)
     return torch.where(possible, first, 0)
-
-
-def _from_Rt(R: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
-    B = R.shape[0]
-    bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=R.dtype, device=R.device).expand(B, 1, 4)
-    return torch.cat((torch.cat((R, t.unsqueeze(-1)), -1), bottom), 1)
 
 
 def _inliers(
