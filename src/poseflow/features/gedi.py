@@ -30,6 +30,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from poseflow._api import Hyperparameters
 from poseflow.errors import MissingWeightsError, ShapeError, ValueRangeError
 from poseflow.features.geometric import check_geometric_inputs
 from poseflow.geometry.pointcloud import farthest_point_sample
@@ -252,7 +253,7 @@ class GeDiNet(nn.Module):
         return F.normalize(self.fc_layer(feat.squeeze(-1)), dim=1)
 
 
-class GeDiEncoder:
+class GeDiEncoder(Hyperparameters):
     """Multi-scale GeDi descriptors behind the geometric-encoder protocol.
 
     For every valid point and every radius ``r = fraction * diameter``: the valid points within

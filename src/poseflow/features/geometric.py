@@ -25,6 +25,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 import torch
 
+from poseflow._api import Hyperparameters
 from poseflow._checks import check_mask, check_same, check_tensor
 from poseflow.errors import DegenerateInputError, MissingWeightsError, ShapeError, ValueRangeError
 from poseflow.features.fpfh import compute_fpfh, estimate_outward_normals
@@ -160,7 +161,7 @@ def _open3d_available() -> bool:
     return True
 
 
-class FPFHEncoder:
+class FPFHEncoder(Hyperparameters):
     """Multi-scale FPFH descriptors, concatenated and L2-normalised.
 
     Each scale is Open3D's 33-bin FPFH histogram with a hybrid search of radius
@@ -217,12 +218,6 @@ class FPFHEncoder:
         self.normal_radius_fraction = float(normal_radius_fraction)
         self.backend = backend
         self.dim = 33 * len(self.radius_fractions)
-
-    def __repr__(self) -> str:
-        return (
-            f"FPFHEncoder(radius_fractions={self.radius_fractions}, max_nn={self.max_nn}, "
-            f"backend={self.backend!r})"
-        )
 
     @torch.no_grad()
     def encode(

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import torch
 
+from poseflow._api import Solver
 from poseflow._checks import check_mask, check_same, check_tensor
 from poseflow.errors import ValueRangeError
 
@@ -63,8 +64,10 @@ def procrustes(
     return solve_procrustes(source, target, w, with_scaling=with_scaling)[0]
 
 
-class Procrustes:
+class Procrustes(Solver[torch.Tensor]):
     """Solver object for :func:`procrustes`: stores ``with_scaling`` and solves when called.
+
+    ``Procrustes(with_scaling=...)(source, target, weights, mask)`` is :func:`procrustes`.
 
     Args:
         with_scaling: also estimate a uniform scale (Umeyama).
@@ -76,21 +79,10 @@ class Procrustes:
         torch.Size([1, 4, 4])
     """
 
+    function = staticmethod(procrustes)
+
     def __init__(self, *, with_scaling: bool = False) -> None:
         self.with_scaling = with_scaling
-
-    def __call__(
-        self,
-        source: torch.Tensor,
-        target: torch.Tensor,
-        weights: torch.Tensor | None = None,
-        mask: torch.Tensor | None = None,
-    ) -> torch.Tensor:
-        """Solve; arguments and result as in :func:`procrustes`."""
-        return procrustes(source, target, weights, mask, with_scaling=self.with_scaling)
-
-    def __repr__(self) -> str:
-        return f"Procrustes(with_scaling={self.with_scaling})"
 
 
 def check_pairs(
