@@ -17,7 +17,7 @@ from poseflow._checks import check_mask, check_same, check_tensor
 from poseflow.errors import ShapeError, ValueRangeError
 from poseflow.geometry.neighbors import NeighborIndex
 
-__all__ = ["compute_fpfh", "estimate_outward_normals"]
+__all__ = ["check_clouds", "compute_fpfh", "estimate_outward_normals"]
 
 #: Neighbour pairs whose features the torch FPFH computes at once (bounds its memory).
 _PAIR_CHUNK = 1 << 14
@@ -43,23 +43,44 @@ def _radius_table(radius: torch.Tensor | float, B: int, device: torch.device) ->
     return table
 
 
-def _check_cloud(
-    points: torch.Tensor, normals: torch.Tensor | None, mask: torch.Tensor | None
-) -> torch.Tensor:
-    """Validate ``(B, P, 3)`` points (and normals) finite at valid rows; return the mask."""
-    sizes = check_tensor(points, "points", ("B", "P", 3))
+def check_clouds(
+    points: torch.Tensor,
+    normals: torch.Tensor | None,
+    mask: torch.Tensor | None,
+    *,
+    finite_everywhere: bool = False,
+) -> tuple[torch.Tensor, dict[str, int]]:
+    """Validate a padded batch of clouds, its normals and its mask; fill in a missing mask.
+
+    Args:
+        points: clouds ``(B, P, 3)``.
+        normals: their normals ``(B, P, 3)``, or None.
+        mask: valid points ``(B, P)`` bool, or None (all valid).
+        finite_everywhere: require finite points and normals on padded rows too; by default only
+            the valid rows must be finite.
+
+    Returns:
+        ``(mask, sizes)``: the mask ``(B, P)`` and the named sizes ``{"B": B, "P": P}``.
+
+    Raises:
+        ShapeError: wrong shapes, dtypes or devices, a non-bool mask.
+        ValueRangeError: NaN or inf points or normals (at valid rows, or anywhere with
+            ``finite_everywhere``).
+    """
+    sizes = check_tensor(points, "points", ("B", "P", 3), finite=finite_everywhere)
     if normals is not None:
-        check_tensor(normals, "normals", ("B", "P", 3), sizes=sizes)
+        check_tensor(normals, "normals", ("B", "P", 3), finite=finite_everywhere, sizes=sizes)
         check_same(("points", points), ("normals", normals))
     if mask is None:
         mask = torch.ones(points.shape[:2], dtype=torch.bool, device=points.device)
     else:
         check_mask(mask, "mask", ("B", "P"), sizes)
         check_same(("points", points), ("mask", mask), dtype=False)
-    for name, x in (("points", points), ("normals", normals)):
-        if x is not None and not bool(torch.isfinite(x[mask]).all()):
-            raise ValueRangeError(f"{name} contains NaN or inf at valid points")
-    return mask
+    if not finite_everywhere:
+        for name, x in (("points", points), ("normals", normals)):
+            if x is not None and not bool(torch.isfinite(x[mask]).all()):
+                raise ValueRangeError(f"{name} contains NaN or inf at valid points")
+    return mask, sizes
 
 
 def _nearest(
@@ -255,7 +276,7 @@ def compute_fpfh(
         >>> f.shape, f[0, 0, :11].sum().item()
         (torch.Size([1, 200, 33]), 200.0)
     """
-    mask = _check_cloud(points, normals, mask)
+    mask, _ = check_clouds(points, normals, mask)
     if isinstance(max_nn, bool) or not isinstance(max_nn, int) or max_nn < 2:
         raise ValueRangeError(f"max_nn must be an integer >= 2, got {max_nn!r}")
     radii = _radius_table(radius, points.shape[0], points.device)
@@ -321,13 +342,13 @@ def estimate_outward_normals(
         ValueRangeError: NaN or inf at valid points, a radius that is not positive, ``max_nn < 3``.
 
     Example:
-        >>> g = torch.Generator().manual_seed(0)
-        >>> pts = torch.nn.functional.normalize(torch.randn(1, 500, 3, generator=g), dim=-1)
-        >>> n = estimate_outward_normals(pts, radius=0.3)
-        >>> bool(((n * pts).sum(-1) > 0.95).all())
+        >>> sphere = torch.randn(1, 500, 3, generator=torch.Generator().manual_seed(0))
+        >>> sphere = sphere / sphere.norm(dim=-1, keepdim=True)
+        >>> n = estimate_outward_normals(sphere, radius=0.3)  # the normals point outward
+        >>> bool(((n * sphere).sum(-1) > 0.95).all())
         True
     """
-    mask = _check_cloud(points, None, mask)
+    mask, _ = check_clouds(points, None, mask)
     if isinstance(max_nn, bool) or not isinstance(max_nn, int) or max_nn < 3:
         raise ValueRangeError(f"max_nn must be an integer >= 3, got {max_nn!r}")
     if isinstance(radius, torch.Tensor) and radius.dim() > 1:

@@ -26,9 +26,9 @@ import numpy as np
 import torch
 
 from poseflow._api import Hyperparameters
-from poseflow._checks import check_mask, check_same, check_tensor
+from poseflow._checks import check_tensor
 from poseflow.errors import DegenerateInputError, MissingWeightsError, ShapeError, ValueRangeError
-from poseflow.features.fpfh import compute_fpfh, estimate_outward_normals
+from poseflow.features.fpfh import check_clouds, compute_fpfh, estimate_outward_normals
 
 __all__ = [
     "CallableEncoder",
@@ -90,15 +90,7 @@ def check_geometric_inputs(
         >>> m.shape, d.shape
         (torch.Size([2, 5]), torch.Size([2]))
     """
-    sizes = check_tensor(points, "points", ("B", "P", 3), finite=True)
-    if normals is not None:
-        check_tensor(normals, "normals", ("B", "P", 3), finite=True, sizes=sizes)
-        check_same(("points", points), ("normals", normals))
-    if mask is None:
-        mask = torch.ones(points.shape[:2], dtype=torch.bool, device=points.device)
-    else:
-        check_mask(mask, "mask", ("B", "P"), sizes)
-        check_same(("points", points), ("mask", mask), dtype=False)
+    mask, sizes = check_clouds(points, normals, mask, finite_everywhere=True)
     if isinstance(diameter, torch.Tensor):
         if diameter.dim() == 0:
             diameter = diameter.expand(sizes["B"])

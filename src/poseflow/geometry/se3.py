@@ -72,15 +72,14 @@ def quaternion_to_rotation(quaternion: _ArrayT) -> _ArrayT:
     """Rotation matrices from quaternions (kornia's ``quaternion_to_rotation_matrix``).
 
     A quaternion is ``(w, x, y, z)``, the real part first, as in kornia. It need not have unit
-    norm (it is normalised first), and ``q`` and ``-q`` give the same rotation.
+    norm (it is normalised first), and ``q`` and ``-q`` give the same rotation. Tensors and numpy
+    arrays are handled as by :func:`axis_angle_to_rotation`.
 
     Args:
-        quaternion: quaternions ``(w, x, y, z)``, shape ``(*, 4)``: a floating tensor (on any
-            device), or a numpy array, computed in float64.
+        quaternion: quaternions, shape ``(*, 4)``.
 
     Returns:
-        Rotations ``(*, 3, 3)``: a tensor in the input's dtype and on its device, or a float64
-        numpy array for a numpy input.
+        Rotations, shape ``(*, 3, 3)``.
 
     Raises:
         ShapeError: the last dimension is not 4, or a tensor is not floating point.

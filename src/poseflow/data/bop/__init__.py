@@ -29,87 +29,18 @@ although ``depth_scale`` declares millimetres) raise :class:`BOPFormatError` or
 :class:`MissingFileError` naming the file, scene and image.
 """
 
-from poseflow.data.bop.datasets import (
-    BOPDataset,
-    BOPDetectionDataset,
-    BOPImageDataset,
-    BOPInstanceDataset,
-    BOPScene,
-    collate_images,
-)
-from poseflow.data.bop.images import (
-    read_depth,
-    read_image,
-    read_mask,
-    write_depth,
-    write_image,
-    write_mask,
-)
-from poseflow.data.bop.json_io import (
-    read_detections,
-    read_models_info,
-    read_scene_camera,
-    read_scene_gt,
-    read_scene_gt_info,
-    read_test_targets,
-    write_detections,
-    write_models_info,
-    write_scene_camera,
-    write_scene_gt,
-    write_scene_gt_info,
-    write_test_targets,
-)
-from poseflow.data.bop.records import (
-    MM_PER_M,
-    BOPDataWarning,
-    CameraInfo,
-    ContinuousSymmetry,
-    Detection,
-    GTInfo,
-    GTPose,
-    ModelInfo,
-    TestTarget,
-)
-from poseflow.data.bop.writer import BOPWriter, compute_gt_info, write_model_ply
+from poseflow.data.bop import datasets, images, json_io, records, writer
+from poseflow.data.bop.datasets import *  # noqa: F403
+from poseflow.data.bop.images import *  # noqa: F403
+from poseflow.data.bop.json_io import *  # noqa: F403
+from poseflow.data.bop.records import *  # noqa: F403
+from poseflow.data.bop.writer import *  # noqa: F403
 from poseflow.errors import BOPFormatError, MissingFileError
 
-__all__ = [
-    "MM_PER_M",
-    "BOPDataWarning",
-    "BOPDataset",
-    "BOPDetectionDataset",
-    "BOPFormatError",
-    "BOPImageDataset",
-    "BOPInstanceDataset",
-    "BOPScene",
-    "BOPWriter",
-    "CameraInfo",
-    "ContinuousSymmetry",
-    "Detection",
-    "GTInfo",
-    "GTPose",
-    "MissingFileError",
-    "ModelInfo",
-    "TestTarget",
-    "collate_images",
-    "compute_gt_info",
-    "read_depth",
-    "read_detections",
-    "read_image",
-    "read_mask",
-    "read_models_info",
-    "read_scene_camera",
-    "read_scene_gt",
-    "read_scene_gt_info",
-    "read_test_targets",
-    "write_depth",
-    "write_detections",
-    "write_image",
-    "write_mask",
-    "write_model_ply",
-    "write_models_info",
-    "write_scene_camera",
-    "write_scene_gt",
-    "write_scene_gt_info",
-    "write_test_targets",
-]
+# Every module's public names, and the two errors its readers raise.
+__all__ = ["BOPFormatError", "MissingFileError"]
+__all__ += records.__all__
+__all__ += json_io.__all__
+__all__ += images.__all__
+__all__ += datasets.__all__
+__all__ += writer.__all__

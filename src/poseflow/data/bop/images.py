@@ -26,10 +26,7 @@ def read_image(path: str | Path) -> torch.Tensor:
         MissingFileError: the file does not exist.
     """
     path = Path(path)
-    if not path.is_file():
-        raise MissingFileError(f"missing image {path}")
-    with Image.open(path) as im:
-        arr = np.asarray(im)
+    arr = _read_array(path, "image")
     if arr.ndim == 2:
         arr = np.repeat(arr[..., None], 3, axis=2)
     if arr.ndim != 3 or arr.shape[2] not in (3, 4):
@@ -57,10 +54,7 @@ def read_depth(
         BOPFormatError: not a single-channel 16-bit image, or clearly wrong units.
     """
     path = Path(path)
-    if not path.is_file():
-        raise MissingFileError(f"missing depth map {path}")
-    with Image.open(path) as im:
-        arr = np.asarray(im)
+    arr = _read_array(path, "depth map")
     if arr.ndim != 2 or arr.dtype.kind not in "ui":
         raise BOPFormatError(
             f"{path}: a depth map must be a single-channel 16-bit PNG, got {arr.dtype} {arr.shape}"
@@ -80,14 +74,18 @@ def read_depth(
 
 def read_mask(path: str | Path) -> torch.Tensor:
     """Read a BOP mask PNG as bool ``(H, W)`` (non-zero = object)."""
-    path = Path(path)
-    if not path.is_file():
-        raise MissingFileError(f"missing mask {path}")
-    with Image.open(path) as im:
-        arr = np.asarray(im)
+    arr = _read_array(Path(path), "mask")
     if arr.ndim == 3:
         arr = arr[..., 0]
     return torch.from_numpy(arr > 0)
+
+
+def _read_array(path: Path, what: str) -> np.ndarray:
+    """The pixels of an image file; ``what`` names it in the error for a missing file."""
+    if not path.is_file():
+        raise MissingFileError(f"missing {what} {path}")
+    with Image.open(path) as im:
+        return np.asarray(im)
 
 
 def write_image(path: str | Path, rgb: torch.Tensor | np.ndarray) -> None:

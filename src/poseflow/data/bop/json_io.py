@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -37,6 +37,9 @@ __all__ = [
     "write_scene_gt_info",
     "write_test_targets",
 ]
+
+#: A record read from one instance's JSON entry.
+_Record = TypeVar("_Record")
 
 
 def _load_json(path: str | Path) -> Any:
@@ -86,6 +89,33 @@ def _scene_of(path: Path) -> str:
     return path.parent.name
 
 
+def _per_entry(path: Path, what: str, parse: Callable[[Any, str], _Record]) -> list[_Record]:
+    """``[parse(entry, where), ...]`` of a file holding a JSON list of ``what``.
+
+    ``where`` names the file and the entry's index, for the parser's error messages.
+    """
+    data = _load_json(path)
+    if not isinstance(data, list):
+        raise BOPFormatError(f"{path}: expected a JSON list of {what}")
+    return [parse(e, f"{path} (entry {i})") for i, e in enumerate(data)]
+
+
+def _per_instance(path: Path, parse: Callable[[Any, str], _Record]) -> dict[int, list[_Record]]:
+    """``{im_id: [parse(entry, where), ...]}`` of a file holding a list of instances per image.
+
+    ``where`` names the file, scene, image and instance, for the parser's error messages.
+    """
+    out = {}
+    for im_id, entries in sorted(_int_keys(_load_json(path), path).items()):
+        if not isinstance(entries, list):
+            raise BOPFormatError(f"{path} (image {im_id}): expected a list of instances")
+        out[im_id] = [
+            parse(entry, f"{path} (scene {_scene_of(path)}, image {im_id}, instance {gt_idx})")
+            for gt_idx, entry in enumerate(entries)
+        ]
+    return out
+
+
 def read_scene_camera(path: str | Path) -> dict[int, CameraInfo]:
     """Read ``scene_camera.json``.
 
@@ -125,21 +155,15 @@ def read_scene_gt(path: str | Path) -> dict[int, list[GTPose]]:
         MissingFileError: the file does not exist.
         BOPFormatError: a key is missing or malformed.
     """
-    path = Path(path)
-    out = {}
-    for im_id, entries in sorted(_int_keys(_load_json(path), path).items()):
-        if not isinstance(entries, list):
-            raise BOPFormatError(f"{path} (image {im_id}): expected a list of instances")
-        poses = []
-        for gt_idx, entry in enumerate(entries):
-            where = f"{path} (scene {_scene_of(path)}, image {im_id}, instance {gt_idx})"
-            R = _array(_get(entry, "cam_R_m2c", where), 9, where, "cam_R_m2c").reshape(3, 3)
-            t = _array(_get(entry, "cam_t_m2c", where), 3, where, "cam_t_m2c") / MM_PER_M
-            T = np.eye(4)
-            T[:3, :3], T[:3, 3] = R, t
-            poses.append(GTPose(obj_id=int(_get(entry, "obj_id", where)), pose=T))
-        out[im_id] = poses
-    return out
+    return _per_instance(Path(path), _gt_pose)
+
+
+def _gt_pose(entry: Any, where: str) -> GTPose:
+    R = _array(_get(entry, "cam_R_m2c", where), 9, where, "cam_R_m2c").reshape(3, 3)
+    t = _array(_get(entry, "cam_t_m2c", where), 3, where, "cam_t_m2c") / MM_PER_M
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, t
+    return GTPose(obj_id=int(_get(entry, "obj_id", where)), pose=T)
 
 
 def read_scene_gt_info(path: str | Path) -> dict[int, list[GTInfo]]:
@@ -152,31 +176,23 @@ def read_scene_gt_info(path: str | Path) -> dict[int, list[GTInfo]]:
         MissingFileError: the file does not exist.
         BOPFormatError: a key is missing or malformed.
     """
-    path = Path(path)
-    out = {}
-    for im_id, entries in sorted(_int_keys(_load_json(path), path).items()):
-        if not isinstance(entries, list):
-            raise BOPFormatError(f"{path} (image {im_id}): expected a list of instances")
-        infos = []
-        for gt_idx, e in enumerate(entries):
-            where = f"{path} (scene {_scene_of(path)}, image {im_id}, instance {gt_idx})"
+    return _per_instance(Path(path), _gt_info)
 
-            def box(key: str, e: Any = e, where: str = where) -> tuple[int, int, int, int]:
-                a = _array(_get(e, key, where), 4, where, key).astype(int)
-                return (int(a[0]), int(a[1]), int(a[2]), int(a[3]))
 
-            infos.append(
-                GTInfo(
-                    bbox_obj=box("bbox_obj"),
-                    bbox_visib=box("bbox_visib"),
-                    px_count_all=int(_get(e, "px_count_all", where)),
-                    px_count_valid=int(_get(e, "px_count_valid", where)),
-                    px_count_visib=int(_get(e, "px_count_visib", where)),
-                    visib_fract=float(_get(e, "visib_fract", where)),
-                )
-            )
-        out[im_id] = infos
-    return out
+def _gt_info(e: Any, where: str) -> GTInfo:
+    return GTInfo(
+        bbox_obj=_box(e, "bbox_obj", where),
+        bbox_visib=_box(e, "bbox_visib", where),
+        px_count_all=int(_get(e, "px_count_all", where)),
+        px_count_valid=int(_get(e, "px_count_valid", where)),
+        px_count_visib=int(_get(e, "px_count_visib", where)),
+        visib_fract=float(_get(e, "visib_fract", where)),
+    )
+
+
+def _box(entry: Any, key: str, where: str) -> tuple[int, int, int, int]:
+    a = _array(_get(entry, key, where), 4, where, key).astype(int)
+    return (int(a[0]), int(a[1]), int(a[2]), int(a[3]))
 
 
 def read_models_info(path: str | Path) -> dict[int, ModelInfo]:
@@ -222,22 +238,16 @@ def read_models_info(path: str | Path) -> dict[int, ModelInfo]:
 
 def read_test_targets(path: str | Path) -> list[TestTarget]:
     """Read ``test_targets_bop19.json`` (a list of ``scene_id, im_id, obj_id, inst_count``)."""
-    path = Path(path)
-    data = _load_json(path)
-    if not isinstance(data, list):
-        raise BOPFormatError(f"{path}: expected a JSON list of targets")
-    out = []
-    for i, e in enumerate(data):
-        where = f"{path} (entry {i})"
-        out.append(
-            TestTarget(
-                scene_id=int(_get(e, "scene_id", where)),
-                im_id=int(_get(e, "im_id", where)),
-                obj_id=int(_get(e, "obj_id", where)),
-                inst_count=int(_get(e, "inst_count", where)),
-            )
-        )
-    return out
+    return _per_entry(Path(path), "targets", _test_target)
+
+
+def _test_target(e: Any, where: str) -> TestTarget:
+    return TestTarget(
+        scene_id=int(_get(e, "scene_id", where)),
+        im_id=int(_get(e, "im_id", where)),
+        obj_id=int(_get(e, "obj_id", where)),
+        inst_count=int(_get(e, "inst_count", where)),
+    )
 
 
 def read_detections(path: str | Path) -> list[Detection]:
@@ -251,32 +261,26 @@ def read_detections(path: str | Path) -> list[Detection]:
         MissingFileError: the file does not exist.
         BOPFormatError: an entry lacks a key (the message gives its index, scene and image).
     """
-    path = Path(path)
-    data = _load_json(path)
-    if not isinstance(data, list):
-        raise BOPFormatError(f"{path}: expected a JSON list of detections")
-    out = []
-    for i, e in enumerate(data):
-        where = f"{path} (entry {i})"
-        scene_id = int(_get(e, "scene_id", where))
-        im_id = int(_get(e, "image_id", where))
-        where = f"{path} (entry {i}, scene {scene_id}, image {im_id})"
-        seg = e.get("segmentation")
-        if seg is not None and not (isinstance(seg, Mapping) and "counts" in seg and "size" in seg):
-            raise BOPFormatError(f"{where}: segmentation must be a COCO RLE with counts and size")
-        bbox = _array(e.get("bbox", [0, 0, 0, 0]), 4, where, "bbox")
-        out.append(
-            Detection(
-                scene_id=scene_id,
-                im_id=im_id,
-                obj_id=int(_get(e, "category_id", where)),
-                score=float(_get(e, "score", where)),
-                bbox=(float(bbox[0]), float(bbox[1]), float(bbox[2]), float(bbox[3])),
-                segmentation=seg,
-                time=float(e.get("time", -1.0)),
-            )
-        )
-    return out
+    return _per_entry(Path(path), "detections", _detection)
+
+
+def _detection(e: Any, where: str) -> Detection:
+    scene_id = int(_get(e, "scene_id", where))
+    im_id = int(_get(e, "image_id", where))
+    where = where.removesuffix(")") + f", scene {scene_id}, image {im_id})"
+    seg = e.get("segmentation")
+    if seg is not None and not (isinstance(seg, Mapping) and "counts" in seg and "size" in seg):
+        raise BOPFormatError(f"{where}: segmentation must be a COCO RLE with counts and size")
+    bbox = _array(e.get("bbox", [0, 0, 0, 0]), 4, where, "bbox")
+    return Detection(
+        scene_id=scene_id,
+        im_id=im_id,
+        obj_id=int(_get(e, "category_id", where)),
+        score=float(_get(e, "score", where)),
+        bbox=(float(bbox[0]), float(bbox[1]), float(bbox[2]), float(bbox[3])),
+        segmentation=seg,
+        time=float(e.get("time", -1.0)),
+    )
 
 
 def _dump(path: str | Path, data: Any) -> None:
