@@ -11,10 +11,10 @@ import open3d as o3d
 import pytest
 import torch
 from PIL import Image
+from scipy.spatial.transform import Rotation
 
 from poseflow.data.bop import read_models_info
 from poseflow.data.objects import (
-    MeshFormatError,
     ObjectModel,
     discretize_symmetries,
     load_mesh,
@@ -24,7 +24,7 @@ from poseflow.data.objects import (
     write_bop_model,
     write_bop_models,
 )
-from poseflow.errors import ValueRangeError
+from poseflow.errors import MeshFormatError, ValueRangeError
 from poseflow.render import Light, Renderer, TexturedMesh
 
 HEADLIGHT_FLAT = Light(ambient=1.0, diffuse=0.0)
@@ -201,6 +201,16 @@ def test_discretised_continuous_symmetry() -> None:
         np.testing.assert_allclose(T[:3, :3] @ offset + T[:3, 3], offset, atol=1e-12)  # axis fixed
     steps = sorted(rotation_angle(T) for T in S)
     assert math.isclose(steps[1], 2 * math.pi / n, rel_tol=1e-9)
+
+
+def test_discretised_rotations_match_scipy() -> None:
+    axis, offset = np.array([0.3, -1.2, 0.5]), np.array([0.02, 0.01, -0.03])
+    S = discretize_symmetries(continuous=[(axis, offset)], max_sym_disc_step=0.05)
+    n = math.ceil(math.pi / 0.05)
+    rotvecs = (2 * math.pi * np.arange(n) / n)[:, None] * (axis / np.linalg.norm(axis))
+    expected = Rotation.from_rotvec(rotvecs).as_matrix()
+    assert np.abs(S[:, :3, :3] - expected).max() <= 1e-12
+    assert np.abs(S[:, :3, 3] - (offset - expected @ offset)).max() <= 1e-12
 
 
 def test_discrete_times_continuous() -> None:

@@ -4,6 +4,9 @@ import math
 
 import pytest
 import torch
+from hypothesis import given
+from hypothesis import strategies as st
+from scipy.spatial.transform import Rotation
 
 from poseflow.errors import ShapeError, ValueRangeError
 from poseflow.eval.symmetry import (
@@ -24,6 +27,27 @@ def test_axis_angle_rotation_is_a_rotation(dtype):
     # The axis is fixed by every rotation.
     a = torch.tensor([1.0, 2.0, 3.0], dtype=dtype)
     torch.testing.assert_close(R @ a, a.expand(7, 3))
+
+
+@pytest.mark.parametrize(("dtype", "tol"), [(torch.float32, 2e-6), (torch.float64, 1e-12)])
+@given(seed=st.integers(0, 2**31 - 1), K=st.integers(1, 6), length=st.sampled_from([1e-3, 1, 50]))
+def test_axis_angle_rotation_matches_scipy(dtype, tol, seed, K, length):
+    g = torch.Generator().manual_seed(seed)
+    axis = torch.randn(3, generator=g, dtype=torch.float64)
+    axis = axis / axis.norm() * length  # any length: normalised here
+    angles = (2 * torch.rand(K, generator=g, dtype=torch.float64) - 1) * 2 * math.pi
+    R = axis_angle_rotation(axis.to(dtype), angles.to(dtype))
+    assert R.dtype == dtype and R.shape == (K, 3, 3)
+    unit = (axis / axis.norm()).numpy()
+    expected = Rotation.from_rotvec(angles.numpy()[:, None] * unit).as_matrix()
+    assert (R.double() - torch.from_numpy(expected)).abs().max() <= tol
+
+
+def test_axis_angle_rotation_of_no_angles():
+    R = axis_angle_rotation(torch.tensor([0.0, 0.0, 1.0]), torch.zeros(0))
+    assert R.shape == (0, 3, 3)
+    with pytest.raises(ValueRangeError):
+        axis_angle_rotation(torch.zeros(3), torch.zeros(2))
 
 
 def test_discretisation_count_and_offset():

@@ -263,11 +263,11 @@ def test_batched_equals_loop_with_per_cloud_radius() -> None:
 
 
 def test_chunked_pairs_equal_one_chunk(monkeypatch: pytest.MonkeyPatch) -> None:
-    import poseflow.features.geometric as geometric
+    import poseflow.features.fpfh as fpfh
 
     points, normals = _random_cloud(7, 2, 200)
     whole = compute_fpfh(points, normals, radius=0.03, max_nn=40)
-    monkeypatch.setattr(geometric, "_PAIR_CHUNK", 100)  # a few rows per chunk
+    monkeypatch.setattr(fpfh, "_PAIR_CHUNK", 100)  # a few rows per chunk
     assert torch.equal(compute_fpfh(points, normals, radius=0.03, max_nn=40), whole)
 
 

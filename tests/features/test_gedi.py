@@ -11,10 +11,9 @@ from poseflow.features.gedi import (
     GeDiNet,
     ball_query,
     local_reference_frame,
-    quaternion_to_rotation,
 )
 from poseflow.geometry.pointcloud import farthest_point_sample
-from poseflow.geometry.se3 import random_rotation
+from poseflow.geometry.se3 import quaternion_to_rotation, random_rotation
 
 
 def _cloud(n: int, seed: int) -> torch.Tensor:

@@ -13,9 +13,11 @@ from scipy.spatial.transform import Rotation
 
 from poseflow.errors import PoseflowError, ShapeError, ValueRangeError
 from poseflow.geometry.se3 import (
+    axis_angle_to_rotation,
     compose,
     from_Rt,
     inverse_transform,
+    quaternion_to_rotation,
     random_rotation,
     random_transform,
     rotation_angle_error,
@@ -33,6 +35,38 @@ seeds = st.integers(0, 2**31 - 1)
 
 def _gen(seed: int) -> torch.Generator:
     return torch.Generator().manual_seed(seed)
+
+
+#: Largest entry-wise difference allowed between kornia's conversions and the formulas they replace.
+CONVERSION_TOL = {torch.float32: 2e-6, torch.float64: 1e-12}
+
+
+def _rodrigues(axis: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
+    """``I + sin(a) K + (1 - cos(a)) K^2`` for unit axes ``(B, 3)`` and angles ``(B,)``."""
+    K = torch.zeros(*axis.shape, 3, dtype=axis.dtype)
+    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -axis[:, 2], axis[:, 1], -axis[:, 0]
+    K = K - K.transpose(1, 2)
+    s, c = torch.sin(angle)[:, None, None], torch.cos(angle)[:, None, None]
+    return torch.eye(3, dtype=axis.dtype) + s * K + (1 - c) * (K @ K)
+
+
+def _quaternion_formula(q: torch.Tensor) -> torch.Tensor:
+    """The rotation of unit quaternions ``(w, x, y, z)`` ``(B, 4)``, written out entry by entry."""
+    w, x, y, z = q.unbind(-1)
+    return torch.stack(
+        (
+            1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
+            2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w),
+            2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y),
+        ),
+        -1,
+    ).reshape(-1, 3, 3)  # fmt: skip
+
+
+def _unit_axes(g: torch.Generator, B: int) -> torch.Tensor:
+    return torch.nn.functional.normalize(
+        torch.randn(B, 3, generator=g, dtype=torch.float64), dim=-1
+    )
 
 
 @FIXTURES
@@ -79,6 +113,96 @@ def test_inverse_and_compose(seed, B, device, dtype, tol):
         rtol=0,
     )
     torch.testing.assert_close(compose(A, C, A), A @ C @ A)
+
+
+@FIXTURES
+@given(
+    seed=seeds,
+    B=st.integers(1, 8),
+    max_angle=st.sampled_from([1e-7, 1e-3, 0.1, 1.0, math.pi, 3 * math.pi]),
+)
+def test_axis_angle_to_rotation_matches_rodrigues(seed, B, max_angle, device, dtype):
+    g = _gen(seed)
+    axis = _unit_axes(g, B)
+    angle = (2 * torch.rand(B, generator=g, dtype=torch.float64) - 1) * max_angle
+    expected = _rodrigues(axis, angle)
+    got = axis_angle_to_rotation((angle[:, None] * axis).to(device, dtype))
+    assert got.dtype == dtype and got.device.type == device.type and got.shape == (B, 3, 3)
+    assert (got.cpu().double() - expected).abs().max() <= CONVERSION_TOL[dtype]
+    # A numpy array is converted in float64 and comes back as one.
+    got_np = axis_angle_to_rotation((angle[:, None] * axis).numpy())
+    assert isinstance(got_np, np.ndarray) and got_np.dtype == np.float64
+    assert np.abs(got_np - expected.numpy()).max() <= CONVERSION_TOL[torch.float64]
+
+
+@FIXTURES
+@given(seed=seeds, B=st.integers(1, 8), scale=st.sampled_from([1e-3, 1.0, 1e3]))
+def test_quaternion_to_rotation_matches_formula_and_scipy(seed, B, scale, device, dtype):
+    g = _gen(seed)
+    q = torch.randn(B, 4, generator=g, dtype=torch.float64)
+    unit = q / q.norm(dim=-1, keepdim=True)
+    expected = _quaternion_formula(unit)
+    got = quaternion_to_rotation((scale * q).to(device, dtype))  # any norm: normalised first
+    assert got.dtype == dtype and got.device.type == device.type and got.shape == (B, 3, 3)
+    assert (got.cpu().double() - expected).abs().max() <= CONVERSION_TOL[dtype]
+    assert torch.equal(quaternion_to_rotation(-q), quaternion_to_rotation(q))
+    # (w, x, y, z), real part first: scipy takes (x, y, z, w).
+    scipy = Rotation.from_quat(unit[:, [1, 2, 3, 0]].numpy()).as_matrix()
+    assert np.abs(quaternion_to_rotation(q.numpy()) - scipy).max() <= 1e-12
+
+
+@given(seed=seeds, B=st.integers(1, 8))
+def test_quaternion_and_axis_angle_agree(seed, B):
+    g = _gen(seed)
+    axis = _unit_axes(g, B)
+    angle = torch.rand(B, generator=g, dtype=torch.float64) * 2 * math.pi
+    half = angle[:, None] / 2
+    q = torch.cat((torch.cos(half), torch.sin(half) * axis), -1)
+    torch.testing.assert_close(
+        quaternion_to_rotation(q), axis_angle_to_rotation(angle[:, None] * axis), atol=1e-12, rtol=0
+    )
+    # Right-hand rule: a quarter turn about +z takes +x to +y.
+    R = axis_angle_to_rotation(torch.tensor([0.0, 0.0, math.pi / 2], dtype=torch.float64))
+    torch.testing.assert_close(
+        R @ torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64),
+        torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64),
+    )
+
+
+def test_rotation_conversions_are_differentiable():
+    g = _gen(3)
+    v = torch.randn(4, 3, generator=g, dtype=torch.float64, requires_grad=True)
+    q = torch.randn(4, 4, generator=g, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(axis_angle_to_rotation, (v,))
+    assert torch.autograd.gradcheck(quaternion_to_rotation, (q,))
+
+
+def test_rotation_conversions_reject_bad_shapes():
+    with pytest.raises(ShapeError):
+        axis_angle_to_rotation(torch.zeros(2, 4))
+    with pytest.raises(ShapeError):
+        axis_angle_to_rotation(np.zeros(2))
+    with pytest.raises(ShapeError):
+        quaternion_to_rotation(torch.zeros(3))
+    with pytest.raises(ShapeError):
+        quaternion_to_rotation(torch.zeros(2, 4, dtype=torch.int64))
+
+
+@given(seed=seeds, B=st.integers(1, 8))
+def test_random_rotation_is_the_quaternion_formula_of_its_draws(seed, B):
+    q = torch.randn(B, 4, generator=_gen(seed), dtype=torch.float64)
+    expected = _quaternion_formula(q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12))
+    assert torch.equal(random_rotation(B, generator=_gen(seed), dtype=torch.float64), expected)
+
+
+@given(seed=seeds, B=st.integers(1, 8), max_angle=st.floats(0.0, math.pi))
+def test_random_transform_rotation_is_rodrigues_of_its_draws(seed, B, max_angle):
+    g = _gen(seed)
+    axis = torch.randn(B, 3, generator=g, dtype=torch.float64)
+    axis = axis / axis.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    angle = torch.rand(B, generator=g, dtype=torch.float64) * max_angle
+    T = random_transform(B, max_angle=max_angle, generator=_gen(seed), dtype=torch.float64)
+    assert (T[:, :3, :3] - _rodrigues(axis, angle)).abs().max() <= CONVERSION_TOL[torch.float64]
 
 
 def test_random_rotation_is_uniform_on_so3():

@@ -35,6 +35,7 @@ import torch
 from PIL import Image
 from scipy import ndimage
 
+from poseflow.data._arrays import as_numpy
 from poseflow.data.bop import (
     BOPWriter,
     ModelInfo,
@@ -45,6 +46,7 @@ from poseflow.data.bop import (
 )
 from poseflow.errors import ShapeError, ValueRangeError
 from poseflow.geometry.pointcloud import cloud_diameter
+from poseflow.geometry.se3 import quaternion_to_rotation
 from poseflow.render.mesh import TexturedMesh, as_textured_mesh
 from poseflow.render.raycast import Light, Renderer
 
@@ -131,14 +133,14 @@ class DepthNoise:
         Returns:
             Noisy depth ``(H, W)`` float32 in metres, 0 where missing.
         """
-        d = _numpy(depth, np.float64)
-        n = _numpy(normals, np.float64)
+        d = as_numpy(depth, np.float64)
+        n = as_numpy(normals, np.float64)
         if d.ndim != 2 or n.shape != (*d.shape, 3):
             raise ShapeError(f"depth must be (H, W) and normals (H, W, 3), got {d.shape} {n.shape}")
         rng = np.random.default_rng(rng)
         h, w = d.shape
         hit = np.isfinite(d) & (d > 0)
-        Kinv = np.linalg.inv(_numpy(K, np.float64).reshape(3, 3))
+        Kinv = np.linalg.inv(as_numpy(K, np.float64).reshape(3, 3))
         uu, vv = np.meshgrid(np.arange(w), np.arange(h))
         rays = np.stack([uu, vv, np.ones_like(uu)], axis=-1).astype(np.float64) @ Kinv.T
         rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
@@ -338,18 +340,6 @@ def _rot_z(a: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
-def _random_rotation(rng: np.random.Generator) -> np.ndarray:
-    q = rng.standard_normal(4)
-    w, x, y, z = q / np.linalg.norm(q)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-
-
 #: Rotations bringing each of the six model axes (+x, -x, +y, -y, +z, -z) to point down (-z).
 _FACE_DOWN = [
     np.array([[0, 0, 1], [0, 1, 0], [-1, 0, 0]], float),  # +x -> -z
@@ -364,7 +354,7 @@ _FACE_DOWN = [
 def _rest_rotation(rng: np.random.Generator, tilt_prob: float) -> np.ndarray:
     """A resting orientation: a random face down with random yaw, or any orientation."""
     if rng.random() < tilt_prob:
-        return _random_rotation(rng)
+        return quaternion_to_rotation(rng.standard_normal(4))
     return _rot_z(rng.uniform(0, 2 * np.pi)) @ _FACE_DOWN[int(rng.integers(6))]
 
 
@@ -769,9 +759,3 @@ def generate_dataset(
     bar.close()
     write_test_targets(root / "test_targets_bop19.json", targets)
     return root
-
-
-def _numpy(x: Any, dtype: Any) -> np.ndarray:
-    if isinstance(x, torch.Tensor):
-        x = x.detach().cpu().numpy()
-    return np.asarray(x, dtype=dtype)

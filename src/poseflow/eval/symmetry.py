@@ -23,6 +23,7 @@ import torch
 
 from poseflow._checks import check_tensor
 from poseflow.errors import ShapeError, ValueRangeError
+from poseflow.geometry.se3 import axis_angle_to_rotation
 
 __all__ = [
     "MAX_SYM_DISC_STEP",
@@ -37,7 +38,7 @@ MAX_SYM_DISC_STEP = 0.01
 
 
 def axis_angle_rotation(axis: torch.Tensor, angles: torch.Tensor) -> torch.Tensor:
-    """Rotations by ``angles`` about one axis through the origin (Rodrigues' formula).
+    """Rotations by ``angles`` about one axis through the origin (kornia's axis-angle conversion).
 
     Args:
         axis: the rotation axis, shape ``(3,)``; it is normalised here.
@@ -51,7 +52,7 @@ def axis_angle_rotation(axis: torch.Tensor, angles: torch.Tensor) -> torch.Tenso
 
     Example:
         >>> R = axis_angle_rotation(torch.tensor([0.0, 0.0, 1.0]), torch.tensor([math.pi / 2]))
-        >>> R[0].round(decimals=6)
+        >>> R[0].round(decimals=6) + 0.0  # + 0.0: no -0. in the output
         tensor([[ 0., -1.,  0.],
                 [ 1.,  0.,  0.],
                 [ 0.,  0.,  1.]])
@@ -62,14 +63,7 @@ def axis_angle_rotation(axis: torch.Tensor, angles: torch.Tensor) -> torch.Tenso
     norm = a.norm()
     if float(norm) == 0.0:
         raise ValueRangeError("a symmetry axis must have non-zero length")
-    a = a / norm
-    skew = torch.zeros(3, 3, dtype=a.dtype, device=a.device)
-    skew[0, 1], skew[0, 2], skew[1, 2] = -a[2], a[1], -a[0]
-    skew = skew - skew.T
-    s = torch.sin(angles)[:, None, None]
-    c = torch.cos(angles)[:, None, None]
-    eye = torch.eye(3, dtype=a.dtype, device=a.device)
-    return eye + s * skew + (1 - c) * (skew @ skew)
+    return axis_angle_to_rotation(angles[:, None] * (a / norm))
 
 
 def discretize_continuous_symmetry(

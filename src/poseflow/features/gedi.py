@@ -30,38 +30,18 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from poseflow._api import Hyperparameters
 from poseflow.errors import MissingWeightsError, ShapeError, ValueRangeError
 from poseflow.features.geometric import check_geometric_inputs
 from poseflow.geometry.pointcloud import farthest_point_sample
+from poseflow.geometry.se3 import quaternion_to_rotation
 
 __all__ = [
     "GeDiEncoder",
     "GeDiNet",
     "ball_query",
     "local_reference_frame",
-    "quaternion_to_rotation",
 ]
-
-
-def quaternion_to_rotation(q: torch.Tensor) -> torch.Tensor:
-    """Convert unit quaternions ``(w, x, y, z)`` of shape ``(*, 4)`` to rotations ``(*, 3, 3)``.
-
-    Example:
-        >>> quaternion_to_rotation(torch.tensor([[1.0, 0.0, 0.0, 0.0]]))[0]
-        tensor([[1., 0., 0.],
-                [0., 1., 0.],
-                [0., 0., 1.]])
-    """
-    w, x, y, z = q.unbind(-1)
-    R = torch.stack(
-        (
-            1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
-            2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w),
-            2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y),
-        ),
-        -1,
-    )  # fmt: skip
-    return R.reshape(*q.shape[:-1], 3, 3)
 
 
 def local_reference_frame(
@@ -273,7 +253,7 @@ class GeDiNet(nn.Module):
         return F.normalize(self.fc_layer(feat.squeeze(-1)), dim=1)
 
 
-class GeDiEncoder:
+class GeDiEncoder(Hyperparameters):
     """Multi-scale GeDi descriptors behind the geometric-encoder protocol.
 
     For every valid point and every radius ``r = fraction * diameter``: the valid points within

@@ -130,19 +130,26 @@ class NeighborIndex:
             raise ValueRangeError(f"max_distance must be > 0, got {max_distance!r}")
         if query.numel() and not bool(torch.isfinite(query).all()):
             raise ValueRangeError("query contains NaN or inf")
-        return self._search(query, k, max_distance)
+        return self.query_unchecked(query, k, max_distance)
 
-    def _search(
+    def query_unchecked(
         self,
         query: torch.Tensor,
         k: int,
         max_distance: float | None,
         items: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Unchecked :meth:`query`.
+        """:meth:`query` without the input checks, for callers that validated their points.
 
-        With ``items`` (int64 indices into the batch), ``query`` holds only those batch items, in
-        that order, and so does the answer.
+        Args:
+            query: finite query points ``(B', N, 3)`` with the reference's device and dtype.
+            k: number of neighbours, at least 1.
+            max_distance: neighbours farther than this are reported missing, or None.
+            items: int64 indices ``(B',)`` into the batch: ``query`` then holds only those batch
+                items, in that order, and so does the answer; None for the whole batch.
+
+        Returns:
+            ``(dist, idx)`` as :meth:`query` returns them, ``(B', N, k)`` each.
         """
         B, N, M = query.shape[0], query.shape[1], self.reference.shape[1]
         if B == 0 or N == 0 or M == 0:
@@ -366,7 +373,7 @@ class NeighborTracker:
             or index.reference.shape[1] == 0
             or not index._use_kdtree(points.shape[1])
         ):
-            return index._search(points, 1, self.max_distance, items)
+            return index.query_unchecked(points, 1, self.max_distance, items)
 
         # Coordinates first, (3, B', N): every step below is a flat, contiguous array operation,
         # in float32 for float32 points (half the memory traffic), else in float64.

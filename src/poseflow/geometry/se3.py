@@ -1,24 +1,33 @@
 """SE(3) algebra on batched homogeneous transforms.
 
 Transforms are ``(..., 4, 4)`` tensors whose last row is ``[0, 0, 0, 1]``; points are
-``(..., N, 3)``. Every function keeps the dtype and device of its inputs. poseflow does not
-repeat kornia's rotation conversions (axis-angle, quaternions): use
-``kornia.geometry.conversions``.
+``(..., N, 3)``. Every function keeps the dtype and device of its inputs. Rotations from
+axis-angle vectors and quaternions are kornia's (``kornia.geometry.conversions``), through
+:func:`axis_angle_to_rotation` and :func:`quaternion_to_rotation`, which also take numpy arrays.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
+from typing import TypeVar
 
+import numpy as np
 import torch
+from kornia.geometry.conversions import (
+    axis_angle_to_rotation_matrix,
+    quaternion_to_rotation_matrix,
+)
 
 from poseflow._checks import check_same, check_tensor
 from poseflow.errors import ShapeError, ValueRangeError
 
 __all__ = [
+    "axis_angle_to_rotation",
     "compose",
     "from_Rt",
     "inverse_transform",
+    "quaternion_to_rotation",
     "random_rotation",
     "random_transform",
     "rotation_angle_error",
@@ -26,6 +35,74 @@ __all__ = [
     "transform_points",
     "translation_error",
 ]
+
+
+#: A tensor in, a tensor out; a numpy array in, a numpy array out.
+_ArrayT = TypeVar("_ArrayT", torch.Tensor, np.ndarray)
+
+
+def axis_angle_to_rotation(axis_angle: _ArrayT) -> _ArrayT:
+    """Rotation matrices from axis-angle vectors (kornia's ``axis_angle_to_rotation_matrix``).
+
+    A vector is the unit rotation axis times the angle in radians; a positive angle turns
+    counter-clockwise about the axis (right-hand rule), so ``(0, 0, a)`` is ``R_z(a)``.
+
+    Args:
+        axis_angle: vectors, shape ``(*, 3)``: a floating tensor (on any device), or a numpy
+            array, computed in float64.
+
+    Returns:
+        Rotations ``(*, 3, 3)``: a tensor in the input's dtype and on its device, or a float64
+        numpy array for a numpy input.
+
+    Raises:
+        ShapeError: the last dimension is not 3, or a tensor is not floating point.
+
+    Example:
+        >>> R = axis_angle_to_rotation(torch.tensor([0.0, 0.0, math.pi / 2]))
+        >>> R.round(decimals=6) + 0.0  # + 0.0: no -0. in the output
+        tensor([[ 0., -1.,  0.],
+                [ 1.,  0.,  0.],
+                [ 0.,  0.,  1.]])
+    """
+    return _convert(axis_angle_to_rotation_matrix, axis_angle, "axis_angle", 3)
+
+
+def quaternion_to_rotation(quaternion: _ArrayT) -> _ArrayT:
+    """Rotation matrices from quaternions (kornia's ``quaternion_to_rotation_matrix``).
+
+    A quaternion is ``(w, x, y, z)``, the real part first, as in kornia. It need not have unit
+    norm (it is normalised first), and ``q`` and ``-q`` give the same rotation. Tensors and numpy
+    arrays are handled as by :func:`axis_angle_to_rotation`.
+
+    Args:
+        quaternion: quaternions, shape ``(*, 4)``.
+
+    Returns:
+        Rotations, shape ``(*, 3, 3)``.
+
+    Raises:
+        ShapeError: the last dimension is not 4, or a tensor is not floating point.
+
+    Example:
+        >>> quaternion_to_rotation(torch.tensor([[1.0, 0.0, 0.0, 0.0]]))[0]
+        tensor([[1., 0., 0.],
+                [0., 1., 0.],
+                [0., 0., 1.]])
+    """
+    return _convert(quaternion_to_rotation_matrix, quaternion, "quaternion", 4)
+
+
+def _convert(
+    fn: Callable[[torch.Tensor], torch.Tensor], x: _ArrayT, name: str, size: int
+) -> _ArrayT:
+    """Apply a kornia conversion to a tensor, or to a numpy array in float64."""
+    if isinstance(x, torch.Tensor):
+        check_tensor(x, name, ("*", size))
+        return fn(x)
+    x64 = torch.tensor(np.asarray(x, dtype=np.float64))
+    check_tensor(x64, name, ("*", size))
+    return fn(x64).numpy()
 
 
 def from_Rt(R: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
@@ -206,17 +283,7 @@ def random_rotation(
     if device is None:
         device = generator.device if generator is not None else "cpu"
     q = torch.randn(B, 4, generator=generator, dtype=torch.float64, device=device)
-    q = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    w, x, y, z = q.unbind(-1)
-    R = torch.stack(
-        (
-            1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
-            2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w),
-            2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y),
-        ),
-        -1,
-    ).reshape(B, 3, 3)  # fmt: skip
-    return R.to(dtype)
+    return quaternion_to_rotation(q).to(dtype)
 
 
 def random_transform(
@@ -247,12 +314,7 @@ def random_transform(
     kw = {"generator": generator, "dtype": torch.float64, "device": device}
     axis = torch.randn(B, 3, **kw)
     axis = axis / axis.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    angle = torch.rand(B, 1, **kw) * max_angle
-    K = torch.zeros(B, 3, 3, dtype=torch.float64, device=device)
-    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -axis[:, 2], axis[:, 1], -axis[:, 0]
-    K = K - K.transpose(1, 2)
-    s, c = torch.sin(angle)[..., None], torch.cos(angle)[..., None]
-    R = torch.eye(3, dtype=torch.float64, device=device) + s * K + (1 - c) * (K @ K)
+    R = axis_angle_to_rotation(axis * (torch.rand(B, 1, **kw) * max_angle))
     direction = torch.randn(B, 3, **kw)
     direction = direction / direction.norm(dim=-1, keepdim=True).clamp_min(1e-12)
     t = direction * torch.rand(B, 1, **kw).pow(1 / 3) * max_translation

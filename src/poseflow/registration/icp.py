@@ -20,156 +20,25 @@ import math
 import numbers
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import torch
 
+from poseflow._api import Solver
 from poseflow._checks import check_mask, check_same, check_tensor
 from poseflow.errors import ValueRangeError
 from poseflow.geometry.neighbors import NeighborIndex, NeighborTracker
 from poseflow.registration._threads import serial_cpu_ops
-from poseflow.registration.procrustes import _moments, _rigid, _solve, _well_posed, _zero_masked
+from poseflow.registration.procrustes import (
+    is_well_posed,
+    procrustes_moments,
+    rigid_from_svd,
+    solve_procrustes,
+    zero_masked_points,
+)
 from poseflow.registration.result import RegistrationResult
 
 __all__ = ["ICP", "MultiScaleICP", "icp", "multi_scale_icp"]
-
-
-class ICP:
-    """Point-to-point ICP solver: stores the hyper-parameters, registers when called.
-
-    See :func:`icp` for the algorithm, arguments and result.
-
-    Example:
-        >>> g = torch.Generator().manual_seed(0)
-        >>> cloud = torch.rand(1, 300, 3, generator=g)
-        >>> result = ICP(max_correspondence_distance=0.2)(cloud, cloud + 0.01)
-        >>> result.transformation[0, :3, 3]
-        tensor([0.0100, 0.0100, 0.0100])
-    """
-
-    def __init__(
-        self,
-        *,
-        max_correspondence_distance: float,
-        max_iterations: int = 30,
-        relative_fitness: float = 1e-6,
-        relative_rmse: float = 1e-6,
-    ) -> None:
-        _check_distance(max_correspondence_distance, "max_correspondence_distance")
-        _check_iterations(max_iterations)
-        _check_relative(relative_fitness, relative_rmse)
-        self.max_correspondence_distance = float(max_correspondence_distance)
-        self.max_iterations = max_iterations
-        self.relative_fitness = float(relative_fitness)
-        self.relative_rmse = float(relative_rmse)
-
-    def __repr__(self) -> str:
-        return (
-            f"ICP(max_correspondence_distance={self.max_correspondence_distance}, "
-            f"max_iterations={self.max_iterations}, relative_fitness={self.relative_fitness}, "
-            f"relative_rmse={self.relative_rmse})"
-        )
-
-    def __call__(
-        self,
-        source: torch.Tensor,
-        target: torch.Tensor,
-        init: torch.Tensor | None = None,
-        *,
-        source_mask: torch.Tensor | None = None,
-        target_mask: torch.Tensor | None = None,
-    ) -> RegistrationResult:
-        """Register; arguments and result as in :func:`icp`."""
-        with serial_cpu_ops(source):
-            problem = _Problem.make(source, target, init, source_mask, target_mask)
-            state = _scale(
-                problem,
-                problem.init,
-                self.max_correspondence_distance,
-                self.max_iterations,
-                self.relative_fitness,
-                self.relative_rmse,
-            )
-            return problem.result(state)
-
-
-class MultiScaleICP:
-    """Coarse-to-fine point-to-point ICP solver; see :func:`multi_scale_icp`.
-
-    Example:
-        >>> g = torch.Generator().manual_seed(0)
-        >>> cloud = torch.rand(1, 300, 3, generator=g)
-        >>> solver = MultiScaleICP(max_correspondence_distances=[0.3, 0.1, 0.03])
-        >>> solver(cloud, cloud + 0.02).transformation[0, :3, 3]
-        tensor([0.0200, 0.0200, 0.0200])
-    """
-
-    def __init__(
-        self,
-        *,
-        max_correspondence_distances: Sequence[float],
-        max_iterations: int | Sequence[int] = 30,
-        relative_fitness: float = 1e-6,
-        relative_rmse: float = 1e-6,
-    ) -> None:
-        distances = [float(d) for d in max_correspondence_distances]
-        if not distances:
-            raise ValueRangeError("max_correspondence_distances must not be empty")
-        for d in distances:
-            _check_distance(d, "max_correspondence_distances")
-        if any(b > a for a, b in itertools.pairwise(distances)):
-            raise ValueRangeError(
-                f"max_correspondence_distances must go from coarse to fine (non-increasing), "
-                f"got {distances}"
-            )
-        if isinstance(max_iterations, int) and not isinstance(max_iterations, bool):
-            iterations = [max_iterations] * len(distances)
-        else:
-            iterations = list(max_iterations)
-            if len(iterations) != len(distances):
-                raise ValueRangeError(
-                    f"max_iterations has {len(iterations)} entries for {len(distances)} scales"
-                )
-        for it in iterations:
-            _check_iterations(it)
-        _check_relative(relative_fitness, relative_rmse)
-        self.max_correspondence_distances = distances
-        self.max_iterations = iterations
-        self.relative_fitness = float(relative_fitness)
-        self.relative_rmse = float(relative_rmse)
-
-    def __repr__(self) -> str:
-        return (
-            f"MultiScaleICP(max_correspondence_distances={self.max_correspondence_distances}, "
-            f"max_iterations={self.max_iterations}, relative_fitness={self.relative_fitness}, "
-            f"relative_rmse={self.relative_rmse})"
-        )
-
-    def __call__(
-        self,
-        source: torch.Tensor,
-        target: torch.Tensor,
-        init: torch.Tensor | None = None,
-        *,
-        source_mask: torch.Tensor | None = None,
-        target_mask: torch.Tensor | None = None,
-    ) -> RegistrationResult:
-        """Register; arguments and result as in :func:`multi_scale_icp`."""
-        scales = list(zip(self.max_correspondence_distances, self.max_iterations))
-        fit, rmse = self.relative_fitness, self.relative_rmse
-        with serial_cpu_ops(source):
-            problem = _Problem.make(source, target, init, source_mask, target_mask)
-            T = problem.init
-            iterations = torch.zeros(problem.B, dtype=torch.int64, device=T.device)
-            for distance, max_it in scales[:-1]:
-                state = _scale(problem, T, distance, max_it, fit, rmse)
-                iterations += state.iterations
-                # An instance that found too few pairs at this scale keeps its previous estimate.
-                T = torch.where(state.valid[:, None, None], state.T, T)
-            distance, max_it = scales[-1]
-            state = _scale(problem, T, distance, max_it, fit, rmse)
-            state.iterations += iterations
-            return problem.result(state)
 
 
 def icp(
@@ -222,13 +91,11 @@ def icp(
         tensor([[0.0200, 0.0200, 0.0200],
                 [0.0200, 0.0200, 0.0200]])
     """
-    solver = ICP(
-        max_correspondence_distance=max_correspondence_distance,
-        max_iterations=max_iterations,
-        relative_fitness=relative_fitness,
-        relative_rmse=relative_rmse,
-    )
-    return solver(source, target, init, source_mask=source_mask, target_mask=target_mask)
+    _check_distance(max_correspondence_distance, "max_correspondence_distance")
+    _check_iterations(max_iterations)
+    relative = _check_relative(relative_fitness, relative_rmse)
+    scales = [_Scale(float(max_correspondence_distance), max_iterations, *relative)]
+    return _register(source, target, init, source_mask, target_mask, scales)
 
 
 def multi_scale_icp(
@@ -278,13 +145,100 @@ def multi_scale_icp(
         >>> result.transformation[0, :3, 3]
         tensor([0.0500, 0.0500, 0.0500])
     """
-    solver = MultiScaleICP(
-        max_correspondence_distances=max_correspondence_distances,
-        max_iterations=max_iterations,
-        relative_fitness=relative_fitness,
-        relative_rmse=relative_rmse,
-    )
-    return solver(source, target, init, source_mask=source_mask, target_mask=target_mask)
+    distances, iterations = _check_scales(max_correspondence_distances, max_iterations)
+    relative = _check_relative(relative_fitness, relative_rmse)
+    scales = [_Scale(d, it, *relative) for d, it in zip(distances, iterations)]
+    return _register(source, target, init, source_mask, target_mask, scales)
+
+
+def _register(
+    source: torch.Tensor,
+    target: torch.Tensor,
+    init: torch.Tensor | None,
+    source_mask: torch.Tensor | None,
+    target_mask: torch.Tensor | None,
+    scales: Sequence[_Scale],
+) -> RegistrationResult:
+    """ICP over checked scales, coarse to fine."""
+    with serial_cpu_ops(source):
+        problem = _Problem.make(source, target, init, source_mask, target_mask)
+        T, counts = problem.init, []
+        for scale in scales[:-1]:
+            state = _scale(problem, T, scale)
+            counts.append(state.iterations)
+            # An instance that found too few pairs at this scale keeps its previous estimate.
+            T = torch.where(state.valid[:, None, None], state.T, T)
+        state = _scale(problem, T, scales[-1])
+        for count in counts:
+            state.iterations += count
+        return problem.result(state)
+
+
+class ICP(Solver[RegistrationResult]):
+    """Point-to-point ICP solver: stores the hyper-parameters, registers when called.
+
+    ``ICP(**hyper)(source, target, init, source_mask=..., target_mask=...)`` is
+    :func:`icp` with those hyper-parameters; see it for the algorithm, arguments and result.
+
+    Example:
+        >>> g = torch.Generator().manual_seed(0)
+        >>> cloud = torch.rand(1, 300, 3, generator=g)
+        >>> result = ICP(max_correspondence_distance=0.2)(cloud, cloud + 0.01)
+        >>> result.transformation[0, :3, 3]
+        tensor([0.0100, 0.0100, 0.0100])
+    """
+
+    function = staticmethod(icp)
+
+    def __init__(
+        self,
+        *,
+        max_correspondence_distance: float,
+        max_iterations: int = 30,
+        relative_fitness: float = 1e-6,
+        relative_rmse: float = 1e-6,
+    ) -> None:
+        _check_distance(max_correspondence_distance, "max_correspondence_distance")
+        _check_iterations(max_iterations)
+        self.max_correspondence_distance = float(max_correspondence_distance)
+        self.max_iterations = max_iterations
+        self.relative_fitness, self.relative_rmse = _check_relative(relative_fitness, relative_rmse)
+
+
+class MultiScaleICP(Solver[RegistrationResult]):
+    """Coarse-to-fine point-to-point ICP solver; calling it runs :func:`multi_scale_icp`.
+
+    Example:
+        >>> g = torch.Generator().manual_seed(0)
+        >>> cloud = torch.rand(1, 300, 3, generator=g)
+        >>> solver = MultiScaleICP(max_correspondence_distances=[0.3, 0.1, 0.03])
+        >>> solver(cloud, cloud + 0.02).transformation[0, :3, 3]
+        tensor([0.0200, 0.0200, 0.0200])
+    """
+
+    function = staticmethod(multi_scale_icp)
+
+    def __init__(
+        self,
+        *,
+        max_correspondence_distances: Sequence[float],
+        max_iterations: int | Sequence[int] = 30,
+        relative_fitness: float = 1e-6,
+        relative_rmse: float = 1e-6,
+    ) -> None:
+        self.max_correspondence_distances, self.max_iterations = _check_scales(
+            max_correspondence_distances, max_iterations
+        )
+        self.relative_fitness, self.relative_rmse = _check_relative(relative_fitness, relative_rmse)
+
+
+class _Scale(NamedTuple):
+    """One scale of ICP: its correspondence distance, iteration cap and stopping thresholds."""
+
+    distance: float
+    max_iterations: int
+    relative_fitness: float
+    relative_rmse: float
 
 
 @dataclass
@@ -338,8 +292,8 @@ class _Problem:
             if mask is not None:
                 check_mask(mask, name, ("B", letter), sizes)
                 check_same(("source", source), (name, mask), dtype=False)
-        source = _zero_masked(source, source_mask, "source")
-        target = _zero_masked(target, target_mask, "target")
+        source = zero_masked_points(source, source_mask, "source")
+        target = zero_masked_points(target, target_mask, "target")
         if source_mask is None:
             source_mask = torch.ones(B, N, dtype=torch.bool, device=source.device)
         return cls(
@@ -369,7 +323,7 @@ class _Problem:
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """:meth:`evaluate` for the whole batch with no check and no host synchronisation."""
         moved = torch.baddbmm(T[:, None, :3, 3], self.source, T[:, :3, :3].transpose(1, 2))
-        dist, idx = self.index._search(moved, 1, distance)
+        dist, idx = self.index.query_unchecked(moved, 1, distance)
         return self._pairs(slice(None), dist, idx, distance)
 
     def _pairs(
@@ -396,31 +350,16 @@ class _Problem:
         )
 
 
-def _scale(
-    problem: _Problem,
-    T: torch.Tensor,
-    distance: float,
-    max_iterations: int,
-    relative_fitness: float,
-    relative_rmse: float,
-) -> _State:
+def _scale(problem: _Problem, T: torch.Tensor, scale: _Scale) -> _State:
     """One scale of ICP: the early-exit loop on the CPU, fixed graph-replayed steps on CUDA."""
     if T.device.type == "cuda":
-        return _run_scale_fixed(
-            problem, T, distance, max_iterations, relative_fitness, relative_rmse, capture=True
-        )
-    return _run_scale(problem, T, distance, max_iterations, relative_fitness, relative_rmse)
+        return _run_scale_fixed(problem, T, scale, capture=True)
+    return _run_scale(problem, T, scale)
 
 
-def _run_scale(
-    problem: _Problem,
-    T: torch.Tensor,
-    distance: float,
-    max_iterations: int,
-    relative_fitness: float,
-    relative_rmse: float,
-) -> _State:
+def _run_scale(problem: _Problem, T: torch.Tensor, scale: _Scale) -> _State:
     """Iterate ICP at one correspondence distance from ``T``; returns the state at the end."""
+    distance, max_iterations, relative_fitness, relative_rmse = scale
     T = T.clone()
     tracker = NeighborTracker(problem.index, max_distance=distance)
     inliers, matched, fitness, rmse = problem.evaluate(T, tracker)
@@ -435,7 +374,7 @@ def _run_scale(
         # Only the instances still iterating are solved and searched.
         items = None if n_active == B else active.nonzero()[:, 0]
         sel = slice(None) if items is None else items
-        T_new, ok = _solve(problem.source[sel], matched[sel], inliers[sel].to(T.dtype))
+        T_new, ok = solve_procrustes(problem.source[sel], matched[sel], inliers[sel].to(T.dtype))
         T_new = torch.where(ok[:, None, None], T_new, T[sel])
         new_inliers, new_matched, new_fitness, new_rmse = problem.evaluate(T_new, tracker, items)
         going = _goes_on(
@@ -485,16 +424,7 @@ def _goes_on(
     return ok & ~converged & (new_inliers.sum(-1) >= 3)
 
 
-def _run_scale_fixed(
-    problem: _Problem,
-    T: torch.Tensor,
-    distance: float,
-    max_iterations: int,
-    relative_fitness: float,
-    relative_rmse: float,
-    *,
-    capture: bool,
-) -> _State:
+def _run_scale_fixed(problem: _Problem, T: torch.Tensor, scale: _Scale, *, capture: bool) -> _State:
     """:func:`_run_scale` as ``max_iterations`` identical masked steps on fixed buffers.
 
     Instances that stop are frozen by masks instead of leaving the batch, so every step runs the
@@ -503,6 +433,7 @@ def _run_scale_fixed(
     replayed, which removes most of the launch overhead that dominates ICP on small clouds
     there. Same results as :func:`_run_scale`.
     """
+    distance, max_iterations, relative_fitness, relative_rmse = scale
     dtype, B = T.dtype, problem.B
     T = T.clone()
     inliers, matched, fitness, rmse = problem.evaluate_unchecked(T, distance)
@@ -516,7 +447,7 @@ def _run_scale_fixed(
     S = torch.zeros(B, 3, **f64)
 
     def moments() -> None:
-        m_s, m_d, c, _, _ = _moments(problem.source, matched, inliers.to(dtype))
+        m_s, m_d, c, _, _ = procrustes_moments(problem.source, matched, inliers.to(dtype))
         mu_s.copy_(m_s)
         mu_d.copy_(m_d)
         cov.copy_(c)
@@ -526,8 +457,8 @@ def _run_scale_fixed(
             out.copy_(value)
 
     def finish() -> None:
-        ok = _well_posed(inliers.to(dtype), mu_s, mu_d, S)
-        T_new = torch.where(ok[:, None, None], _rigid(mu_s, mu_d, U, S, Vh, ok), T)
+        ok = is_well_posed(inliers.to(dtype), mu_s, mu_d, S)
+        T_new = torch.where(ok[:, None, None], rigid_from_svd(mu_s, mu_d, U, S, Vh, ok), T)
         new_inliers, new_matched, new_fitness, new_rmse = problem.evaluate_unchecked(
             T_new, distance
         )
@@ -607,9 +538,38 @@ def _check_iterations(value: int) -> None:
         raise ValueRangeError(f"max_iterations must be an int >= 1, got {value!r}")
 
 
-def _check_relative(relative_fitness: float, relative_rmse: float) -> None:
+def _check_scales(
+    max_correspondence_distances: Sequence[float], max_iterations: int | Sequence[int]
+) -> tuple[list[float], list[int]]:
+    """The scales' distances (floats, coarse to fine) and iterations, one per scale, checked."""
+    distances = [float(d) for d in max_correspondence_distances]
+    if not distances:
+        raise ValueRangeError("max_correspondence_distances must not be empty")
+    for d in distances:
+        _check_distance(d, "max_correspondence_distances")
+    if any(b > a for a, b in itertools.pairwise(distances)):
+        raise ValueRangeError(
+            f"max_correspondence_distances must go from coarse to fine (non-increasing), "
+            f"got {distances}"
+        )
+    if isinstance(max_iterations, int) and not isinstance(max_iterations, bool):
+        iterations = [max_iterations] * len(distances)
+    else:
+        iterations = list(max_iterations)
+        if len(iterations) != len(distances):
+            raise ValueRangeError(
+                f"max_iterations has {len(iterations)} entries for {len(distances)} scales"
+            )
+    for it in iterations:
+        _check_iterations(it)
+    return distances, iterations
+
+
+def _check_relative(relative_fitness: float, relative_rmse: float) -> tuple[float, float]:
+    """The two convergence thresholds as floats, checked to be >= 0."""
     if not (relative_fitness >= 0 and relative_rmse >= 0):
         raise ValueRangeError(
             f"relative_fitness and relative_rmse must be >= 0, got {relative_fitness}, "
             f"{relative_rmse}"
         )
+    return float(relative_fitness), float(relative_rmse)

@@ -4,10 +4,20 @@ from __future__ import annotations
 
 import torch
 
+from poseflow._api import Solver
 from poseflow._checks import check_mask, check_same, check_tensor
 from poseflow.errors import ValueRangeError
 
-__all__ = ["Procrustes", "procrustes"]
+__all__ = [
+    "Procrustes",
+    "check_pairs",
+    "is_well_posed",
+    "procrustes",
+    "procrustes_moments",
+    "rigid_from_svd",
+    "solve_procrustes",
+    "zero_masked_points",
+]
 
 
 def procrustes(
@@ -50,12 +60,14 @@ def procrustes(
         >>> T[0, :3, 3].round(decimals=4).tolist()
         [1.0, 2.0, 3.0]
     """
-    source, target, w = _check_pairs(source, target, weights, mask)
-    return _solve(source, target, w, with_scaling=with_scaling)[0]
+    source, target, w = check_pairs(source, target, weights, mask)
+    return solve_procrustes(source, target, w, with_scaling=with_scaling)[0]
 
 
-class Procrustes:
+class Procrustes(Solver[torch.Tensor]):
     """Solver object for :func:`procrustes`: stores ``with_scaling`` and solves when called.
+
+    ``Procrustes(with_scaling=...)(source, target, weights, mask)`` is :func:`procrustes`.
 
     Args:
         with_scaling: also estimate a uniform scale (Umeyama).
@@ -67,32 +79,33 @@ class Procrustes:
         torch.Size([1, 4, 4])
     """
 
+    function = staticmethod(procrustes)
+
     def __init__(self, *, with_scaling: bool = False) -> None:
         self.with_scaling = with_scaling
 
-    def __call__(
-        self,
-        source: torch.Tensor,
-        target: torch.Tensor,
-        weights: torch.Tensor | None = None,
-        mask: torch.Tensor | None = None,
-    ) -> torch.Tensor:
-        """Solve; arguments and result as in :func:`procrustes`."""
-        return procrustes(source, target, weights, mask, with_scaling=self.with_scaling)
 
-    def __repr__(self) -> str:
-        return f"Procrustes(with_scaling={self.with_scaling})"
-
-
-def _check_pairs(
+def check_pairs(
     source: torch.Tensor,
     target: torch.Tensor,
     weights: torch.Tensor | None,
     mask: torch.Tensor | None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Validate corresponding point sets; return them with masked pairs zeroed, and the weights.
+    """Validate corresponding point sets, as :func:`procrustes` and RANSAC-Procrustes take them.
 
-    The returned weights are ``(B, N)`` in the points' dtype, zero at masked pairs.
+    Args:
+        source: source points ``(B, N, 3)``.
+        target: corresponding target points ``(B, N, 3)``, same device and dtype.
+        weights: non-negative weights ``(B, N)``, or None for all ones.
+        mask: ``(B, N)`` bool, True for pairs to use, or None; masked pairs may hold NaN.
+
+    Returns:
+        ``(source, target, weights)``: the points with masked pairs zeroed, and the weights
+        ``(B, N)`` in the points' dtype, zero at masked pairs.
+
+    Raises:
+        ShapeError: wrong shapes, mismatched devices or dtypes, a non-bool mask.
+        ValueRangeError: NaN/inf at unmasked pairs, negative or non-finite weights.
     """
     sizes = check_tensor(source, "source", ("B", "N", 3))
     check_tensor(target, "target", ("B", "N", 3), sizes=sizes)
@@ -100,8 +113,8 @@ def _check_pairs(
     if mask is not None:
         check_mask(mask, "mask", ("B", "N"), sizes)
         check_same(("source", source), ("mask", mask), dtype=False)
-    source = _zero_masked(source, mask, "source")
-    target = _zero_masked(target, mask, "target")
+    source = zero_masked_points(source, mask, "source")
+    target = zero_masked_points(target, mask, "target")
     if weights is None:
         w = torch.ones(source.shape[:2], dtype=source.dtype, device=source.device)
     else:
@@ -115,8 +128,20 @@ def _check_pairs(
     return source, target, w
 
 
-def _zero_masked(points: torch.Tensor, mask: torch.Tensor | None, name: str) -> torch.Tensor:
-    """Raise on NaN/inf at valid points; return ``points`` with masked points set to zero."""
+def zero_masked_points(points: torch.Tensor, mask: torch.Tensor | None, name: str) -> torch.Tensor:
+    """Check that the valid points are finite and set the masked ones to zero.
+
+    Args:
+        points: points ``(B, N, 3)``.
+        mask: ``(B, N)`` bool, True for valid points, or None (all valid).
+        name: the argument's name, used in the error message.
+
+    Returns:
+        ``points`` ``(B, N, 3)``, zero where ``mask`` is False.
+
+    Raises:
+        ValueRangeError: NaN or inf at a valid point.
+    """
     if mask is None:
         if points.numel() and not bool(torch.isfinite(points).all()):
             raise ValueRangeError(f"{name} contains NaN or inf")
@@ -126,39 +151,52 @@ def _zero_masked(points: torch.Tensor, mask: torch.Tensor | None, name: str) -> 
     return torch.where(mask[..., None], points, 0)
 
 
-def _solve(
+def solve_procrustes(
     source: torch.Tensor,
     target: torch.Tensor,
     weights: torch.Tensor,
     *,
     with_scaling: bool = False,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Unchecked weighted Procrustes on ``(B, N, 3)`` pairs with ``(B, N)`` weights (0 = unused).
+    """:func:`procrustes` without the input checks, also saying which instances were solvable.
+
+    Args:
+        source: source points ``(B, N, 3)``, finite.
+        target: corresponding target points ``(B, N, 3)``, finite, same device and dtype.
+        weights: non-negative weights ``(B, N)`` in the points' dtype (0 = unused pair).
+        with_scaling: also estimate a uniform scale (Umeyama).
 
     Returns:
         ``(T, ok)``: transforms ``(B, 4, 4)`` in the points' dtype, the identity where ``ok``
         ``(B,)`` is False (fewer than 3 weighted points, collinear or coincident points).
     """
-    mu_s, mu_d, cov64, xs, xs_w = _moments(source, target, weights)
+    mu_s, mu_d, cov64, xs, xs_w = procrustes_moments(source, target, weights)
     U, S, Vh = torch.linalg.svd(cov64.detach() if cov64.requires_grad else cov64)
-    ok = _well_posed(weights, mu_s, mu_d, S)
+    ok = is_well_posed(weights, mu_s, mu_d, S)
     if cov64.requires_grad:
         # Differentiate a well-conditioned stand-in where the solution is not unique, so that the
         # SVD's backward stays finite there (those instances get the identity and zero gradient).
         stand_in = torch.diag(torch.tensor([3.0, 2.0, 1.0], dtype=torch.float64, device=U.device))
         U, S, Vh = torch.linalg.svd(torch.where(ok[:, None, None], cov64, stand_in))
     spread = (xs * xs_w).sum((1, 2)).to(torch.float64) if with_scaling else None
-    return _rigid(mu_s, mu_d, U, S, Vh, ok, spread=spread), ok
+    return rigid_from_svd(mu_s, mu_d, U, S, Vh, ok, spread=spread), ok
 
 
-def _moments(
+def procrustes_moments(
     source: torch.Tensor, target: torch.Tensor, weights: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Weighted moments of ``(B, N, 3)`` pairs with ``(B, N)`` weights.
+    """Weighted moments of corresponding points, the first step of :func:`solve_procrustes`.
+
+    Args:
+        source: source points ``(B, N, 3)``.
+        target: corresponding target points ``(B, N, 3)``.
+        weights: non-negative weights ``(B, N)`` in the points' dtype.
 
     Returns:
-        Centroids ``(B, 3)`` of source and target, the float64 cross-covariance ``(B, 3, 3)``, the
-        centred source ``(B, N, 3)`` and its weighted copy.
+        ``(mu_s, mu_d, cov, xs, xs_w)``: the weighted centroids ``(B, 3)`` of source and target,
+        the float64 cross-covariance ``(B, 3, 3)`` (``sum_i w_i xd_i xs_i^T`` of the centred
+        points, weights normalised to sum to 1), the centred source ``(B, N, 3)`` and its weighted
+        copy ``(B, N, 3)``.
     """
     total = weights.sum(-1, keepdim=True)  # (B, 1)
     wn = (weights / total.clamp_min(torch.finfo(source.dtype).tiny)).unsqueeze(1)  # (B, 1, N)
@@ -171,14 +209,23 @@ def _moments(
     return mu_s, mu_d, cov.to(torch.float64), xs, xs_w
 
 
-def _well_posed(
+def is_well_posed(
     weights: torch.Tensor, mu_s: torch.Tensor, mu_d: torch.Tensor, S: torch.Tensor
 ) -> torch.Tensor:
-    """``(B,)`` bool: the rotation is unique, from the cross-covariance's singular values ``S``.
+    """Which instances have a unique Procrustes rotation, from the cross-covariance's SVD.
 
     Unique iff the cross-covariance has rank >= 2, judged against the rounding noise of the
     input dtype: the second singular value must stand out of the first, and the first out of
-    the noise left by centring (coincident points).
+    the noise left by centring (coincident points); at least 3 pairs must have weight.
+
+    Args:
+        weights: the weights ``(B, N)`` of the pairs.
+        mu_s: source centroids ``(B, 3)`` in the points' dtype.
+        mu_d: target centroids ``(B, 3)``.
+        S: singular values ``(B, 3)`` of the float64 cross-covariance, in decreasing order.
+
+    Returns:
+        ``(B,)`` bool, True where the rotation is unique.
     """
     eps = torch.finfo(mu_s.dtype).eps
     scale = (mu_s.square().sum(-1) + mu_d.square().sum(-1)).detach().to(torch.float64)
@@ -190,7 +237,7 @@ def _well_posed(
     )
 
 
-def _rigid(
+def rigid_from_svd(
     mu_s: torch.Tensor,
     mu_d: torch.Tensor,
     U: torch.Tensor,
@@ -200,10 +247,23 @@ def _rigid(
     *,
     spread: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """Transforms ``(B, 4, 4)`` in the centroids' dtype from the SVD of the cross-covariance.
+    """The Procrustes transforms from the SVD ``U diag(S) Vh`` of the cross-covariance.
 
-    ``spread`` (the weighted sum of squared centred source norms, ``(B,)``) adds the similarity
-    scale; instances that are not ``ok`` get the identity.
+    The rotation is ``U diag(1, 1, d) Vh`` with ``d = det(U Vh)`` (never a reflection) and the
+    translation maps the source centroid onto the target centroid.
+
+    Args:
+        mu_s: source centroids ``(B, 3)``; their dtype is the result's.
+        mu_d: target centroids ``(B, 3)``.
+        U: left singular vectors ``(B, 3, 3)``, float64.
+        S: singular values ``(B, 3)``, float64.
+        Vh: right singular vectors, transposed, ``(B, 3, 3)``, float64.
+        ok: ``(B,)`` bool; instances where it is False get the identity.
+        spread: the weighted sum of squared centred source norms ``(B,)`` (float64) to also
+            estimate a uniform scale (Umeyama), or None for a rigid transform.
+
+    Returns:
+        Transforms ``(B, 4, 4)`` in the centroids' dtype.
     """
     dtype = mu_s.dtype
     # det(U Vh) = det(U) det(Vh), each the triple product of its columns (or rows).

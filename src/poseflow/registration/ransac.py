@@ -17,9 +17,11 @@ import math
 
 import torch
 
+from poseflow._api import Solver
 from poseflow.errors import ValueRangeError
+from poseflow.geometry.se3 import from_Rt
 from poseflow.registration._threads import serial_cpu_ops
-from poseflow.registration.procrustes import _check_pairs, _solve
+from poseflow.registration.procrustes import check_pairs, solve_procrustes
 from poseflow.registration.result import RegistrationResult
 
 __all__ = ["RANSACProcrustes", "ransac_procrustes"]
@@ -32,176 +34,16 @@ _FIRST_CHUNK = 64
 _MAX_REFITS = 10
 
 
-class RANSACProcrustes:
-    """RANSAC-Procrustes solver: stores the hyper-parameters, registers when called.
-
-    See :func:`ransac_procrustes` for the algorithm, arguments and result.
-
-    Example:
-        >>> g = torch.Generator().manual_seed(0)
-        >>> src = torch.randn(2, 50, 3, generator=g)
-        >>> solver = RANSACProcrustes(max_correspondence_distance=0.05, max_iterations=100)
-        >>> result = solver(src, src + 1.0, generator=g)
-        >>> result.valid.tolist(), result.fitness.tolist()
-        ([True, True], [1.0, 1.0])
-    """
-
-    def __init__(
-        self,
-        *,
-        max_correspondence_distance: float,
-        max_iterations: int = 1000,
-        sample_size: int = 3,
-        confidence: float = 0.999,
-    ) -> None:
-        if not (math.isfinite(max_correspondence_distance) and max_correspondence_distance > 0):
-            raise ValueRangeError(
-                "max_correspondence_distance must be finite and > 0, "
-                f"got {max_correspondence_distance}"
-            )
-        if isinstance(max_iterations, bool) or not isinstance(max_iterations, int):
-            raise ValueRangeError(f"max_iterations must be an int, got {max_iterations!r}")
-        if max_iterations < 1:
-            raise ValueRangeError(f"max_iterations must be >= 1, got {max_iterations}")
-        if isinstance(sample_size, bool) or not isinstance(sample_size, int) or sample_size < 3:
-            raise ValueRangeError(f"sample_size must be an int >= 3, got {sample_size!r}")
-        if not 0 < confidence <= 1:
-            raise ValueRangeError(f"confidence must be in (0, 1], got {confidence}")
-        self.max_correspondence_distance = float(max_correspondence_distance)
-        self.max_iterations = max_iterations
-        self.sample_size = sample_size
-        self.confidence = float(confidence)
-
-    def __repr__(self) -> str:
-        return (
-            f"RANSACProcrustes(max_correspondence_distance={self.max_correspondence_distance}, "
-            f"max_iterations={self.max_iterations}, sample_size={self.sample_size}, "
-            f"confidence={self.confidence})"
-        )
-
-    def __call__(
-        self,
-        source: torch.Tensor,
-        target: torch.Tensor,
-        mask: torch.Tensor | None = None,
-        *,
-        generator: torch.Generator | None = None,
-    ) -> RegistrationResult:
-        """Register; arguments and result as in :func:`ransac_procrustes`."""
-        with serial_cpu_ops(source):
-            return self._register(source, target, mask, generator)
-
-    def _register(
-        self,
-        source: torch.Tensor,
-        target: torch.Tensor,
-        mask: torch.Tensor | None,
-        generator: torch.Generator | None,
-    ) -> RegistrationResult:
-        source, target, w = _check_pairs(source, target, None, mask)
-        valid = w > 0
-        B, N = source.shape[:2]
-        dtype, device = source.dtype, source.device
-        s, H = self.sample_size, self.max_iterations
-        tau2 = self.max_correspondence_distance**2
-        n_valid = valid.sum(-1)
-        possible = n_valid >= s
-        if not bool(possible.any()):
-            return _invalid(B, N, dtype, device)
-
-        # Centre both clouds (on their valid points) so the expanded residuals keep precision.
-        wn = (w / n_valid.clamp_min(1).to(dtype).unsqueeze(-1)).unsqueeze(-1)
-        centre_s, centre_d = (wn * source).sum(1), (wn * target).sum(1)  # (B, 3)
-        src = (source - centre_s.unsqueeze(1)) * w.unsqueeze(-1)
-        dst = (target - centre_d.unsqueeze(1)) * w.unsqueeze(-1)
-        norms = src.square().sum(-1) + dst.square().sum(-1)
-        big = torch.finfo(dtype).max / 64  # never an inlier, no overflow in a 17-term sum
-        features = torch.cat(
-            (
-                (dst.unsqueeze(-1) * src.unsqueeze(-2)).reshape(B, N, 9),
-                dst,
-                src,
-                torch.where(valid, norms, big).unsqueeze(-1),
-                torch.ones(B, N, 1, dtype=dtype, device=device),
-            ),
-            -1,
-        ).transpose(1, 2)  # (B, 17, N)
-
-        # Minimal samples: the same uniform draws for every instance, mapped to distinct ranks
-        # among that instance's valid points, so an instance's result does not depend on the batch.
-        gen_device = generator.device if generator is not None else device
-        u = torch.rand(H, s, generator=generator, dtype=torch.float64, device=gen_device)
-        ranks = _distinct_ranks(u.to(device), n_valid.clamp_min(s))  # (B, H, s)
-        order = torch.argsort((~valid).to(torch.uint8), dim=1, stable=True)  # valid points first
-        samples = order.gather(1, ranks.reshape(B, H * s)).reshape(B, H, s)
-
-        counts = torch.full((B, H), -1, dtype=torch.int32, device=device)
-        stop = torch.where(possible, H, 0)
-        done, chunk = 0, min(_FIRST_CHUNK, H)
-        max_chunk = max(_FIRST_CHUNK, _CHUNK_ELEMENTS // max(1, B * N))
-        while done < H:
-            hc = min(chunk, H - done)
-            R, t, ok = _hypotheses(src, dst, samples[:, done : done + hc])
-            coeffs = torch.cat(
-                (
-                    -2 * R.reshape(B, hc, 9),
-                    -2 * t,
-                    2 * (R.transpose(-1, -2) @ t.unsqueeze(-1)).squeeze(-1),
-                    torch.ones(B, hc, 1, dtype=dtype, device=device),
-                    t.square().sum(-1, keepdim=True),
-                ),
-                -1,
-            )  # (B, hc, 17)
-            residual2 = coeffs @ features  # (B, hc, N)
-            count = (residual2 < tau2).sum(-1, dtype=torch.int32)
-            counts[:, done : done + hc] = torch.where(ok & possible[:, None], count, -1)
-            done += hc
-            chunk = min(2 * chunk, max_chunk)
-            if self.confidence < 1:
-                stop = _stopping_points(counts[:, :done], n_valid, s, self.confidence, possible, H)
-                if bool((stop <= done).all()):
-                    break
-
-        drawn = torch.arange(H, device=device).expand(B, H)
-        best = torch.where(drawn < stop[:, None], counts, -1).argmax(1)  # first of the maxima
-        best_samples = samples.gather(1, best.view(B, 1, 1).expand(B, 1, s))
-        R, t, ok = _hypotheses(src, dst, best_samples)
-        T = _from_Rt(R[:, 0], t[:, 0])
-        found = possible & ok[:, 0] & (counts.gather(1, best[:, None])[:, 0] >= s)
-
-        # Refit on the inlier set until it stops changing: each round lowers the truncated cost
-        # sum_n min(r_n^2, tau^2), so this settles (a few rounds) on a least-squares optimum.
-        inliers, res2 = _inliers(src, dst, T, valid, tau2)
-        active = found.clone()
-        for _ in range(_MAX_REFITS):
-            T_new, ok_new = _solve(src, dst, inliers.to(dtype))
-            inliers_new, res2_new = _inliers(src, dst, T_new, valid, tau2)
-            accept = active & ok_new
-            T = torch.where(accept[:, None, None], T_new, T)
-            active = accept & (inliers_new != inliers).any(-1)
-            inliers = torch.where(accept[:, None], inliers_new, inliers)
-            res2 = torch.where(accept[:, None], res2_new, res2)
-            if not bool(active.any()):
-                break
-
-        n_in = inliers.sum(-1)
-        found &= n_in >= s
-        # Undo the centring: x -> T (x - c_s) + c_d.
-        R, t = T[:, :3, :3], T[:, :3, 3]
-        t = t + centre_d - (R @ centre_s.unsqueeze(-1)).squeeze(-1)
-        return _finish(_from_Rt(R, t), inliers, res2, n_valid, stop, found)
-
-
 def ransac_procrustes(
     source: torch.Tensor,
     target: torch.Tensor,
     mask: torch.Tensor | None = None,
     *,
+    generator: torch.Generator | None = None,
     max_correspondence_distance: float,
     max_iterations: int = 1000,
     sample_size: int = 3,
     confidence: float = 0.999,
-    generator: torch.Generator | None = None,
 ) -> RegistrationResult:
     """Robustly fit the rigid transform mapping ``source`` onto ``target`` from putative pairs.
 
@@ -224,11 +66,11 @@ def ransac_procrustes(
         target: corresponding target points, shape ``(B, N, 3)``: pair ``n`` is
             ``(source[:, n], target[:, n])``.
         mask: optional ``(B, N)`` bool, True for pairs to use; masked pairs may hold NaN.
+        generator: optional seeded ``torch.Generator`` for reproducible samples.
         max_correspondence_distance: inlier threshold on the residual, in the points' unit.
         max_iterations: hypotheses per instance, at most.
         sample_size: pairs per minimal sample, at least 3.
         confidence: early-stopping confidence in ``(0, 1]``.
-        generator: optional seeded ``torch.Generator`` for reproducible samples.
 
     Returns:
         A :class:`~poseflow.registration.result.RegistrationResult`; ``num_iterations`` counts
@@ -253,13 +95,170 @@ def ransac_procrustes(
         >>> round(result.fitness.item(), 2)
         0.7
     """
-    solver = RANSACProcrustes(
-        max_correspondence_distance=max_correspondence_distance,
-        max_iterations=max_iterations,
-        sample_size=sample_size,
-        confidence=confidence,
+    distance, confidence = _check_hyperparameters(
+        max_correspondence_distance, max_iterations, sample_size, confidence
     )
-    return solver(source, target, mask, generator=generator)
+    with serial_cpu_ops(source):
+        return _register(
+            source, target, mask, generator, distance, max_iterations, sample_size, confidence
+        )
+
+
+def _check_hyperparameters(
+    max_correspondence_distance: float, max_iterations: int, sample_size: int, confidence: float
+) -> tuple[float, float]:
+    """Check RANSAC's hyper-parameters; the distance and the confidence as floats."""
+    if not (math.isfinite(max_correspondence_distance) and max_correspondence_distance > 0):
+        raise ValueRangeError(
+            f"max_correspondence_distance must be finite and > 0, got {max_correspondence_distance}"
+        )
+    if isinstance(max_iterations, bool) or not isinstance(max_iterations, int):
+        raise ValueRangeError(f"max_iterations must be an int, got {max_iterations!r}")
+    if max_iterations < 1:
+        raise ValueRangeError(f"max_iterations must be >= 1, got {max_iterations}")
+    if isinstance(sample_size, bool) or not isinstance(sample_size, int) or sample_size < 3:
+        raise ValueRangeError(f"sample_size must be an int >= 3, got {sample_size!r}")
+    if not 0 < confidence <= 1:
+        raise ValueRangeError(f"confidence must be in (0, 1], got {confidence}")
+    return float(max_correspondence_distance), float(confidence)
+
+
+def _register(
+    source: torch.Tensor,
+    target: torch.Tensor,
+    mask: torch.Tensor | None,
+    generator: torch.Generator | None,
+    max_correspondence_distance: float,
+    max_iterations: int,
+    sample_size: int,
+    confidence: float,
+) -> RegistrationResult:
+    """:func:`ransac_procrustes` with checked hyper-parameters."""
+    source, target, w = check_pairs(source, target, None, mask)
+    valid = w > 0
+    B, N = source.shape[:2]
+    dtype, device = source.dtype, source.device
+    s, H = sample_size, max_iterations
+    tau2 = max_correspondence_distance**2
+    n_valid = valid.sum(-1)
+    possible = n_valid >= s
+    if not bool(possible.any()):
+        return _invalid(B, N, dtype, device)
+
+    # Centre both clouds (on their valid points) so the expanded residuals keep precision.
+    wn = (w / n_valid.clamp_min(1).to(dtype).unsqueeze(-1)).unsqueeze(-1)
+    centre_s, centre_d = (wn * source).sum(1), (wn * target).sum(1)  # (B, 3)
+    src = (source - centre_s.unsqueeze(1)) * w.unsqueeze(-1)
+    dst = (target - centre_d.unsqueeze(1)) * w.unsqueeze(-1)
+    norms = src.square().sum(-1) + dst.square().sum(-1)
+    big = torch.finfo(dtype).max / 64  # never an inlier, no overflow in a 17-term sum
+    features = torch.cat(
+        (
+            (dst.unsqueeze(-1) * src.unsqueeze(-2)).reshape(B, N, 9),
+            dst,
+            src,
+            torch.where(valid, norms, big).unsqueeze(-1),
+            torch.ones(B, N, 1, dtype=dtype, device=device),
+        ),
+        -1,
+    ).transpose(1, 2)  # (B, 17, N)
+
+    # Minimal samples: the same uniform draws for every instance, mapped to distinct ranks
+    # among that instance's valid points, so an instance's result does not depend on the batch.
+    gen_device = generator.device if generator is not None else device
+    u = torch.rand(H, s, generator=generator, dtype=torch.float64, device=gen_device)
+    ranks = _distinct_ranks(u.to(device), n_valid.clamp_min(s))  # (B, H, s)
+    order = torch.argsort((~valid).to(torch.uint8), dim=1, stable=True)  # valid points first
+    samples = order.gather(1, ranks.reshape(B, H * s)).reshape(B, H, s)
+
+    counts = torch.full((B, H), -1, dtype=torch.int32, device=device)
+    stop = torch.where(possible, H, 0)
+    done, chunk = 0, min(_FIRST_CHUNK, H)
+    max_chunk = max(_FIRST_CHUNK, _CHUNK_ELEMENTS // max(1, B * N))
+    while done < H:
+        hc = min(chunk, H - done)
+        R, t, ok = _hypotheses(src, dst, samples[:, done : done + hc])
+        coeffs = torch.cat(
+            (
+                -2 * R.reshape(B, hc, 9),
+                -2 * t,
+                2 * (R.transpose(-1, -2) @ t.unsqueeze(-1)).squeeze(-1),
+                torch.ones(B, hc, 1, dtype=dtype, device=device),
+                t.square().sum(-1, keepdim=True),
+            ),
+            -1,
+        )  # (B, hc, 17)
+        residual2 = coeffs @ features  # (B, hc, N)
+        count = (residual2 < tau2).sum(-1, dtype=torch.int32)
+        counts[:, done : done + hc] = torch.where(ok & possible[:, None], count, -1)
+        done += hc
+        chunk = min(2 * chunk, max_chunk)
+        if confidence < 1:
+            stop = _stopping_points(counts[:, :done], n_valid, s, confidence, possible, H)
+            if bool((stop <= done).all()):
+                break
+
+    drawn = torch.arange(H, device=device).expand(B, H)
+    best = torch.where(drawn < stop[:, None], counts, -1).argmax(1)  # first of the maxima
+    best_samples = samples.gather(1, best.view(B, 1, 1).expand(B, 1, s))
+    R, t, ok = _hypotheses(src, dst, best_samples)
+    T = from_Rt(R[:, 0], t[:, 0])
+    found = possible & ok[:, 0] & (counts.gather(1, best[:, None])[:, 0] >= s)
+
+    # Refit on the inlier set until it stops changing: each round lowers the truncated cost
+    # sum_n min(r_n^2, tau^2), so this settles (a few rounds) on a least-squares optimum.
+    inliers, res2 = _inliers(src, dst, T, valid, tau2)
+    active = found.clone()
+    for _ in range(_MAX_REFITS):
+        T_new, ok_new = solve_procrustes(src, dst, inliers.to(dtype))
+        inliers_new, res2_new = _inliers(src, dst, T_new, valid, tau2)
+        accept = active & ok_new
+        T = torch.where(accept[:, None, None], T_new, T)
+        active = accept & (inliers_new != inliers).any(-1)
+        inliers = torch.where(accept[:, None], inliers_new, inliers)
+        res2 = torch.where(accept[:, None], res2_new, res2)
+        if not bool(active.any()):
+            break
+
+    n_in = inliers.sum(-1)
+    found &= n_in >= s
+    # Undo the centring: x -> T (x - c_s) + c_d.
+    R, t = T[:, :3, :3], T[:, :3, 3]
+    t = t + centre_d - (R @ centre_s.unsqueeze(-1)).squeeze(-1)
+    return _finish(from_Rt(R, t), inliers, res2, n_valid, stop, found)
+
+
+class RANSACProcrustes(Solver[RegistrationResult]):
+    """RANSAC-Procrustes solver: stores the hyper-parameters, registers when called.
+
+    ``RANSACProcrustes(**hyper)(source, target, mask, generator=...)`` is
+    :func:`ransac_procrustes` with those hyper-parameters; see it for the algorithm, arguments
+    and result.
+
+    Example:
+        >>> g = torch.Generator().manual_seed(0)
+        >>> src = torch.randn(2, 50, 3, generator=g)
+        >>> solver = RANSACProcrustes(max_correspondence_distance=0.05, max_iterations=100)
+        >>> result = solver(src, src + 1.0, generator=g)
+        >>> result.valid.tolist(), result.fitness.tolist()
+        ([True, True], [1.0, 1.0])
+    """
+
+    function = staticmethod(ransac_procrustes)
+
+    def __init__(
+        self,
+        *,
+        max_correspondence_distance: float,
+        max_iterations: int = 1000,
+        sample_size: int = 3,
+        confidence: float = 0.999,
+    ) -> None:
+        self.max_correspondence_distance, self.confidence = _check_hyperparameters(
+            max_correspondence_distance, max_iterations, sample_size, confidence
+        )
+        self.max_iterations = max_iterations
+        self.sample_size = sample_size
 
 
 def _distinct_ranks(u: torch.Tensor, n: torch.Tensor) -> torch.Tensor:
@@ -294,7 +293,7 @@ def _hypotheses(
     flat = samples.reshape(B, H * s, 1).expand(B, H * s, 3)
     ps = src.gather(1, flat).reshape(B * H, s, 3)
     pd = dst.gather(1, flat).reshape(B * H, s, 3)
-    T, ok = _solve(ps, pd, torch.ones(B * H, s, dtype=src.dtype, device=src.device))
+    T, ok = solve_procrustes(ps, pd, torch.ones(B * H, s, dtype=src.dtype, device=src.device))
     return T[:, :3, :3].reshape(B, H, 3, 3), T[:, :3, 3].reshape(B, H, 3), ok.reshape(B, H)
 
 
@@ -316,12 +315,6 @@ def _stopping_points(
     reached = drawn >= needed
     first = torch.where(reached.any(1), reached.to(torch.uint8).argmax(1) + 1, H)
     return torch.where(possible, first, 0)
-
-
-def _from_Rt(R: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
-    B = R.shape[0]
-    bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=R.dtype, device=R.device).expand(B, 1, 4)
-    return torch.cat((torch.cat((R, t.unsqueeze(-1)), -1), bottom), 1)
 
 
 def _inliers(
