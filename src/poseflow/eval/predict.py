@@ -12,13 +12,13 @@ import os
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any
 
 import torch
 
 from poseflow.data.bop import BOPDataset, Detection
 from poseflow.eval.recall import Target
 from poseflow.eval.results import PoseResults
+from poseflow.eval.timing import StageTimer
 
 __all__ = ["Estimator", "PoseEstimate", "predict_dataset"]
 
@@ -52,7 +52,7 @@ def predict_dataset(
     detections: Sequence[Detection] | None = None,
     load_rgb: bool = True,
     max_images: int | None = None,
-    timer: Any = None,
+    timer: StageTimer | None = None,
     progress: bool = False,
 ) -> PoseResults:
     """Estimate the poses of the target instances of every image of a split.
@@ -69,7 +69,8 @@ def predict_dataset(
         load_rgb: read the colour image (False passes ``rgb=None``).
         max_images: stop after this many images.
         timer: optional :class:`~poseflow.eval.timing.StageTimer`; each image runs in
-            ``timer.image()``.
+            ``timer.image()`` with the timer active (``timer.active()``), so that the stages the
+            estimator reports through :func:`~poseflow.eval.timing.stage` are charged to it.
         progress: show a progress bar.
 
     Returns:
@@ -116,7 +117,7 @@ def predict_dataset(
         if timer is None:
             est = estimator(rgb, depth, K, torch.stack(masks), obj_ids)
         else:
-            with timer.image():
+            with timer.active(), timer.image():
                 est = estimator(rgb, depth, K, torch.stack(masks), obj_ids)
         elapsed = time.perf_counter() - start
         ok = est.valid.cpu()
