@@ -38,6 +38,7 @@ tiny generated dataset).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import platform
 import shlex
@@ -69,7 +70,7 @@ METRICS = ("AR", "AR_VSD", "AR_MSSD", "AR_MSPD")
 PHASES = ("all", "features", "train", "score")
 TEST_SEED = 7
 #: The tensors of an :class:`~poseflow.models.Observation`, in its field order.
-OBSERVATION_FIELDS = ("obj_ids", "points", "normals", "mask", "valid", "geometric", "appearance")
+OBSERVATION_FIELDS = tuple(f.name for f in dataclasses.fields(Observation))
 
 
 def feature_key(cfg: FunFlow6DConfig) -> str:
