@@ -3,7 +3,7 @@ import dataclasses
 import pytest
 import torch
 
-from poseflow.models import FunFlow6DNet, NetConfig, NetInputs
+from poseflow.models import DiTOverrides, FunFlow6DNet, NetConfig, NetInputs
 
 CFG = NetConfig(
     geometric_dim=6, semantic_dim=5, feature_dim=8, fusion_heads=2, posenc_dim=8, dit_preset="tiny"
@@ -67,7 +67,7 @@ def test_gradients_reach_every_parameter():
 
 
 def test_dit_preset_fields_can_be_overridden():
-    net = FunFlow6DNet(NetConfig(**{**CFG.to_json(), "dit": {"hidden_dim": 48, "depth": 3}}))
+    net = FunFlow6DNet(dataclasses.replace(CFG, dit=DiTOverrides(hidden_dim=48, depth=3)))
     assert net.dit.config.hidden_dim == 48 and len(net.dit.blocks) == 3
     assert net.dit.config.cond_dim == CFG.feature_dim + CFG.posenc_dim
 

@@ -201,7 +201,6 @@ def _targets_option(args: argparse.Namespace, root: Path) -> str | bool | None:
 
 def _load_model(args: argparse.Namespace, device: Any) -> Any:
     from poseflow.errors import ValueRangeError
-    from poseflow.flows import get_sampler
     from poseflow.models import FunFlow6D
 
     if args.model is None:
@@ -219,9 +218,8 @@ def _load_model(args: argparse.Namespace, device: Any) -> Any:
         )
         if v is not None
     }
-    if changes:
+    if changes:  # validated here, before the first image
         model.config = model.config.replace(**changes)
-    get_sampler(model.config.solver, steps=model.config.steps)  # fail before the first image
     return model
 
 

@@ -3,16 +3,24 @@
 - :mod:`~poseflow.models.objects`: :class:`PreparedObject`, prepared once per object and cached;
 - :mod:`~poseflow.models.observe`: :class:`Observation`, the target clouds of an RGBD image;
 - :mod:`~poseflow.models.inputs`: :class:`FlowInputs`, the query and target clouds paired;
+- :mod:`~poseflow.models.config`: :class:`FunFlow6DConfig` and its typed parts;
 - :mod:`~poseflow.models.network`: :class:`FunFlow6DNet`, fusion + positional encoder + DiT;
 - :mod:`~poseflow.models.pose`: :func:`solve_pose` and :func:`agreement_score`;
 - :mod:`~poseflow.models.funflow6d`: :class:`FunFlow6D`, which composes them.
 """
 
 from poseflow.assets import DEMO_CHECKPOINT
-from poseflow.models.config import ABLATIONS, INFERENCE_FIELDS, FunFlow6DConfig
+from poseflow.models.config import (
+    ABLATIONS,
+    INFERENCE_FIELDS,
+    DiTOverrides,
+    FunFlow6DConfig,
+    NetConfig,
+    NetOptions,
+)
 from poseflow.models.funflow6d import FunFlow6D
 from poseflow.models.inputs import TRAINING_FIELDS, FlowInputs, reduce_appearance
-from poseflow.models.network import FunFlow6DNet, NetConfig, NetInputs
+from poseflow.models.network import FunFlow6DNet, NetInputs
 from poseflow.models.objects import PreparedObject, object_fingerprint, prepare_objects
 from poseflow.models.observe import Observation, observe
 from poseflow.models.pose import agreement_score, solve_pose
@@ -23,6 +31,7 @@ __all__ = [
     "DEMO_CHECKPOINT",
     "INFERENCE_FIELDS",
     "TRAINING_FIELDS",
+    "DiTOverrides",
     "FlowInputs",
     "FlowTrainingSet",
     "FunFlow6D",
@@ -30,6 +39,7 @@ __all__ = [
     "FunFlow6DNet",
     "NetConfig",
     "NetInputs",
+    "NetOptions",
     "Observation",
     "PreparedObject",
     "agreement_score",

@@ -33,7 +33,7 @@ __all__ = [
     "build_appearance_encoder",
     "build_geometric_encoder",
     "build_reducer",
-    "check_component_name",
+    "check_name",
 ]
 
 #: Kinds of :func:`build_geometric_encoder` (``"gedi"`` is written ``"gedi:PATH"``).
@@ -60,25 +60,25 @@ class FeatureReducer(Protocol):
         ...
 
 
-def check_component_name(
+def check_name(
     field: str, name: str, kinds: tuple[str, ...], *, takes_argument: bool = False
 ) -> str:
-    """Check that ``name`` names one of ``kinds``.
+    """Check that a configured name is one of a registry's.
 
     Args:
         field: the configuration field, for the message.
         name: the configured name.
-        kinds: the allowed kinds.
+        kinds: the allowed names.
         takes_argument: ``name`` may be ``"kind:ARGUMENT"`` (an encoder's weights).
 
     Returns:
-        The kind.
+        The name, without its argument.
 
     Raises:
-        ValueRangeError: an unknown kind, naming the allowed ones.
+        ValueRangeError: an unknown name; the message lists the allowed ones.
 
     Example:
-        >>> check_component_name(
+        >>> check_name(
         ...     "appearance_encoder", "dinov2:vits14", APPEARANCE_ENCODERS, takes_argument=True
         ... )
         'dinov2'
@@ -99,7 +99,7 @@ def build_geometric_encoder(name: str, *, radii: tuple[float, ...]) -> Geometric
         >>> build_geometric_encoder("fpfh", radii=(0.3, 0.4)).dim
         66
     """
-    kind = check_component_name("geometric_encoder", name, GEOMETRIC_ENCODERS, takes_argument=True)
+    kind = check_name("geometric_encoder", name, GEOMETRIC_ENCODERS, takes_argument=True)
     arg = name.partition(":")[2]
     if kind == "none":
         return None
@@ -120,9 +120,7 @@ def build_appearance_encoder(name: str, *, crop_size: int) -> AppearanceEncoder 
         >>> build_appearance_encoder("dsift", crop_size=64).dim
         128
     """
-    kind = check_component_name(
-        "appearance_encoder", name, APPEARANCE_ENCODERS, takes_argument=True
-    )
+    kind = check_name("appearance_encoder", name, APPEARANCE_ENCODERS, takes_argument=True)
     arg = name.partition(":")[2]
     if kind == "none":
         return None
@@ -141,7 +139,7 @@ def build_reducer(name: str, *, n_components: int, seed: int = 0) -> FeatureRedu
         >>> type(build_reducer("pca", n_components=8)).__name__
         'PCAReducer'
     """
-    check_component_name("reducer", name, REDUCERS)
+    check_name("reducer", name, REDUCERS)
     if name == "umap":
         return UMAPReducer(n_components=n_components, random_state=seed)
     if name == "pca":

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import torch
@@ -25,8 +25,9 @@ from poseflow.errors import ShapeError, ValueRangeError
 from poseflow.flows.dit import PointDiT
 from poseflow.flows.positional import PointPositionalEncoder
 from poseflow.fusion import build_fusion
+from poseflow.models.config import NetConfig
 
-__all__ = ["FunFlow6DNet", "NetConfig", "NetInputs"]
+__all__ = ["FunFlow6DNet", "NetInputs"]
 
 
 @dataclass(kw_only=True)
@@ -83,42 +84,6 @@ class NetInputs:
         }
 
 
-@dataclass(frozen=True, kw_only=True)
-class NetConfig:
-    """Sizes of :class:`FunFlow6DNet`.
-
-    Attributes:
-        geometric_dim: channels ``Dg`` of the frozen geometric descriptors.
-        semantic_dim: channels ``Ds`` of the (reduced) semantic descriptors.
-        feature_dim: fused channels ``D`` (paper: 64). A stream whose width differs from ``D``
-            goes through a learned linear adapter first.
-        fusion: ``"gated"`` (paper), ``"cross"``, ``"concat_mlp"`` or ``"sum"``.
-        fusion_heads: attention heads of the fusion block (paper: 4).
-        dropout: dropout of the fusion block (paper: 0.1).
-        posenc_dim: positional channels ``d_P``.
-        posenc_frequencies: octaves of the sinusoidal embedding of each attribute.
-        dit_preset: :class:`~poseflow.flows.dit.PointDiT` preset (``"paper"``, ``"small"``,
-            ``"tiny"``).
-        dit: overrides of the preset's :class:`~poseflow.flows.dit.PointDiTConfig` fields, e.g.
-            ``{"hidden_dim": 96}``.
-    """
-
-    geometric_dim: int = 64
-    semantic_dim: int = 64
-    feature_dim: int = 64
-    fusion: str = "gated"
-    fusion_heads: int = 4
-    dropout: float = 0.1
-    posenc_dim: int = 64
-    posenc_frequencies: int = 6
-    dit_preset: str = "small"
-    dit: dict[str, Any] = field(default_factory=dict)
-
-    def to_json(self) -> dict[str, Any]:
-        """The configuration as a JSON-serialisable dict."""
-        return asdict(self)
-
-
 class FunFlow6DNet(nn.Module):
     """Velocity network ``Ψ(t, X(t) | C)`` with ``C = [F | P]`` built from frozen descriptors.
 
@@ -152,9 +117,7 @@ class FunFlow6DNet(nn.Module):
             kwargs.update(num_heads=cfg.fusion_heads, dropout=cfg.dropout)
         self.fusion = build_fusion(cfg.fusion, **kwargs)
         self.posenc = PointPositionalEncoder(cfg.posenc_dim, num_frequencies=cfg.posenc_frequencies)
-        self.dit = PointDiT.from_preset(
-            cfg.dit_preset, **{**cfg.dit, "cond_dim": d + cfg.posenc_dim}
-        )
+        self.dit = PointDiT(cfg.dit_config())
 
     def condition(self, inputs: NetInputs, *, x_0: torch.Tensor) -> torch.Tensor:
         """The conditioning signal ``C = [F | P]`` of ``[Q ; T]``.
