@@ -310,17 +310,7 @@ class ClassicBaseline:
 
     def estimator(self) -> Estimator:
         """This baseline as an :data:`~poseflow.eval.predict.Estimator` (the colour is unused)."""
-
-        def estimate(
-            rgb: torch.Tensor | None,
-            depth: torch.Tensor,
-            K: torch.Tensor,
-            masks: torch.Tensor,
-            obj_ids: Sequence[int] | torch.Tensor,
-        ) -> PoseEstimate:
-            return self.estimate(depth, K, masks, obj_ids)
-
-        return estimate
+        return lambda rgb, depth, K, masks, obj_ids: self.estimate(depth, K, masks, obj_ids)
 
     def predict(
         self,

@@ -113,3 +113,11 @@ def test_every_ablation_row_is_a_valid_config(name):
     net = cfg.net_config(geometric_dim=66, semantic_dim=64)
     assert net.fusion == cfg.fusion
     assert dataclasses.asdict(net)["dit"] == dataclasses.asdict(cfg.net.dit)
+
+
+def test_a_missing_descriptor_stream_takes_the_other_width():
+    cfg = FunFlow6DConfig(geometric_encoder="none")
+    assert cfg.net_config(None, 64).geometric_dim == 64
+    assert cfg.net_config(66, None).semantic_dim == 66
+    with pytest.raises(ValueRangeError, match="at least one"):
+        cfg.net_config(None, None)

@@ -20,7 +20,7 @@ from poseflow.eval.recall import Target
 from poseflow.eval.results import PoseResults
 from poseflow.eval.timing import StageTimer
 
-__all__ = ["Estimator", "PoseEstimate", "predict_dataset"]
+__all__ = ["Estimator", "PoseEstimate", "on_device", "predict_dataset"]
 
 
 @dataclass
@@ -40,6 +40,36 @@ class PoseEstimate:
 
 #: ``estimator(rgb (3,H,W) | None, depth (H,W) m, K (3,3), masks (B,H,W), obj_ids (B,))``.
 Estimator = Callable[..., PoseEstimate]
+
+
+def on_device(estimator: Estimator, device: torch.device | str) -> Estimator:
+    """``estimator`` with the image, depth, intrinsics and masks moved to ``device`` first.
+
+    Args:
+        estimator: any :data:`Estimator`, e.g. a model's ``estimate`` on a GPU.
+        device: where its inputs must be.
+
+    Returns:
+        An :data:`Estimator` (``rgb`` may stay None; the object ids are passed unchanged).
+
+    Example:
+        >>> seen = on_device(lambda rgb, depth, K, masks, obj_ids: depth.dtype, "cpu")
+        >>> seen(None, torch.zeros(2, 2, dtype=torch.float64), torch.eye(3),
+        ...      torch.ones(1, 2, 2, dtype=torch.bool), [1])
+        torch.float64
+    """
+
+    def estimate(
+        rgb: torch.Tensor | None,
+        depth: torch.Tensor,
+        K: torch.Tensor,
+        masks: torch.Tensor,
+        obj_ids: Sequence[int] | torch.Tensor,
+    ) -> PoseEstimate:
+        rgb = None if rgb is None else rgb.to(device)
+        return estimator(rgb, depth.to(device), K.to(device), masks.to(device), obj_ids)
+
+    return estimate
 
 
 def predict_dataset(

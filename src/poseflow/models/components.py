@@ -61,32 +61,33 @@ class FeatureReducer(Protocol):
 
 
 def check_name(
-    field: str, name: str, kinds: tuple[str, ...], *, takes_argument: bool = False
-) -> str:
+    field: str, name: str, allowed: tuple[str, ...], *, takes_argument: bool = False
+) -> tuple[str, str]:
     """Check that a configured name is one of a registry's.
 
     Args:
         field: the configuration field, for the message.
         name: the configured name.
-        kinds: the allowed names.
+        allowed: the allowed names.
         takes_argument: ``name`` may be ``"kind:ARGUMENT"`` (an encoder's weights).
 
     Returns:
-        The name, without its argument.
+        ``(kind, argument)``; the argument is empty without one.
 
     Raises:
         ValueRangeError: an unknown name; the message lists the allowed ones.
 
     Example:
-        >>> check_name(
-        ...     "appearance_encoder", "dinov2:vits14", APPEARANCE_ENCODERS, takes_argument=True
-        ... )
-        'dinov2'
+        >>> check_name("appearance_encoder", "dinov2:vits14", APPEARANCE_ENCODERS,
+        ...            takes_argument=True)
+        ('dinov2', 'vits14')
     """
-    kind = name.partition(":")[0] if takes_argument and isinstance(name, str) else name
-    if kind not in kinds:
-        raise ValueRangeError(f"{field} must be one of {', '.join(kinds)}; got {name!r}")
-    return kind
+    if not isinstance(name, str):
+        raise ValueRangeError(f"{field} must be a name (a string), got {name!r}")
+    kind, _, argument = name.partition(":") if takes_argument else (name, "", "")
+    if kind not in allowed:
+        raise ValueRangeError(f"{field} must be one of {', '.join(allowed)}; got {name!r}")
+    return kind, argument
 
 
 def build_geometric_encoder(name: str, *, radii: tuple[float, ...]) -> GeometricEncoder | None:
@@ -99,15 +100,14 @@ def build_geometric_encoder(name: str, *, radii: tuple[float, ...]) -> Geometric
         >>> build_geometric_encoder("fpfh", radii=(0.3, 0.4)).dim
         66
     """
-    kind = check_name("geometric_encoder", name, GEOMETRIC_ENCODERS, takes_argument=True)
-    arg = name.partition(":")[2]
-    if kind == "none":
-        return None
+    kind, path = check_name("geometric_encoder", name, GEOMETRIC_ENCODERS, takes_argument=True)
     if kind == "fpfh":
         return FPFHEncoder(radius_fractions=radii)
-    if not arg:
-        raise ValueRangeError("gedi needs its weights: geometric_encoder='gedi:/path/to/file'")
-    return GeDiEncoder.from_checkpoint(arg)
+    if kind == "gedi":
+        if not path:
+            raise ValueRangeError("gedi needs its weights: geometric_encoder='gedi:/path/to/file'")
+        return GeDiEncoder.from_checkpoint(path)
+    return None
 
 
 def build_appearance_encoder(name: str, *, crop_size: int) -> AppearanceEncoder | None:
@@ -120,13 +120,12 @@ def build_appearance_encoder(name: str, *, crop_size: int) -> AppearanceEncoder 
         >>> build_appearance_encoder("dsift", crop_size=64).dim
         128
     """
-    kind = check_name("appearance_encoder", name, APPEARANCE_ENCODERS, takes_argument=True)
-    arg = name.partition(":")[2]
-    if kind == "none":
-        return None
+    kind, weights = check_name("appearance_encoder", name, APPEARANCE_ENCODERS, takes_argument=True)
     if kind == "dsift":
         return DenseSIFTEncoder(input_size=crop_size)
-    return DINOv2Encoder(arg or "vits14", input_size=crop_size)
+    if kind == "dinov2":
+        return DINOv2Encoder(weights or "vits14", input_size=crop_size)
+    return None
 
 
 def build_reducer(name: str, *, n_components: int, seed: int = 0) -> FeatureReducer:

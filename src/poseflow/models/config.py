@@ -175,6 +175,8 @@ class NetConfig(NetOptions):
             goes through a learned linear adapter first.
         fusion: a name of :data:`~poseflow.fusion.FUSIONS` (``"gated"`` is the paper's).
         dit_preset: a name of :data:`~poseflow.flows.PRESETS`.
+        noise_conditioning: the positional encoder reads each point's noise ``X(0)``
+            (False: zeros in its place); see :attr:`FunFlow6DConfig.noise_conditioning`.
     """
 
     geometric_dim: int = 64
@@ -182,6 +184,7 @@ class NetConfig(NetOptions):
     feature_dim: int = 64
     fusion: str = "gated"
     dit_preset: str = "small"
+    noise_conditioning: bool = True
 
     def __post_init__(self) -> None:
         """Validate the names and the DiT it describes."""
@@ -303,8 +306,20 @@ class FunFlow6DConfig:
         """A copy with some fields changed (validated again)."""
         return dataclasses.replace(self, **changes)
 
-    def net_config(self, *, geometric_dim: int, semantic_dim: int) -> NetConfig:
-        """The network's configuration for descriptors of the given widths."""
+    def net_config(self, geometric_dim: int | None, semantic_dim: int | None) -> NetConfig:
+        """The network's configuration for descriptors of the given widths.
+
+        Args:
+            geometric_dim: width of the geometric descriptors, None without an encoder.
+            semantic_dim: width of the (reduced) semantic descriptors, None without an encoder.
+                A missing stream is fed the other one's descriptors, so it takes its width.
+        """
+        if geometric_dim is None:
+            geometric_dim = semantic_dim
+        if semantic_dim is None:
+            semantic_dim = geometric_dim
+        if geometric_dim is None or semantic_dim is None:
+            raise ValueRangeError("the network needs the width of at least one descriptor")
         options = {f.name: getattr(self.net, f.name) for f in dataclasses.fields(NetOptions)}
         return NetConfig(
             **options,
@@ -313,6 +328,7 @@ class FunFlow6DConfig:
             feature_dim=self.feature_dim,
             fusion=self.fusion,
             dit_preset=self.dit_preset,
+            noise_conditioning=self.noise_conditioning,
         )
 
     def to_json(self) -> dict[str, Any]:

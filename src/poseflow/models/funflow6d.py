@@ -13,7 +13,7 @@ Shape letters: ``B`` instances, ``N`` points per cloud, ``H`` hypotheses per ins
 
 from __future__ import annotations
 
-import json
+import functools
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -22,11 +22,11 @@ import torch
 from torch import nn
 
 from poseflow.data.objects import ObjectModel
-from poseflow.errors import MissingWeightsError
-from poseflow.eval.predict import Estimator, PoseEstimate, predict_dataset
+from poseflow.eval.predict import Estimator, PoseEstimate, on_device, predict_dataset
 from poseflow.eval.results import PoseResults
-from poseflow.eval.timing import StageTimer, stage, timed
-from poseflow.flows import get_sampler, initial_noise
+from poseflow.eval.timing import StageTimer
+from poseflow.flows import get_sampler
+from poseflow.models.checkpoint import read_checkpoint, write_checkpoint
 from poseflow.models.components import build_appearance_encoder, build_geometric_encoder
 from poseflow.models.config import FunFlow6DConfig
 from poseflow.models.inputs import FlowInputs
@@ -60,17 +60,12 @@ class FunFlow6D(nn.Module):
         self.appearance_encoder = build_appearance_encoder(
             cfg.appearance_encoder, crop_size=cfg.crop_size
         )
-        gdim = self.geometric_encoder.dim if self.geometric_encoder is not None else None
-        sdim = None
-        if self.appearance_encoder is not None:
-            identity = cfg.reducer == "identity"
-            sdim = self.appearance_encoder.dim if identity else cfg.feature_dim
-        self.net = FunFlow6DNet(
-            cfg.net_config(
-                geometric_dim=gdim if gdim is not None else sdim,  # type: ignore[arg-type]
-                semantic_dim=sdim if sdim is not None else gdim,  # type: ignore[arg-type]
-            )
-        )
+        appearance = self.appearance_encoder
+        semantic_dim = None  # the reducer's output, or the raw features without reduction
+        if appearance is not None:
+            semantic_dim = appearance.dim if cfg.reducer == "identity" else cfg.feature_dim
+        geometric_dim = getattr(self.geometric_encoder, "dim", None)
+        self.net = FunFlow6DNet(cfg.net_config(geometric_dim, semantic_dim))
         self.objects: dict[int, PreparedObject] = {}
 
     def prepare_objects(
@@ -137,13 +132,7 @@ class FunFlow6D(nn.Module):
         self, *, x: torch.Tensor, t: torch.Tensor, x_0: torch.Tensor, **inputs: torch.Tensor
     ) -> torch.Tensor:
         """``Ψ(t, X(t) | C)`` ``(B, 2N, 3)``; ``inputs`` are named as :class:`NetInputs`' fields."""
-        return self.net(
-            x=x, t=t, inputs=NetInputs.from_kwargs(inputs), x_0=self._noise_condition(x_0)
-        )
-
-    def _noise_condition(self, x_0: torch.Tensor) -> torch.Tensor:
-        """``X(0)`` as the positional encoder sees it (zeros without noise conditioning)."""
-        return x_0 if self.config.noise_conditioning else torch.zeros_like(x_0)
+        return self.net(x=x, t=t, inputs=NetInputs.from_kwargs(inputs), x_0=x_0)
 
     def forward(self, **kwargs: Any) -> torch.Tensor:
         """Same as :meth:`velocity`, so the model plugs into :class:`~poseflow.flows.CFMTrainer`."""
@@ -181,27 +170,16 @@ class FunFlow6D(nn.Module):
         try:
             obs = self.observe(rgb, depth, K, masks, obj_ids, generator=generator)
             rep = self.flow_inputs(obs).repeat_interleave(cfg.num_hypotheses)
-            L = rep.points.shape[1]
-            x_0 = initial_noise(
-                rep.points.shape,
+            x_1 = self.net.sample(
+                rep,
+                get_sampler(cfg.solver, steps=cfg.steps),
+                frozen_mask=rep.frozen_mask,
+                x_frozen=rep.anchor if cfg.anchor == "pinned" else None,
                 generator=generator,
-                device=rep.points.device,
-                dtype=rep.points.dtype,
             )
-            with stage("fusion"):
-                cond = self.net.condition(rep, x_0=self._noise_condition(x_0))
-            with stage("integration"):
-                x_1 = get_sampler(cfg.solver, steps=cfg.steps).sample(
-                    timed("flow_net", self.net.dit),
-                    x_0,
-                    frozen_mask=rep.frozen_mask,
-                    x_frozen=rep.anchor if cfg.anchor == "pinned" else None,
-                    condition=cond,
-                    mask=rep.mask,
-                    num_query=L // 2,
-                )
             dense = [o.dense_points for o in select_objects(self.objects, rep.obj_ids)]
-            solved = solve_pose(rep, x_1[:, L // 2 :], dense, cfg, generator=generator)
+            n = rep.points.shape[1] // 2
+            solved = solve_pose(rep, x_1[:, n:], dense, cfg, generator=generator)
             return select_hypotheses(*solved, obs.valid, cfg.num_hypotheses)
         finally:
             self.train(was_training)
@@ -213,21 +191,8 @@ class FunFlow6D(nn.Module):
         calls, so a sequence of images gives the same estimates on every run.
         """
         device = next(self.net.parameters()).device
-        g = torch.Generator(device=device).manual_seed(seed)
-
-        def estimate(
-            rgb: torch.Tensor,
-            depth: torch.Tensor,
-            K: torch.Tensor,
-            masks: torch.Tensor,
-            obj_ids: torch.Tensor | Sequence[int],
-        ) -> PoseEstimate:
-            return self.estimate(
-                rgb.to(device), depth.to(device), K.to(device), masks.to(device), obj_ids,
-                generator=g,
-            )  # fmt: skip
-
-        return estimate
+        generator = torch.Generator(device=device).manual_seed(seed)
+        return on_device(functools.partial(self.estimate, generator=generator), device)
 
     def predict(
         self,
@@ -272,29 +237,12 @@ class FunFlow6D(nn.Module):
 
     def save(self, folder: str | Path) -> Path:
         """Write ``config.json`` and ``model.safetensors`` (trainable weights only)."""
-        from safetensors.torch import save_file
-
-        folder = Path(folder)
-        folder.mkdir(parents=True, exist_ok=True)
-        state = {k: v.detach().cpu().contiguous() for k, v in self.net.state_dict().items()}
-        tmp = folder / "model.safetensors.tmp"
-        save_file(state, str(tmp), metadata={"format": "poseflow.FunFlow6D/1"})
-        tmp.replace(folder / "model.safetensors")
-        (folder / "config.json").write_text(json.dumps(self.config.to_json(), indent=1))
-        return folder
+        return write_checkpoint(folder, self.config, self.net.state_dict())
 
     @classmethod
     def load(cls, folder: str | Path, *, device: str | torch.device = "cpu") -> FunFlow6D:
         """Load a model written by :meth:`save` (no pickle is ever read)."""
-        from safetensors.torch import load_file
-
-        folder = Path(folder)
-        weights = folder / "model.safetensors"
-        if not weights.is_file() or not (folder / "config.json").is_file():
-            raise MissingWeightsError(
-                f"{folder} holds no FunFlow6D checkpoint (config.json + model.safetensors); "
-                "train one with `poseflow train`"
-            )
-        model = cls(FunFlow6DConfig.from_json(folder / "config.json"))
-        model.net.load_state_dict(load_file(str(weights)))
+        config, state = read_checkpoint(folder)
+        model = cls(config)
+        model.net.load_state_dict(state)
         return model.to(device)

@@ -22,8 +22,10 @@ from torch import nn
 
 from poseflow._checks import check_mask, check_tensor
 from poseflow.errors import ShapeError, ValueRangeError
+from poseflow.eval.timing import stage, timed
 from poseflow.flows.dit import PointDiT
 from poseflow.flows.positional import PointPositionalEncoder
+from poseflow.flows.samplers import ODESampler, initial_noise
 from poseflow.fusion import build_fusion
 from poseflow.models.config import NetConfig
 
@@ -124,7 +126,8 @@ class FunFlow6DNet(nn.Module):
 
         Args:
             inputs: the frozen descriptors, coordinates, normals and mask of ``[Q ; T]``.
-            x_0: the noise sample ``X(0)`` ``(B, 2N, 3)``.
+            x_0: the noise sample ``X(0)`` ``(B, 2N, 3)`` (read as zeros by the positional
+                encoder without ``config.noise_conditioning``).
 
         Returns:
             ``(B, 2N, D + d_P)``.
@@ -148,8 +151,52 @@ class FunFlow6DNet(nn.Module):
         fused = self.fusion(g, s, None if mask is None else mask.reshape(2 * B, n))
         fused = fused.reshape(B, L, -1)
         is_target = torch.arange(L, device=inputs.points.device).expand(B, L) >= n
+        if not cfg.noise_conditioning:
+            x_0 = torch.zeros_like(x_0)
         pos = self.posenc(inputs.points, inputs.normals, x_0, is_target)
         return torch.cat([fused, pos], dim=-1)
+
+    @torch.no_grad()
+    def sample(
+        self,
+        inputs: NetInputs,
+        sampler: ODESampler,
+        *,
+        frozen_mask: torch.Tensor,
+        x_frozen: torch.Tensor | None = None,
+        generator: torch.Generator | None = None,
+    ) -> torch.Tensor:
+        """Integrate the flow from fresh noise ``X(0)`` to ``X(1)``, the condition computed once.
+
+        The stages are reported to the active timer: ``fusion`` (the condition),
+        ``integration`` (the sampler) and ``flow_net`` (each DiT call).
+
+        Args:
+            inputs: as in :meth:`condition`.
+            sampler: the ODE solver.
+            frozen_mask: ``(B, 2N)`` bool, True at the anchor's points (velocity zero).
+            x_frozen: where the anchor sits when it is pinned ``(B, 2N, 3)``, or None.
+            generator: draws ``X(0) ~ N(0, I)``.
+
+        Returns:
+            ``X(1)`` ``(B, 2N, 3)``.
+        """
+        points = inputs.points
+        x_0 = initial_noise(
+            points.shape, generator=generator, device=points.device, dtype=points.dtype
+        )
+        with stage("fusion"):
+            cond = self.condition(inputs, x_0=x_0)
+        with stage("integration"):
+            return sampler.sample(
+                timed("flow_net", self.dit),
+                x_0,
+                frozen_mask=frozen_mask,
+                x_frozen=x_frozen,
+                condition=cond,
+                mask=inputs.mask,
+                num_query=points.shape[1] // 2,
+            )
 
     def forward(
         self, *, x: torch.Tensor, t: torch.Tensor, inputs: NetInputs, x_0: torch.Tensor
