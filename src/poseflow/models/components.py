@@ -1,16 +1,12 @@
 """Frozen parts of FunFlow6D built from the configuration's names, and the names they accept.
 
-Each ``build_*`` factory reads one configuration string; the matching ``*_NAMES`` tuple lists the
-kinds it knows (``"kind"`` or ``"kind:ARGUMENT"``), so that
-:class:`~poseflow.models.FunFlow6DConfig` can reject an unknown name when it is built.
+Each ``build_*`` factory reads one configuration string; the matching tuple
+(:data:`GEOMETRIC_ENCODERS`, :data:`APPEARANCE_ENCODERS`, :data:`REDUCERS`) lists the kinds it
+knows (``"kind"`` or ``"kind:ARGUMENT"``), so that :class:`~poseflow.models.FunFlow6DConfig` can
+reject an unknown name when it is built (:func:`check_name`).
 """
 
 from __future__ import annotations
-
-from pathlib import Path
-from typing import Any, Protocol
-
-import torch
 
 from poseflow.errors import ValueRangeError
 from poseflow.features import (
@@ -22,6 +18,7 @@ from poseflow.features import (
     GeometricEncoder,
     IdentityReducer,
     PCAReducer,
+    Reducer,
     UMAPReducer,
 )
 
@@ -29,7 +26,6 @@ __all__ = [
     "APPEARANCE_ENCODERS",
     "GEOMETRIC_ENCODERS",
     "REDUCERS",
-    "FeatureReducer",
     "build_appearance_encoder",
     "build_geometric_encoder",
     "build_reducer",
@@ -42,22 +38,6 @@ GEOMETRIC_ENCODERS: tuple[str, ...] = ("fpfh", "gedi", "none")
 APPEARANCE_ENCODERS: tuple[str, ...] = ("dsift", "dinov2", "none")
 #: Names of :func:`build_reducer`.
 REDUCERS: tuple[str, ...] = ("umap", "pca", "identity")
-
-
-class FeatureReducer(Protocol):
-    """What FunFlow6D needs of a reducer: fit on the query's features, transform any features."""
-
-    def fit(self, X: Any, y: None = None) -> Any:
-        """Fit on ``(P, G)`` features; returns the reducer."""
-        ...
-
-    def transform(self, X: Any, mask: torch.Tensor | None = None) -> Any:
-        """Reduce ``(..., P, G)`` features to ``(..., P, D)``."""
-        ...
-
-    def save(self, path: str | Path) -> Path:
-        """Write the fitted reducer to a folder (no pickle)."""
-        ...
 
 
 def check_name(
@@ -128,7 +108,7 @@ def build_appearance_encoder(name: str, *, crop_size: int) -> AppearanceEncoder 
     return None
 
 
-def build_reducer(name: str, *, n_components: int, seed: int = 0) -> FeatureReducer:
+def build_reducer(name: str, *, n_components: int, seed: int = 0) -> Reducer:
     """``"umap"``, ``"pca"`` or ``"identity"`` (unfitted).
 
     Raises:

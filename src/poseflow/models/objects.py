@@ -25,11 +25,12 @@ from poseflow.features import (
     AppearanceEncoder,
     GeometricEncoder,
     QueryFeatureBank,
+    Reducer,
     lift_query_features,
     load_reducer,
 )
 from poseflow.geometry.pointcloud import farthest_point_sample
-from poseflow.models.components import FeatureReducer, build_reducer
+from poseflow.models.components import build_reducer
 from poseflow.models.config import FunFlow6DConfig
 
 __all__ = [
@@ -64,7 +65,7 @@ class PreparedObject:
     diameter: float
     geometric: torch.Tensor | None
     bank: QueryFeatureBank | None
-    reducer: FeatureReducer | None
+    reducer: Reducer | None
 
     def save(self, folder: str | Path, *, fingerprint: Mapping[str, Any]) -> Path:
         """Write the object to ``folder`` (safetensors + JSON + reducer), tagged ``fingerprint``."""
