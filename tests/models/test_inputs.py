@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from poseflow.errors import ValueRangeError
-from poseflow.models import TRAINING_FIELDS, FlowInputs, FlowTrainingSet, NetInputs
+from poseflow.models import TRAINING_FIELDS, FlowInputs, FlowTrainingSet, FunFlow6D, NetInputs
 
 
 @pytest.fixture(scope="module")
@@ -75,3 +75,14 @@ def test_net_inputs_from_keyword_tensors(inputs):
         NetInputs.from_kwargs({**kwargs, "x_1": inputs.x_1})
     with pytest.raises(ValueRangeError, match="missing"):
         NetInputs.from_kwargs({k: v for k, v in kwargs.items() if k != "points"})
+
+
+@pytest.mark.parametrize("missing", ["geometric_encoder", "appearance_encoder"])
+def test_a_stream_without_an_encoder_is_fed_the_other(tiny_model, box, scene, missing):
+    model = FunFlow6D(tiny_model.config.replace(**{missing: "none"}))
+    model.prepare_objects({1: box}, progress=False)
+    obs = model.observe(scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 1])
+    inputs = model.flow_inputs(obs)
+    assert torch.equal(inputs.geometric, inputs.semantic) and inputs.x_1 is None
+    est = model.estimate(scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 1])
+    assert est.poses.shape == (2, 4, 4) and torch.isfinite(est.poses).all()

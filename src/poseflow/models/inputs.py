@@ -92,20 +92,19 @@ class FlowInputs(NetInputs):
         q_nrm = torch.stack([o.normals for o in objects]).to(dev, dt)
         t_pts = (obs.points - centroid[:, None]) / scale[:, None, None]
         q_n = q_pts / scale[:, None, None]
-        semantic_q = semantic_t = None
+        semantic = geometric = None  # (query, target) descriptors of each stream
         if obs.appearance is not None:
             with stage("reducer"):
-                semantic_q, semantic_t = reduce_appearance(
+                semantic = reduce_appearance(
                     objects, obs.appearance, mask_t, query_pooling=query_pooling
                 )
-        geometric_q = geometric_t = None
         if obs.geometric is not None:
-            geometric_q = torch.stack([o.geometric for o in objects]).to(dev, dt)  # type: ignore[misc]
-            geometric_t = obs.geometric
-        if geometric_q is None:
-            geometric_q, geometric_t = semantic_q, semantic_t
-        if semantic_q is None:
-            semantic_q, semantic_t = geometric_q, geometric_t
+            geometric_q = torch.stack([o.geometric for o in objects])  # type: ignore[misc]
+            geometric = (geometric_q.to(dev, dt), obs.geometric)
+        # A stream without an encoder is fed the other one's descriptors.
+        geometric, semantic = geometric or semantic, semantic or geometric
+        if geometric is None or semantic is None:
+            raise ValueRangeError("an observation needs geometric or appearance features")
         ones = torch.ones(B, n, dtype=torch.bool, device=dev)
         x_1 = None
         if poses is not None:
@@ -114,8 +113,8 @@ class FlowInputs(NetInputs):
             t_canon = (obs.points - t[:, None]) @ R  # Rᵀ (T - t), row-vector form
             x_1 = torch.cat([q_n, t_canon / scale[:, None, None]], 1)
         return cls(
-            geometric=torch.cat([geometric_q, geometric_t], 1),  # type: ignore[list-item]
-            semantic=torch.cat([semantic_q, semantic_t], 1),  # type: ignore[list-item]
+            geometric=torch.cat(geometric, 1),
+            semantic=torch.cat(semantic, 1),
             points=torch.cat([q_n, t_pts], 1),
             normals=torch.cat([q_nrm, obs.normals], 1),
             mask=torch.cat([ones, mask_t], 1),
@@ -165,10 +164,9 @@ def reduce_appearance(
         ``(semantic_q, semantic_t)``, each ``(B, N, Ds)``.
     """
     mask = mask | ~mask.any(dim=1, keepdim=True)
-    sem_q = sem_t = None
+    rows, reduced_q, reduced_t = [], [], []
     for obj in {id(o): o for o in objects}.values():
-        rows = [b for b, o in enumerate(objects) if o is obj]
-        idx = torch.tensor(rows, device=appearance.device)
+        idx = torch.tensor([b for b, o in enumerate(objects) if o is obj], device=appearance.device)
         feats_t, m = appearance[idx], mask[idx]
         bank, reducer = obj.bank, obj.reducer
         if bank is None or reducer is None:
@@ -178,11 +176,9 @@ def reduce_appearance(
         if query_pooling == "select":
             feats_q = bank.select(feats_t, m)
         else:
-            feats_q = bank.pooled().to(feats_t).expand(len(rows), -1, -1)
-        q = reducer.transform(feats_q.to(feats_t))
-        t = reducer.transform(feats_t, m)
-        if sem_q is None:
-            sem_q = q.new_zeros(len(objects), *q.shape[1:])
-            sem_t = t.new_zeros(len(objects), *t.shape[1:])
-        sem_q[idx], sem_t[idx] = q, t  # type: ignore[index]
-    return sem_q, sem_t  # type: ignore[return-value]
+            feats_q = bank.pooled().to(feats_t).expand(len(idx), -1, -1)
+        reduced_q.append(reducer.transform(feats_q.to(feats_t)))
+        reduced_t.append(reducer.transform(feats_t, m))
+        rows.append(idx)
+    order = torch.cat(rows).argsort()  # back to the instances' order
+    return torch.cat(reduced_q)[order], torch.cat(reduced_t)[order]
