@@ -9,7 +9,6 @@
 - :mod:`~poseflow.models.funflow6d`: :class:`FunFlow6D`, which composes them.
 """
 
-from poseflow.assets import DEMO_CHECKPOINT
 from poseflow.models.config import (
     ABLATIONS,
     INFERENCE_FIELDS,
@@ -28,7 +27,6 @@ from poseflow.models.training import FlowTrainingSet, augment, build_training_se
 
 __all__ = [
     "ABLATIONS",
-    "DEMO_CHECKPOINT",
     "INFERENCE_FIELDS",
     "TRAINING_FIELDS",
     "DiTOverrides",
