@@ -38,6 +38,7 @@ tiny generated dataset).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import platform
 import shlex
@@ -52,7 +53,14 @@ import torch
 
 from poseflow.eval import PoseEstimate, PoseResults, predict_dataset, read_results, write_results
 from poseflow.flows import PRESETS, TrainConfig
-from poseflow.models import ABLATIONS, FunFlow6D, FunFlow6DConfig, Observation
+from poseflow.models import (
+    ABLATIONS,
+    DiTOverrides,
+    FunFlow6D,
+    FunFlow6DConfig,
+    NetOptions,
+    Observation,
+)
 from poseflow.models.training import FlowTrainingSet, build_training_set, train
 
 TINY = {
@@ -62,14 +70,14 @@ TINY = {
     "dit_preset": "tiny",
     "steps": 5,
     "ransac_iterations": 100,
-    "net": {"fusion_heads": 2, "posenc_dim": 16, "posenc_frequencies": 2},
+    "net": NetOptions(fusion_heads=2, posenc_dim=16, posenc_frequencies=2),
 }
 QUICK_ROWS = ("3_pca_sum", "8_umap_gated")
 METRICS = ("AR", "AR_VSD", "AR_MSSD", "AR_MSPD")
 PHASES = ("all", "features", "train", "score")
 TEST_SEED = 7
 #: The tensors of an :class:`~poseflow.models.Observation`, in its field order.
-OBSERVATION_FIELDS = ("obj_ids", "points", "normals", "mask", "valid", "geometric", "appearance")
+OBSERVATION_FIELDS = tuple(f.name for f in dataclasses.fields(Observation))
 
 
 def feature_key(cfg: FunFlow6DConfig) -> str:
@@ -387,7 +395,7 @@ def main() -> None:
     base = FunFlow6DConfig(**TINY) if args.quick else FunFlow6DConfig.from_json(args.config)
     if args.preset is not None:
         base = base.replace(
-            dit_preset=args.preset, net={k: v for k, v in base.net.items() if k != "dit"}
+            dit_preset=args.preset, net=dataclasses.replace(base.net, dit=DiTOverrides())
         )
     label = args.preset or "base"
     device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")

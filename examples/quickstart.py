@@ -34,7 +34,7 @@ from poseflow.data.objects import ObjectModel
 from poseflow.data.synthetic import generate_dataset
 from poseflow.flows import TrainConfig
 from poseflow.geometry.se3 import rotation_angle_error, translation_error
-from poseflow.models import FunFlow6D, FunFlow6DConfig
+from poseflow.models import FunFlow6D, FunFlow6DConfig, NetOptions
 from poseflow.models.training import build_training_set, train
 
 #: A tiny configuration for the quick run (the defaults are the paper's, with offline encoders).
@@ -45,7 +45,7 @@ TINY = FunFlow6DConfig(
     dit_preset="tiny",
     steps=10,
     ransac_iterations=200,
-    net={"fusion_heads": 2, "posenc_dim": 16, "posenc_frequencies": 2},
+    net=NetOptions(fusion_heads=2, posenc_dim=16, posenc_frequencies=2),
 )
 
 

@@ -60,7 +60,7 @@ def test_baseline_recovers_poses_through_csv_and_eval(bracket, tmp_path):
         progress=False,
     )
     timer = StageTimer()
-    results = ClassicBaseline({3: bracket}, timer=timer).predict(root)
+    results = ClassicBaseline({3: bracket}).predict(root, timer=timer)
     assert len(results) == 6
     assert bool((results.times > 0).all())
     csv = tmp_path / "classic_synthetic-test.csv"

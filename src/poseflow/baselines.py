@@ -39,10 +39,10 @@ from poseflow.data.bop import BOPDataset
 from poseflow.data.objects import ObjectModel, sample_surface
 from poseflow.errors import DegenerateInputError, ValueRangeError
 from poseflow.eval.inliers import mutual_nearest_neighbors
-from poseflow.eval.predict import PoseEstimate, predict_dataset
+from poseflow.eval.predict import Estimator, PoseEstimate, predict_dataset
 from poseflow.eval.recall import Target
 from poseflow.eval.results import PoseResults
-from poseflow.eval.timing import StageTimer
+from poseflow.eval.timing import StageTimer, stage
 from poseflow.features.geometric import FPFHEncoder
 from poseflow.features.lifting import viewpoint_poses
 from poseflow.geometry.pointcloud import (
@@ -79,8 +79,9 @@ class ClassicBaseline:
         icp_iterations: ICP iterations per scale.
         min_points: instances with fewer valid target points are reported invalid.
         seed: seed of every random draw (estimates are reproducible).
-        timer: a :class:`~poseflow.eval.timing.StageTimer` charged with the stages
-            ``geometric_encoder``, ``ransac``, ``icp`` and ``other`` (a new one by default).
+
+    The stages ``geometric_encoder``, ``ransac``, ``icp`` and ``other`` are charged to the active
+    :class:`~poseflow.eval.timing.StageTimer` (see :meth:`predict`), if any.
 
     Example:
         >>> import open3d as o3d
@@ -116,7 +117,6 @@ class ClassicBaseline:
         icp_iterations: int = 30,
         min_points: int = 30,
         seed: int = 0,
-        timer: StageTimer | None = None,
     ) -> None:
         if not models:
             raise ValueRangeError("ClassicBaseline needs at least one object model")
@@ -143,7 +143,6 @@ class ClassicBaseline:
         self.icp_iterations = int(icp_iterations)
         self.min_points = int(min_points)
         self.seed = int(seed)
-        self.timer = timer if timer is not None else StageTimer()
         self._banks: dict[int, tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = {}
 
     def _describe(
@@ -168,15 +167,25 @@ class ClassicBaseline:
         if t.shape[0] < self.min_points:
             return None
         normals = estimate_normals(t[None], k=min(30, t.shape[0]))
-        with self.timer.stage("geometric_encoder"):
+        with stage("geometric_encoder"):
             feats = self.encoder.encode(t[None], normals, None, diameter)[0]
         return t, feats
 
-    def _bank(self, obj_id: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def prepare(self, obj_ids: Sequence[int] | None = None) -> None:
+        """Build the descriptor banks now (else each is built on the object's first use).
+
+        Args:
+            obj_ids: the objects (default: all), e.g. so that timed estimates leave the banks out.
+        """
+        for obj_id in sorted(self.models) if obj_ids is None else obj_ids:
+            self.bank(int(obj_id))
+
+    def bank(self, obj_id: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Descriptor bank of a model, built once per object from rendered views.
 
-        Returns points ``(P, 3)`` in the model frame, their FPFH ``(P, D)``, and the dense model
-        cloud ICP registers to.
+        Returns:
+            Points ``(P, 3)`` in the model frame, their FPFH ``(P, D)``, and the dense model
+            cloud ICP registers to.
         """
         if obj_id not in self._banks:
             m = self.models[obj_id]
@@ -256,9 +265,9 @@ class ClassicBaseline:
         self, depth: torch.Tensor, K: torch.Tensor, mask: torch.Tensor, obj_id: int, index: int
     ) -> tuple[torch.Tensor | None, float]:
         diam = self.models[obj_id].diameter
-        bank_pts, bank_feats, model_pts = self._bank(obj_id)
+        bank_pts, bank_feats, model_pts = self.bank(obj_id)
         gen = torch.Generator().manual_seed(self.seed * 1_000_003 + index)
-        with self.timer.stage("other"):
+        with stage("other"):
             got = self._describe(depth, K, mask, diam, gen)
             if got is None:
                 return None, 0.0
@@ -274,7 +283,7 @@ class ClassicBaseline:
             # differ, and ICP picks the one that explains the observation best.
             subset = torch.rand(R, src.shape[0], generator=gen) < 0.5
             subset[0] = True
-        with self.timer.stage("ransac"):
+        with stage("ransac"):
             hyp = ransac_procrustes(
                 src[None].expand(R, -1, -1),
                 dst[None].expand(R, -1, -1),
@@ -283,7 +292,7 @@ class ClassicBaseline:
                 max_iterations=self.ransac_iterations,
                 generator=gen,
             )
-        with self.timer.stage("icp"):
+        with stage("icp"):
             # The paper's direction: the observed cloud onto the model, then invert.
             refined = multi_scale_icp(
                 t[None].expand(R, -1, -1),
@@ -299,6 +308,10 @@ class ClassicBaseline:
         pose = inverse_transform(refined.transformation[best : best + 1])[0]
         return pose, float(fitness[best])
 
+    def estimator(self) -> Estimator:
+        """This baseline as an :data:`~poseflow.eval.predict.Estimator` (the colour is unused)."""
+        return lambda rgb, depth, K, masks, obj_ids: self.estimate(depth, K, masks, obj_ids)
+
     def predict(
         self,
         dataset: str | os.PathLike[str] | BOPDataset,
@@ -307,6 +320,7 @@ class ClassicBaseline:
         targets: Sequence[Target] | None = None,
         detections: Sequence[Any] | None = None,
         max_images: int | None = None,
+        timer: StageTimer | None = None,
         progress: bool = False,
     ) -> PoseResults:
         """Estimate every target instance of a split (:func:`~poseflow.eval.predict_dataset`).
@@ -318,6 +332,8 @@ class ClassicBaseline:
                 when present, else every GT instance.
             detections: masks from a BOP segmentation file instead of the ground truth.
             max_images: stop after this many images.
+            timer: optional :class:`~poseflow.eval.timing.StageTimer`, active while each image
+                is estimated.
             progress: show a progress bar.
 
         Returns:
@@ -325,7 +341,7 @@ class ClassicBaseline:
             a target object, and the wall-clock time of each image (image loading excluded).
         """
         return predict_dataset(
-            lambda rgb, depth, K, masks, obj_ids: self.estimate(depth, K, masks, obj_ids),
+            self.estimator(),
             dataset,
             split=split,
             object_ids=sorted(self.models),
@@ -333,6 +349,6 @@ class ClassicBaseline:
             detections=detections,
             load_rgb=False,
             max_images=max_images,
-            timer=self.timer,
+            timer=timer,
             progress=progress,
         )

@@ -11,7 +11,7 @@ from poseflow.cli import bench, main
 from poseflow.data.synthetic import generate_dataset
 from poseflow.errors import ValueRangeError
 from poseflow.eval.results import read_results
-from poseflow.models import FunFlow6D, FunFlow6DConfig
+from poseflow.models import FunFlow6D, FunFlow6DConfig, NetOptions
 
 
 @pytest.fixture(scope="module")
@@ -20,7 +20,7 @@ def model_dir(tmp_path_factory):
     cfg = FunFlow6DConfig(
         num_points=32, crop_size=32, query_views=2, dit_preset="tiny", steps=2,
         ransac_iterations=100, pose_solver="svd",
-        net={"fusion_heads": 2, "posenc_dim": 16, "posenc_frequencies": 2},
+        net=NetOptions(fusion_heads=2, posenc_dim=16, posenc_frequencies=2),
     )  # fmt: skip
     return FunFlow6D(cfg).save(tmp_path_factory.mktemp("bench") / "model")
 

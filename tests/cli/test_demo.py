@@ -7,7 +7,7 @@ import torch
 
 from poseflow.cli import main
 from poseflow.eval import read_results
-from poseflow.models import FunFlow6D, FunFlow6DConfig
+from poseflow.models import FunFlow6D, FunFlow6DConfig, NetOptions
 
 
 @pytest.mark.slow
@@ -15,7 +15,7 @@ def test_pose_demo_writes_results_timing_and_overlays(tmp_path, capsys):
     torch.manual_seed(0)
     cfg = FunFlow6DConfig(
         num_points=32, crop_size=32, query_views=2, dit_preset="tiny", steps=2,
-        ransac_iterations=100, net={"fusion_heads": 2, "posenc_dim": 16, "posenc_frequencies": 2},
+        ransac_iterations=100, net=NetOptions(fusion_heads=2, posenc_dim=16, posenc_frequencies=2),
     )  # fmt: skip
     FunFlow6D(cfg).save(tmp_path / "model")
     out = tmp_path / "out"

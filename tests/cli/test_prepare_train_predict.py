@@ -31,7 +31,7 @@ from poseflow.data.rle import rle_encode
 from poseflow.data.synthetic import generate_dataset
 from poseflow.errors import MissingFileError, ValueRangeError
 from poseflow.eval.results import read_results
-from poseflow.models import FunFlow6D
+from poseflow.models import FunFlow6D, NetOptions
 
 NET = '{"fusion_heads": 2, "posenc_dim": 16, "posenc_frequencies": 2}'
 #: The tiny configuration, as command-line options. ``pose_solver=svd`` always yields a pose, so
@@ -102,7 +102,7 @@ def test_train_saves_a_loadable_model_and_its_run(run_dir):
     model = FunFlow6D.load(run_dir / "model")
     cfg = model.config
     assert (cfg.num_points, cfg.dit_preset, cfg.steps, cfg.pose_solver) == (32, "tiny", 2, "svd")
-    assert cfg.net == json.loads(NET)
+    assert cfg.net == NetOptions.from_json(json.loads(NET))
     run = json.loads((run_dir / "run.json").read_text())
     assert run["config"] == cfg.to_json() and run["train"]["steps"] == 3
     assert (run_dir / "checkpoints" / "step-00000003.json").is_file()
@@ -200,7 +200,7 @@ def test_predict_options_are_checked_before_any_work(run_dir, dataset, tmp_path,
     assert main([*base, "--model", str(tmp_path / "nothing")]) == 2
     assert "holds no FunFlow6D checkpoint" in capsys.readouterr().err
     assert main([*base, "--model", str(run_dir / "model"), "--solver", "leapfrog"]) == 2
-    assert "unknown sampler" in capsys.readouterr().err
+    assert "solver must be one of euler" in capsys.readouterr().err
     assert not (tmp_path / "r.csv").exists()
 
 

@@ -4,7 +4,8 @@ import torch
 from poseflow.data.bop import BOPDataset, Detection
 from poseflow.data.rle import rle_encode
 from poseflow.data.synthetic import generate_dataset
-from poseflow.eval import PoseEstimate, evaluate_bop, predict_dataset
+from poseflow.eval import PoseEstimate, StageTimer, evaluate_bop, predict_dataset
+from poseflow.eval.timing import active_timer, stage
 
 
 @pytest.fixture(scope="module")
@@ -69,3 +70,16 @@ def test_unknown_objects_are_skipped(dataset):
 
     predict_dataset(estimate, dataset, object_ids=[2], load_rgb=False)
     assert calls and all(set(c) == {2} for c in calls)
+
+
+def test_the_timer_is_active_while_each_image_is_estimated(dataset):
+    def estimate(rgb, depth, K, masks, obj_ids):
+        with stage("ransac"):  # what a part of an estimator reports
+            n = len(obj_ids)
+        return PoseEstimate(torch.eye(4).expand(n, 4, 4), torch.ones(n), torch.ones(n, dtype=bool))
+
+    timer = StageTimer(synchronize=False)
+    predict_dataset(estimate, dataset, timer=timer, max_images=2)
+    assert timer.num_images == 2 and timer.counts == {"ransac": 2}
+    predict_dataset(estimate, dataset, max_images=1)  # no timer: nothing recorded
+    assert timer.counts == {"ransac": 2} and active_timer() is None

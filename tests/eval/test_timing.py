@@ -6,7 +6,7 @@ import pytest
 from PIL import Image
 
 from poseflow.errors import ValueRangeError
-from poseflow.eval.timing import STAGES, StageTimer
+from poseflow.eval.timing import STAGES, StageTimer, active_timer, stage, timed
 
 
 class FakeClock:
@@ -102,3 +102,44 @@ def test_reset_and_real_clock():
     with pytest.raises(ValueRangeError):
         with timer.stage(""):
             pass
+
+
+def test_stages_reach_the_active_timer_only():
+    clock = FakeClock()
+    timer = StageTimer(clock=clock, synchronize=False)
+    net = timed("flow_net", lambda x: x + 1)
+    with stage("ransac"):  # no timer active: nothing recorded anywhere
+        clock.now += 0.001
+    assert net(1) == 2 and active_timer() is None
+    with timer.active() as active:
+        assert active is timer and active_timer() is timer
+        with stage("ransac"):
+            clock.now += 0.002
+        assert net(2) == 3
+    assert active_timer() is None
+    assert net(3) == 4 and timer.counts == {"ransac": 1, "flow_net": 1}
+    assert timer.breakdown()["stages_ms"]["ransac"] == pytest.approx(2.0)
+
+
+def test_active_timers_nest_and_restore():
+    outer, inner = StageTimer(synchronize=False), StageTimer(synchronize=False)
+    with outer.active():
+        with inner.active():
+            with stage("icp"):
+                pass
+        with stage("fusion"):
+            pass
+    assert inner.counts == {"icp": 1} and outer.counts == {"fusion": 1}
+    with pytest.raises(RuntimeError), outer.active():
+        raise RuntimeError("boom")
+    assert active_timer() is None
+
+
+def test_timed_keeps_the_name_but_not_a_modules_state():
+    import torch
+
+    layer = torch.nn.Linear(2, 2)
+    wrapped = timed("flow_net", layer)
+    assert not hasattr(wrapped, "_parameters")
+    x = torch.ones(1, 2)
+    assert torch.equal(wrapped(x), layer(x))

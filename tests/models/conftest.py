@@ -8,7 +8,7 @@ import torch
 
 from poseflow.data.demo_objects import demo_objects
 from poseflow.geometry.se3 import from_Rt, random_rotation
-from poseflow.models import FunFlow6D, FunFlow6DConfig
+from poseflow.models import FunFlow6D, FunFlow6DConfig, NetOptions
 from poseflow.render import Renderer
 
 TINY = FunFlow6DConfig(
@@ -18,7 +18,7 @@ TINY = FunFlow6DConfig(
     dit_preset="tiny",
     steps=4,
     ransac_iterations=200,
-    net={"fusion_heads": 2, "posenc_dim": 16, "posenc_frequencies": 2},
+    net=NetOptions(fusion_heads=2, posenc_dim=16, posenc_frequencies=2),
 )
 
 

@@ -3,6 +3,7 @@ import torch
 
 from poseflow.data.objects import sample_surface
 from poseflow.errors import MissingWeightsError, ShapeError, ValueRangeError
+from poseflow.eval.timing import StageTimer
 from poseflow.geometry.se3 import rotation_angle_error, transform_points, translation_error
 from poseflow.models import FunFlow6D
 
@@ -20,16 +21,16 @@ def test_flow_target_is_the_observed_cloud_in_the_canonical_frame(tiny_model, sc
     obs = tiny_model.observe(scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 1])
     inputs = tiny_model.flow_inputs(obs, scene["poses"])
     n = tiny_model.config.num_points
-    s = inputs["scale"][:, None, None]
-    canonical = inputs["x_1"][:, n:] * s
+    s = inputs.scale[:, None, None]
+    canonical = inputs.x_1[:, n:] * s
     back = transform_points(scene["poses"], canonical)
     assert torch.allclose(back[obs.mask], obs.points[obs.mask], atol=1e-5)
     # ...and those canonical points lie on the model's surface.
     dense, _, _ = sample_surface(box.mesh, 20000, generator=torch.Generator().manual_seed(0))
     d = torch.cdist(canonical[obs.mask], torch.from_numpy(dense).float()).min(dim=1).values
     assert d.median() < 0.01 * box.diameter
-    assert torch.equal(inputs["frozen_mask"][:, :n], torch.ones(2, n, dtype=torch.bool))
-    assert torch.allclose(inputs["x_1"][:, :n], inputs["points"][:, :n])
+    assert torch.equal(inputs.frozen_mask[:, :n], torch.ones(2, n, dtype=torch.bool))
+    assert torch.allclose(inputs.x_1[:, :n], inputs.points[:, :n])
 
 
 class _Oracle(torch.nn.Module):
@@ -48,7 +49,7 @@ def test_perfect_flow_gives_the_ground_truth_pose(tiny_model, scene, solver):
     model = FunFlow6D(tiny_model.config.replace(pose_solver=solver))
     model.objects = tiny_model.objects
     obs = model.observe(scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 1])
-    model.net.dit = _Oracle(model.flow_inputs(obs, scene["poses"])["x_1"])
+    model.net.dit = _Oracle(model.flow_inputs(obs, scene["poses"]).x_1)
     est = model.estimate(scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 1])
     assert est.valid.all() and (est.scores > 0.5).all()
     assert (rotation_angle_error(est.poses, scene["poses"]) < 1.0).all()
@@ -102,13 +103,30 @@ def test_prepared_objects_are_cached(tiny_model, box, tmp_path):
 def test_noise_conditioning_can_be_switched_off(tiny_model, scene):
     obs = tiny_model.observe(scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 1])
     inputs = tiny_model.flow_inputs(obs, scene["poses"])
-    x = torch.randn_like(inputs["x_1"])
+    x = torch.randn_like(inputs.x_1)
+    net_inputs = inputs.net_kwargs()
     off = FunFlow6D(tiny_model.config.replace(noise_conditioning=False))
     off.load_state_dict(tiny_model.state_dict())
     off.eval()
     for p in off.net.dit.parameters():  # leave the zero initialisation so outputs vary
         torch.nn.init.normal_(p, std=0.05)
-    a = off(x=x, t=torch.rand(2), x_0=torch.randn_like(x), **inputs)
-    b = off(x=x, t=torch.rand(2).fill_(0.5), x_0=torch.randn_like(x), **inputs)
-    c = off(x=x, t=torch.full((2,), 0.5), x_0=torch.zeros_like(x), **inputs)
+    a = off(x=x, t=torch.rand(2), x_0=torch.randn_like(x), **net_inputs)
+    b = off(x=x, t=torch.rand(2).fill_(0.5), x_0=torch.randn_like(x), **net_inputs)
+    c = off(x=x, t=torch.full((2,), 0.5), x_0=torch.zeros_like(x), **net_inputs)
     assert torch.allclose(b, c, atol=1e-6) and not torch.allclose(a, b, atol=1e-4)
+
+
+def test_estimate_reports_stages_to_the_active_timer_only(tiny_model, scene):
+    args = (scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 1])
+    timer = StageTimer(synchronize=False)
+    with timer.active():
+        tiny_model.estimate(*args, generator=torch.Generator().manual_seed(0))
+    expected = {
+        "other", "geometric_encoder", "appearance_encoder", "reducer", "fusion", "integration",
+        "flow_net", "ransac", "icp",
+    }  # fmt: skip
+    assert set(timer.counts) == expected
+    assert timer.counts["flow_net"] == tiny_model.config.steps
+    before = dict(timer.counts)
+    tiny_model.estimate(*args, generator=torch.Generator().manual_seed(0))
+    assert timer.counts == before

@@ -1,7 +1,9 @@
+import dataclasses
+
 import pytest
 import torch
 
-from poseflow.models import FunFlow6DNet, NetConfig
+from poseflow.models import DiTOverrides, FunFlow6DNet, NetConfig, NetInputs
 
 CFG = NetConfig(
     geometric_dim=6, semantic_dim=5, feature_dim=8, fusion_heads=2, posenc_dim=8, dit_preset="tiny"
@@ -9,24 +11,25 @@ CFG = NetConfig(
 
 
 def _inputs(B=2, n=5, seed=0):
+    """Network inputs and a noise sample ``x_0``."""
     g = torch.Generator().manual_seed(seed)
     L = 2 * n
-    return {
-        "geometric": torch.randn(B, L, 6, generator=g),
-        "semantic": torch.randn(B, L, 5, generator=g),
-        "points": torch.randn(B, L, 3, generator=g),
-        "normals": torch.randn(B, L, 3, generator=g),
-        "x_0": torch.randn(B, L, 3, generator=g),
-    }
+    inputs = NetInputs(
+        geometric=torch.randn(B, L, 6, generator=g),
+        semantic=torch.randn(B, L, 5, generator=g),
+        points=torch.randn(B, L, 3, generator=g),
+        normals=torch.randn(B, L, 3, generator=g),
+    )
+    return inputs, torch.randn(B, L, 3, generator=g)
 
 
 def test_fusion_keeps_query_and_target_apart():
     torch.manual_seed(0)
     net = FunFlow6DNet(CFG).eval()
-    a = _inputs()
-    b = {k: v.clone() for k, v in a.items()}
-    b["semantic"][:, 5:] += 1.0  # change only the target's appearance
-    ca, cb = net.condition(**a), net.condition(**b)
+    a, x_0 = _inputs()
+    b = dataclasses.replace(a, semantic=a.semantic.clone())
+    b.semantic[:, 5:] += 1.0  # change only the target's appearance
+    ca, cb = net.condition(a, x_0=x_0), net.condition(b, x_0=x_0)
     assert torch.allclose(ca[:, :5], cb[:, :5], atol=1e-6)
     assert not torch.allclose(ca[:, 5:], cb[:, 5:], atol=1e-3)
 
@@ -36,15 +39,17 @@ def test_padding_does_not_change_valid_points():
     net = FunFlow6DNet(CFG).eval()
     for p in net.dit.parameters():  # leave the adaLN-Zero identity so outputs depend on inputs
         torch.nn.init.normal_(p, std=0.05)
-    a = _inputs()
+    a, x_0 = _inputs()
     mask = torch.ones(2, 10, dtype=torch.bool)
     mask[:, 8:] = False
-    b = {k: v.clone() for k, v in a.items()}
-    for v in b.values():
+    a.mask = mask
+    b = NetInputs.from_kwargs({k: v.clone() for k, v in a.net_kwargs().items()})
+    x_0b = x_0.clone()
+    for v in (b.geometric, b.semantic, b.points, b.normals, x_0b):
         v[:, 8:] = 7.0
     x, t = torch.randn(2, 10, 3), torch.rand(2)
-    va = net(x=x, t=t, mask=mask, **a)
-    vb = net(x=torch.where(mask[..., None], x, 3.0), t=t, mask=mask, **b)
+    va = net(x=x, t=t, inputs=a, x_0=x_0)
+    vb = net(x=torch.where(mask[..., None], x, 3.0), t=t, inputs=b, x_0=x_0b)
     assert torch.allclose(va[:, :8], vb[:, :8], atol=1e-5)
     assert (vb[:, 8:] == 0).all()
 
@@ -54,14 +59,15 @@ def test_gradients_reach_every_parameter():
     net = FunFlow6DNet(CFG)
     for p in net.dit.parameters():
         torch.nn.init.normal_(p, std=0.05)
-    v = net(x=torch.randn(2, 10, 3), t=torch.rand(2), **_inputs())
+    inputs, x_0 = _inputs()
+    v = net(x=torch.randn(2, 10, 3), t=torch.rand(2), inputs=inputs, x_0=x_0)
     v.square().sum().backward()
     missing = [n for n, p in net.named_parameters() if p.grad is None or not p.grad.abs().sum()]
     assert not missing
 
 
 def test_dit_preset_fields_can_be_overridden():
-    net = FunFlow6DNet(NetConfig(**{**CFG.to_json(), "dit": {"hidden_dim": 48, "depth": 3}}))
+    net = FunFlow6DNet(dataclasses.replace(CFG, dit=DiTOverrides(hidden_dim=48, depth=3)))
     assert net.dit.config.hidden_dim == 48 and len(net.dit.blocks) == 3
     assert net.dit.config.cond_dim == CFG.feature_dim + CFG.posenc_dim
 
@@ -74,8 +80,8 @@ def test_autocast_with_one_identity_adapter(fusion):
         geometric_dim=6, semantic_dim=8, feature_dim=8, fusion=fusion, fusion_heads=2,
         posenc_dim=8, dit_preset="tiny",
     )  # fmt: skip
-    inputs = _inputs()
-    inputs["semantic"] = torch.randn(2, 10, 8)
+    inputs, x_0 = _inputs()
+    inputs.semantic = torch.randn(2, 10, 8)
     with torch.autocast("cpu", dtype=torch.bfloat16):
-        v = FunFlow6DNet(cfg)(x=torch.randn(2, 10, 3), t=torch.rand(2), **inputs)
+        v = FunFlow6DNet(cfg)(x=torch.randn(2, 10, 3), t=torch.rand(2), inputs=inputs, x_0=x_0)
     assert v.shape == (2, 10, 3) and torch.isfinite(v).all()

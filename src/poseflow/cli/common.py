@@ -31,7 +31,6 @@ __all__ = [
     "check_dataset",
     "config_requested",
     "dataset_fingerprint",
-    "is_model_folder",
     "load_object_models",
     "models_fingerprint",
     "object_cache_dir",
@@ -217,12 +216,6 @@ def build_config(args: argparse.Namespace) -> Any:
         return FunFlow6DConfig.from_json(data)
     except TypeError as exc:  # a value of the wrong kind reaching the dataclass
         raise ValueRangeError(f"invalid FunFlow6D configuration: {exc}") from None
-
-
-def is_model_folder(path: str | Path) -> bool:
-    """Whether ``path`` holds a FunFlow6D checkpoint (``config.json`` + ``model.safetensors``)."""
-    path = Path(path)
-    return (path / "config.json").is_file() and (path / "model.safetensors").is_file()
 
 
 # ------------------------------------------------------------------------------ datasets

@@ -201,7 +201,6 @@ def _targets_option(args: argparse.Namespace, root: Path) -> str | bool | None:
 
 def _load_model(args: argparse.Namespace, device: Any) -> Any:
     from poseflow.errors import ValueRangeError
-    from poseflow.flows import get_sampler
     from poseflow.models import FunFlow6D
 
     if args.model is None:
@@ -219,9 +218,8 @@ def _load_model(args: argparse.Namespace, device: Any) -> Any:
         )
         if v is not None
     }
-    if changes:
+    if changes:  # validated here, before the first image
         model.config = model.config.replace(**changes)
-    get_sampler(model.config.solver, steps=model.config.steps)  # fail before the first image
     return model
 
 
@@ -242,11 +240,9 @@ def _cache_dir(args: argparse.Namespace, root: Path) -> Path | None:
 
 def run(args: argparse.Namespace) -> int:
     """Estimate, write the CSV (and the timing JSON); prints a summary; returns 0."""
-    import torch
-
     from poseflow.cli.common import check_dataset, load_object_models, resolve_device
     from poseflow.data.bop import BOPDataset
-    from poseflow.eval.predict import predict_dataset
+    from poseflow.eval.predict import Estimator, predict_dataset
     from poseflow.eval.results import write_results
     from poseflow.eval.timing import StageTimer
 
@@ -268,34 +264,17 @@ def run(args: argparse.Namespace) -> int:
     with contextlib.suppress(ImportError):  # import it (when there) before any clock starts
         import open3d  # noqa: F401
 
-    timer = StageTimer()
+    estimator: Estimator
     if model is not None:
         model.prepare_objects(objects, cache_dir=_cache_dir(args, root), progress=show)
-        generator = torch.Generator(device=device).manual_seed(args.seed)
-
-        def estimator(rgb: Any, depth: Any, K: Any, masks: Any, obj_ids: Any) -> Any:
-            return model.estimate(
-                rgb.to(device),
-                depth.to(device),
-                K.to(device),
-                masks.to(device),
-                obj_ids,
-                generator=generator,
-                timer=timer,
-            )
-
+        estimator = model.estimator(seed=args.seed)
     else:
         from poseflow.baselines import ClassicBaseline
 
-        baseline = ClassicBaseline(objects, seed=args.seed, timer=timer) if objects else None
-        # Its per-object descriptor banks are built on first use: build them now, so that
-        # neither the first image's time nor the stage breakdown includes them.
-        for obj_id in objects:
-            baseline._bank(obj_id)
-        timer.reset()
-
-        def estimator(rgb: Any, depth: Any, K: Any, masks: Any, obj_ids: Any) -> Any:
-            return baseline.estimate(depth, K, masks, obj_ids)
+        if objects:  # without any, no image reaches the estimator
+            baseline = ClassicBaseline(objects, seed=args.seed)
+            baseline.prepare()  # the descriptor banks now, so that no image's time includes them
+            estimator = baseline.estimator()
 
     instances = 0
 
@@ -304,6 +283,7 @@ def run(args: argparse.Namespace) -> int:
         instances += len(obj_ids)
         return estimator(rgb, depth, K, masks, obj_ids)
 
+    timer = StageTimer()
     results = predict_dataset(
         counted,
         ds,

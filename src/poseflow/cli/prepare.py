@@ -59,16 +59,16 @@ def run(args: argparse.Namespace) -> int:
         build_config,
         check_dataset,
         config_requested,
-        is_model_folder,
         load_object_models,
         object_cache_dir,
     )
     from poseflow.errors import ValueRangeError
     from poseflow.models import FunFlow6D, FunFlow6DConfig
+    from poseflow.models.checkpoint import is_checkpoint
 
     start = time.perf_counter()
     root = check_dataset(args.dataset)
-    if is_model_folder(args.out):
+    if is_checkpoint(args.out):
         if config_requested(args):
             raise ValueRangeError(
                 f"{args.out} holds a trained model whose config.json fixes the configuration; "

@@ -8,7 +8,8 @@
   detected masks) into results;
 - BOP 2019 results CSV files (:func:`read_results`, :func:`write_results`);
 - the paper's correspondence-inlier metric (:func:`correspondence_inliers`);
-- the per-image stage breakdown (:class:`StageTimer`) and qualitative overlays
+- the per-image stage breakdown (:class:`StageTimer`, reported to through :func:`stage` and
+  :func:`timed` while a timer is active) and qualitative overlays
   (:func:`overlay_poses`, :func:`write_overlay`).
 """
 
@@ -27,7 +28,7 @@ from poseflow.eval.errors import (
 from poseflow.eval.evaluate import METRICS, EvalModel, evaluate_bop, gt_results, load_eval_models
 from poseflow.eval.inliers import InlierResult, correspondence_inliers, mutual_nearest_neighbors
 from poseflow.eval.overlay import ESTIMATE_COLOR, GT_COLOR, overlay_poses, write_overlay
-from poseflow.eval.predict import Estimator, PoseEstimate, predict_dataset
+from poseflow.eval.predict import Estimator, PoseEstimate, on_device, predict_dataset
 from poseflow.eval.recall import Assignment, Recall, Target, assign, match, targets_from_gt
 from poseflow.eval.results import HEADER, PoseResults, read_results, write_results
 from poseflow.eval.symmetry import (
@@ -37,7 +38,14 @@ from poseflow.eval.symmetry import (
     symmetries_from_model_info,
     symmetry_transforms,
 )
-from poseflow.eval.timing import EXCLUDED_STAGES, STAGES, StageTimer
+from poseflow.eval.timing import (
+    EXCLUDED_STAGES,
+    STAGES,
+    StageTimer,
+    active_timer,
+    stage,
+    timed,
+)
 
 __all__ = [
     "ESTIMATE_COLOR",
@@ -61,6 +69,7 @@ __all__ = [
     "Recall",
     "StageTimer",
     "Target",
+    "active_timer",
     "assign",
     "axis_angle_rotation",
     "correspondence_inliers",
@@ -73,13 +82,16 @@ __all__ = [
     "mspd",
     "mssd",
     "mutual_nearest_neighbors",
+    "on_device",
     "overlay_poses",
     "predict_dataset",
     "project_points",
     "read_results",
+    "stage",
     "symmetries_from_model_info",
     "symmetry_transforms",
     "targets_from_gt",
+    "timed",
     "vsd_from_depth",
     "write_overlay",
     "write_results",

@@ -12,15 +12,15 @@ import os
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any
 
 import torch
 
 from poseflow.data.bop import BOPDataset, Detection
 from poseflow.eval.recall import Target
 from poseflow.eval.results import PoseResults
+from poseflow.eval.timing import StageTimer
 
-__all__ = ["Estimator", "PoseEstimate", "predict_dataset"]
+__all__ = ["Estimator", "PoseEstimate", "on_device", "predict_dataset"]
 
 
 @dataclass
@@ -42,6 +42,36 @@ class PoseEstimate:
 Estimator = Callable[..., PoseEstimate]
 
 
+def on_device(estimator: Estimator, device: torch.device | str) -> Estimator:
+    """``estimator`` with the image, depth, intrinsics and masks moved to ``device`` first.
+
+    Args:
+        estimator: any :data:`Estimator`, e.g. a model's ``estimate`` on a GPU.
+        device: where its inputs must be.
+
+    Returns:
+        An :data:`Estimator` (``rgb`` may stay None; the object ids are passed unchanged).
+
+    Example:
+        >>> seen = on_device(lambda rgb, depth, K, masks, obj_ids: depth.dtype, "cpu")
+        >>> seen(None, torch.zeros(2, 2, dtype=torch.float64), torch.eye(3),
+        ...      torch.ones(1, 2, 2, dtype=torch.bool), [1])
+        torch.float64
+    """
+
+    def estimate(
+        rgb: torch.Tensor | None,
+        depth: torch.Tensor,
+        K: torch.Tensor,
+        masks: torch.Tensor,
+        obj_ids: Sequence[int] | torch.Tensor,
+    ) -> PoseEstimate:
+        rgb = None if rgb is None else rgb.to(device)
+        return estimator(rgb, depth.to(device), K.to(device), masks.to(device), obj_ids)
+
+    return estimate
+
+
 def predict_dataset(
     estimator: Estimator,
     dataset: str | os.PathLike[str] | BOPDataset,
@@ -52,7 +82,7 @@ def predict_dataset(
     detections: Sequence[Detection] | None = None,
     load_rgb: bool = True,
     max_images: int | None = None,
-    timer: Any = None,
+    timer: StageTimer | None = None,
     progress: bool = False,
 ) -> PoseResults:
     """Estimate the poses of the target instances of every image of a split.
@@ -69,7 +99,8 @@ def predict_dataset(
         load_rgb: read the colour image (False passes ``rgb=None``).
         max_images: stop after this many images.
         timer: optional :class:`~poseflow.eval.timing.StageTimer`; each image runs in
-            ``timer.image()``.
+            ``timer.image()`` with the timer active (``timer.active()``), so that the stages the
+            estimator reports through :func:`~poseflow.eval.timing.stage` are charged to it.
         progress: show a progress bar.
 
     Returns:
@@ -116,7 +147,7 @@ def predict_dataset(
         if timer is None:
             est = estimator(rgb, depth, K, torch.stack(masks), obj_ids)
         else:
-            with timer.image():
+            with timer.active(), timer.image():
                 est = estimator(rgb, depth, K, torch.stack(masks), obj_ids)
         elapsed = time.perf_counter() - start
         ok = est.valid.cpu()

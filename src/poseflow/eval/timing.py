@@ -9,23 +9,30 @@ charged to the stage that launched them.
 
 The breakdown reports the mean milliseconds per image of every stage and its share of the total;
 ``segmentation`` is recorded but excluded from the total, as in the paper (masks are an input).
+
+Timing is a context the caller sets, not an argument the pipeline carries: inside
+``with timer.active():`` the parts of the pipeline report to ``timer`` through the module function
+:func:`stage` (and :func:`timed` for a callable such as the flow network); outside any active
+timer both are no-ops, so the parts cost nothing to time when nobody is timing them.
 """
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import json
 import os
 import time
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager
+from contextvars import ContextVar
 from typing import Any, TypeVar
 
 import torch
 
 from poseflow.errors import MissingDependencyError, ValueRangeError
 
-__all__ = ["EXCLUDED_STAGES", "STAGES", "StageTimer"]
+__all__ = ["EXCLUDED_STAGES", "STAGES", "StageTimer", "active_timer", "stage", "timed"]
 
 #: The paper's stages in display order (segmentation first, then the pipeline, then the rest).
 STAGES: tuple[str, ...] = (
@@ -128,6 +135,26 @@ class StageTimer:
             self._stack.pop()
         self.num_images += 1
 
+    @contextmanager
+    def active(self) -> Iterator[StageTimer]:
+        """Make this the timer that :func:`stage` and :func:`timed` report to, inside the block.
+
+        Example:
+            >>> timer = StageTimer()
+            >>> with timer.active():
+            ...     with stage("icp"):
+            ...         pass
+            >>> with stage("icp"):  # no timer active: nothing recorded
+            ...     pass
+            >>> timer.counts
+            {'icp': 1}
+        """
+        token = _ACTIVE.set(self)
+        try:
+            yield self
+        finally:
+            _ACTIVE.reset(token)
+
     def wrap(self, name: str) -> Callable[[F], F]:
         """Decorator timing every call of a function as stage ``name``.
 
@@ -219,3 +246,52 @@ class StageTimer:
         ax.set_title(f"{data['total_ms']:.1f} ms per image ({data['num_images']} images)")
         fig.tight_layout()
         fig.savefig(path)
+
+
+_ACTIVE: ContextVar[StageTimer | None] = ContextVar("poseflow_active_stage_timer", default=None)
+
+
+def active_timer() -> StageTimer | None:
+    """The timer made active by :meth:`StageTimer.active` around this call, or None."""
+    return _ACTIVE.get()
+
+
+def stage(name: str) -> AbstractContextManager[Any]:
+    """Time a block as stage ``name`` on the active timer; a no-op when none is active.
+
+    Args:
+        name: the stage (see :data:`STAGES`).
+
+    Returns:
+        A context manager.
+    """
+    timer = _ACTIVE.get()
+    return contextlib.nullcontext() if timer is None else timer.stage(name)
+
+
+def timed(name: str, fn: F) -> F:
+    """``fn`` with each call charged to stage ``name`` of the timer active at call time.
+
+    Args:
+        name: the stage (e.g. ``"flow_net"`` for the velocity network inside the sampler).
+        fn: any callable.
+
+    Returns:
+        A callable with ``fn``'s signature and result.
+
+    Example:
+        >>> timer = StageTimer()
+        >>> double = timed("flow_net", lambda x: 2 * x)
+        >>> with timer.active():
+        ...     double(1), double(2)
+        (2, 4)
+        >>> timer.counts
+        {'flow_net': 2}
+    """
+
+    def call(*args: Any, **kwargs: Any) -> Any:
+        with stage(name):
+            return fn(*args, **kwargs)
+
+    # Names and docstring only: a module's ``__dict__`` (its parameters) must not be copied.
+    return functools.update_wrapper(call, fn, updated=())  # type: ignore[return-value]

@@ -1,23 +1,52 @@
-"""FunFlow6D: the model class, its configuration and its trainable network."""
+"""FunFlow6D: the model class, its configuration, its trainable network and its parts by job.
 
-from poseflow.assets import DEMO_CHECKPOINT
-from poseflow.models.config import ABLATIONS, INFERENCE_FIELDS, FunFlow6DConfig
-from poseflow.models.funflow6d import FunFlow6D, Observation, PreparedObject
-from poseflow.models.network import FunFlow6DNet, NetConfig
+- :mod:`~poseflow.models.objects`: :class:`PreparedObject`, prepared once per object and cached;
+- :mod:`~poseflow.models.observe`: :class:`Observation`, the target clouds of an RGBD image;
+- :mod:`~poseflow.models.inputs`: :class:`FlowInputs`, the query and target clouds paired;
+- :mod:`~poseflow.models.config`: :class:`FunFlow6DConfig` and its typed parts;
+- :mod:`~poseflow.models.network`: :class:`FunFlow6DNet`, fusion + positional encoder + DiT;
+- :mod:`~poseflow.models.pose`: :func:`solve_pose` and :func:`agreement_score`;
+- :mod:`~poseflow.models.funflow6d`: :class:`FunFlow6D`, which composes them.
+"""
+
+from poseflow.models.config import (
+    ABLATIONS,
+    INFERENCE_FIELDS,
+    DiTOverrides,
+    FunFlow6DConfig,
+    NetConfig,
+    NetOptions,
+)
+from poseflow.models.funflow6d import FunFlow6D
+from poseflow.models.inputs import TRAINING_FIELDS, FlowInputs, reduce_appearance
+from poseflow.models.network import FunFlow6DNet, NetInputs
+from poseflow.models.objects import PreparedObject, object_fingerprint, prepare_objects
+from poseflow.models.observe import Observation, observe
+from poseflow.models.pose import agreement_score, solve_pose
 from poseflow.models.training import FlowTrainingSet, augment, build_training_set, train
 
 __all__ = [
     "ABLATIONS",
-    "DEMO_CHECKPOINT",
     "INFERENCE_FIELDS",
+    "TRAINING_FIELDS",
+    "DiTOverrides",
+    "FlowInputs",
     "FlowTrainingSet",
     "FunFlow6D",
     "FunFlow6DConfig",
     "FunFlow6DNet",
     "NetConfig",
+    "NetInputs",
+    "NetOptions",
     "Observation",
     "PreparedObject",
+    "agreement_score",
     "augment",
     "build_training_set",
+    "object_fingerprint",
+    "observe",
+    "prepare_objects",
+    "reduce_appearance",
+    "solve_pose",
     "train",
 ]

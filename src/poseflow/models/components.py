@@ -1,72 +1,126 @@
-"""Frozen parts of FunFlow6D built from the configuration's names."""
+"""Frozen parts of FunFlow6D built from the configuration's names, and the names they accept.
+
+Each ``build_*`` factory reads one configuration string; the matching tuple
+(:data:`GEOMETRIC_ENCODERS`, :data:`APPEARANCE_ENCODERS`, :data:`REDUCERS`) lists the kinds it
+knows (``"kind"`` or ``"kind:ARGUMENT"``), so that :class:`~poseflow.models.FunFlow6DConfig` can
+reject an unknown name when it is built (:func:`check_name`).
+"""
 
 from __future__ import annotations
 
-from typing import Any
-
 from poseflow.errors import ValueRangeError
 from poseflow.features import (
+    AppearanceEncoder,
     DenseSIFTEncoder,
     DINOv2Encoder,
     FPFHEncoder,
     GeDiEncoder,
+    GeometricEncoder,
     IdentityReducer,
     PCAReducer,
+    Reducer,
     UMAPReducer,
 )
 
-__all__ = ["build_appearance_encoder", "build_geometric_encoder", "build_reducer"]
+__all__ = [
+    "APPEARANCE_ENCODERS",
+    "GEOMETRIC_ENCODERS",
+    "REDUCERS",
+    "build_appearance_encoder",
+    "build_geometric_encoder",
+    "build_reducer",
+    "check_name",
+]
+
+#: Kinds of :func:`build_geometric_encoder` (``"gedi"`` is written ``"gedi:PATH"``).
+GEOMETRIC_ENCODERS: tuple[str, ...] = ("fpfh", "gedi", "none")
+#: Kinds of :func:`build_appearance_encoder` (``"dinov2"`` takes ``":NAME_OR_PATH"``).
+APPEARANCE_ENCODERS: tuple[str, ...] = ("dsift", "dinov2", "none")
+#: Names of :func:`build_reducer`.
+REDUCERS: tuple[str, ...] = ("umap", "pca", "identity")
 
 
-def build_geometric_encoder(name: str, *, radii: tuple[float, ...]) -> Any:
+def check_name(
+    field: str, name: str, allowed: tuple[str, ...], *, takes_argument: bool = False
+) -> tuple[str, str]:
+    """Check that a configured name is one of a registry's.
+
+    Args:
+        field: the configuration field, for the message.
+        name: the configured name.
+        allowed: the allowed names.
+        takes_argument: ``name`` may be ``"kind:ARGUMENT"`` (an encoder's weights).
+
+    Returns:
+        ``(kind, argument)``; the argument is empty without one.
+
+    Raises:
+        ValueRangeError: an unknown name; the message lists the allowed ones.
+
+    Example:
+        >>> check_name("appearance_encoder", "dinov2:vits14", APPEARANCE_ENCODERS,
+        ...            takes_argument=True)
+        ('dinov2', 'vits14')
+    """
+    if not isinstance(name, str):
+        raise ValueRangeError(f"{field} must be a name (a string), got {name!r}")
+    kind, _, argument = name.partition(":") if takes_argument else (name, "", "")
+    if kind not in allowed:
+        raise ValueRangeError(f"{field} must be one of {', '.join(allowed)}; got {name!r}")
+    return kind, argument
+
+
+def build_geometric_encoder(name: str, *, radii: tuple[float, ...]) -> GeometricEncoder | None:
     """``"fpfh"``, ``"gedi:PATH"`` or ``"none"`` (returns None).
+
+    Raises:
+        ValueRangeError: an unknown name, or ``"gedi"`` without a path.
 
     Example:
         >>> build_geometric_encoder("fpfh", radii=(0.3, 0.4)).dim
         66
     """
-    kind, _, arg = name.partition(":")
-    if kind == "none":
-        return None
+    kind, path = check_name("geometric_encoder", name, GEOMETRIC_ENCODERS, takes_argument=True)
     if kind == "fpfh":
         return FPFHEncoder(radius_fractions=radii)
     if kind == "gedi":
-        if not arg:
+        if not path:
             raise ValueRangeError("gedi needs its weights: geometric_encoder='gedi:/path/to/file'")
-        return GeDiEncoder.from_checkpoint(arg)
-    raise ValueRangeError(f"unknown geometric encoder {name!r}; use 'fpfh', 'gedi:PATH' or 'none'")
+        return GeDiEncoder.from_checkpoint(path)
+    return None
 
 
-def build_appearance_encoder(name: str, *, crop_size: int) -> Any:
+def build_appearance_encoder(name: str, *, crop_size: int) -> AppearanceEncoder | None:
     """``"dsift"``, ``"dinov2:NAME_OR_PATH"`` or ``"none"`` (returns None).
+
+    Raises:
+        ValueRangeError: an unknown name.
 
     Example:
         >>> build_appearance_encoder("dsift", crop_size=64).dim
         128
     """
-    kind, _, arg = name.partition(":")
-    if kind == "none":
-        return None
+    kind, weights = check_name("appearance_encoder", name, APPEARANCE_ENCODERS, takes_argument=True)
     if kind == "dsift":
         return DenseSIFTEncoder(input_size=crop_size)
     if kind == "dinov2":
-        return DINOv2Encoder(arg or "vits14", input_size=crop_size)
-    raise ValueRangeError(
-        f"unknown appearance encoder {name!r}; use 'dsift', 'dinov2:NAME_OR_PATH' or 'none'"
-    )
+        return DINOv2Encoder(weights or "vits14", input_size=crop_size)
+    return None
 
 
-def build_reducer(name: str, *, n_components: int, seed: int = 0) -> Any:
+def build_reducer(name: str, *, n_components: int, seed: int = 0) -> Reducer:
     """``"umap"``, ``"pca"`` or ``"identity"`` (unfitted).
+
+    Raises:
+        ValueRangeError: an unknown name.
 
     Example:
         >>> type(build_reducer("pca", n_components=8)).__name__
         'PCAReducer'
     """
+    check_name("reducer", name, REDUCERS)
     if name == "umap":
         return UMAPReducer(n_components=n_components, random_state=seed)
     if name == "pca":
         return PCAReducer(n_components)
-    if name == "identity":
-        return IdentityReducer()
-    raise ValueRangeError(f"unknown reducer {name!r}; use 'umap', 'pca' or 'identity'")
+    return IdentityReducer()

@@ -1,24 +1,202 @@
-"""The JSON-serialisable configuration of :class:`~poseflow.models.FunFlow6D` and its ablations.
+"""The configuration of :class:`~poseflow.models.FunFlow6D`, its network and its ablations.
 
-Every part of the method is named by a string, so that each row of the paper's ablation table is a
-configuration (:data:`ABLATIONS`) and ``benchmarks/ablation.py`` can rerun it.
+Typed dataclasses all the way down, each JSON round-trippable, one field per choice:
+
+- :class:`FunFlow6DConfig`: the method, from the frozen encoders to the pose solver, with
+- :class:`NetOptions` (its ``net`` field): the free sizes of the trainable network, with
+- :class:`DiTOverrides` (``net.dit``): the fields of the DiT preset to change.
+
+:class:`NetConfig` is the complete description of
+:class:`~poseflow.models.network.FunFlow6DNet`: the :class:`NetOptions` plus what the method
+fixes (descriptor widths, fused width, fusion variant, DiT preset).
+
+Every named choice is checked against its registry when the configuration is built (an unknown
+name raises :class:`~poseflow.errors.ValueRangeError` listing the allowed ones), so that each row
+of the paper's ablation table is a valid configuration (:data:`ABLATIONS`) that
+``benchmarks/ablation.py`` can rerun.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from poseflow.errors import ValueRangeError
-from poseflow.models.network import NetConfig
+from poseflow.flows import PRESETS, SAMPLERS, TIME_SAMPLERS
+from poseflow.flows.dit import AttentionMode, PointDiTConfig
+from poseflow.fusion import FUSIONS
+from poseflow.models.components import (
+    APPEARANCE_ENCODERS,
+    GEOMETRIC_ENCODERS,
+    REDUCERS,
+    check_name,
+)
 
-__all__ = ["ABLATIONS", "INFERENCE_FIELDS", "FunFlow6DConfig"]
+__all__ = [
+    "ABLATIONS",
+    "ANCHORS",
+    "INFERENCE_FIELDS",
+    "POSE_SOLVERS",
+    "DiTOverrides",
+    "FunFlow6DConfig",
+    "NetConfig",
+    "NetOptions",
+]
 
-_SOLVERS = ("ransac", "svd")
-_ANCHORS = ("pinned", "noise")
+#: Names of :attr:`FunFlow6DConfig.pose_solver`.
+POSE_SOLVERS: tuple[str, ...] = ("ransac", "svd")
+#: Names of :attr:`FunFlow6DConfig.anchor`.
+ANCHORS: tuple[str, ...] = ("pinned", "noise")
+
+_C = TypeVar("_C")
+
+
+def _from_mapping(cls: type[_C], data: Mapping[str, Any], what: str) -> _C:
+    """``cls(**data)`` after checking that every key is a field of ``cls``."""
+    names = {f.name for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+    unknown = sorted(set(data) - names)
+    if unknown:
+        raise ValueRangeError(f"unknown {what} keys: {unknown}; known: {sorted(names)}")
+    return cls(**data)
+
+
+@dataclass(frozen=True, kw_only=True)
+class DiTOverrides:
+    """Fields of the DiT preset's :class:`~poseflow.flows.dit.PointDiTConfig` to change.
+
+    None keeps the preset's value. The condition width ``cond_dim`` is not a choice: it is
+    always ``D + d_P`` (fused plus positional channels).
+
+    Attributes:
+        hidden_dim: model width ``E``.
+        depth: number of DiT blocks.
+        num_heads: attention heads; must divide ``hidden_dim``.
+        mlp_ratio: width of each block's MLP relative to ``E``.
+        attention: ``"global"`` or ``"alternating"``.
+        time_frequency_dim: channels of the sinusoidal time features.
+        time_scale: factor applied to ``t`` before the sinusoids.
+
+    Example:
+        >>> dit = DiTOverrides(hidden_dim=64, depth=2)
+        >>> dit.to_json()
+        {'hidden_dim': 64, 'depth': 2}
+        >>> dit.resolve("small", cond_dim=96).num_heads  # the preset's
+        4
+    """
+
+    hidden_dim: int | None = None
+    depth: int | None = None
+    num_heads: int | None = None
+    mlp_ratio: float | None = None
+    attention: AttentionMode | None = None
+    time_frequency_dim: int | None = None
+    time_scale: float | None = None
+
+    def resolve(self, preset: str, *, cond_dim: int) -> PointDiTConfig:
+        """The preset's configuration with these fields changed and ``cond_dim`` set.
+
+        Raises:
+            ValueRangeError: an unknown preset, or values the DiT does not accept.
+        """
+        check_name("dit_preset", preset, tuple(PRESETS))
+        return dataclasses.replace(PRESETS[preset], **self.to_json(), cond_dim=cond_dim)
+
+    def to_json(self) -> dict[str, Any]:
+        """The fields that are set (not None)."""
+        return {
+            f.name: value
+            for f in dataclasses.fields(self)
+            if (value := getattr(self, f.name)) is not None
+        }
+
+    @classmethod
+    def from_json(cls, data: Mapping[str, Any]) -> DiTOverrides:
+        """Build from :meth:`to_json`'s dict; unknown keys are an error."""
+        return _from_mapping(cls, data, "DiT override")
+
+
+@dataclass(frozen=True, kw_only=True)
+class NetOptions:
+    """The free sizes of the trainable network (the rest follows from the method's choices).
+
+    Attributes:
+        fusion_heads: attention heads of the fusion block (paper: 4).
+        dropout: dropout of the fusion block (paper: 0.1).
+        posenc_dim: positional channels ``d_P``.
+        posenc_frequencies: octaves of the sinusoidal embedding of each attribute.
+        dit: changes to the DiT preset (a mapping is read with :meth:`DiTOverrides.from_json`).
+    """
+
+    fusion_heads: int = 4
+    dropout: float = 0.1
+    posenc_dim: int = 64
+    posenc_frequencies: int = 6
+    dit: DiTOverrides = field(default_factory=DiTOverrides)
+
+    def __post_init__(self) -> None:
+        """Read a mapping ``dit``; validate the sizes."""
+        if isinstance(self.dit, Mapping):
+            object.__setattr__(self, "dit", DiTOverrides.from_json(self.dit))
+        if not isinstance(self.dit, DiTOverrides):
+            raise ValueRangeError(f"dit must be a DiTOverrides, got {type(self.dit).__name__}")
+        if self.fusion_heads < 1 or self.posenc_dim < 1 or self.posenc_frequencies < 0:
+            raise ValueRangeError(
+                "fusion_heads and posenc_dim must be >= 1 and posenc_frequencies >= 0"
+            )
+        if not 0.0 <= self.dropout < 1.0:
+            raise ValueRangeError(f"dropout must be in [0, 1), got {self.dropout}")
+
+    def to_json(self) -> dict[str, Any]:
+        """The options as a JSON-serialisable dict."""
+        out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        out["dit"] = self.dit.to_json()
+        return out
+
+    @classmethod
+    def from_json(cls, data: Mapping[str, Any]) -> NetOptions:
+        """Build from :meth:`to_json`'s dict; unknown keys are an error."""
+        return _from_mapping(cls, data, cls.__name__)
+
+
+@dataclass(frozen=True, kw_only=True)
+class NetConfig(NetOptions):
+    """Everything :class:`~poseflow.models.network.FunFlow6DNet` is built from.
+
+    The :class:`NetOptions` fields, and:
+
+    Attributes:
+        geometric_dim: channels ``Dg`` of the frozen geometric descriptors.
+        semantic_dim: channels ``Ds`` of the (reduced) semantic descriptors.
+        feature_dim: fused channels ``D`` (paper: 64). A stream whose width differs from ``D``
+            goes through a learned linear adapter first.
+        fusion: a name of :data:`~poseflow.fusion.FUSIONS` (``"gated"`` is the paper's).
+        dit_preset: a name of :data:`~poseflow.flows.PRESETS`.
+        noise_conditioning: the positional encoder reads each point's noise ``X(0)``
+            (False: zeros in its place); see :attr:`FunFlow6DConfig.noise_conditioning`.
+    """
+
+    geometric_dim: int = 64
+    semantic_dim: int = 64
+    feature_dim: int = 64
+    fusion: str = "gated"
+    dit_preset: str = "small"
+    noise_conditioning: bool = True
+
+    def __post_init__(self) -> None:
+        """Validate the names and the DiT it describes."""
+        super().__post_init__()
+        check_name("fusion", self.fusion, tuple(FUSIONS))
+        if min(self.geometric_dim, self.semantic_dim, self.feature_dim) < 1:
+            raise ValueRangeError("geometric_dim, semantic_dim and feature_dim must be >= 1")
+        self.dit_config()
+
+    def dit_config(self) -> PointDiTConfig:
+        """The DiT's configuration: the preset, the overrides and ``cond_dim = D + d_P``."""
+        return self.dit.resolve(self.dit_preset, cond_dim=self.feature_dim + self.posenc_dim)
 
 
 @dataclass(kw_only=True)
@@ -48,7 +226,8 @@ class FunFlow6DConfig:
             encoder, as the paper does. With them, ``X(1) - X(0) = (X(t) - X(0)) / t`` can be read
             off the input for ``t > 0``, so training concentrates on small ``t``; False replaces
             them by zeros (see ``benchmarks/RESULTS.md`` for both).
-        time_sampler: training-time distribution (``"uniform"`` is the paper's).
+        time_sampler: training-time distribution (``"uniform"`` is the paper's; see
+            :data:`~poseflow.flows.TIME_SAMPLERS`).
         solver: ODE solver (``"euler"`` is the paper's, also ``"midpoint"``, ``"heun"``,
             ``"rk4"``).
         steps: integration steps ``K`` (paper: 50).
@@ -59,7 +238,11 @@ class FunFlow6DConfig:
         ransac_threshold: RANSAC inlier distance, fraction of the diameter.
         icp_thresholds: coarse-to-fine ICP distances, fractions of the diameter; empty: no ICP.
         icp_iterations: ICP iterations per threshold.
-        net: sizes of the trainable network (derived fields are filled in by the model).
+        net: the free sizes of the trainable network (a mapping is read with
+            :meth:`NetOptions.from_json`).
+
+    Raises:
+        ValueRangeError: an unknown name (the message lists the allowed ones) or a bad value.
     """
 
     num_points: int = 256
@@ -84,12 +267,28 @@ class FunFlow6DConfig:
     ransac_threshold: float = 0.05
     icp_thresholds: tuple[float, ...] = (0.08, 0.04, 0.02)
     icp_iterations: int = 30
-    net: dict[str, Any] = field(default_factory=dict)
+    net: NetOptions = field(default_factory=NetOptions)
 
     def __post_init__(self) -> None:
         """Validate the choices."""
         self.geometric_radii = tuple(float(r) for r in self.geometric_radii)
         self.icp_thresholds = tuple(float(r) for r in self.icp_thresholds)
+        if isinstance(self.net, Mapping):
+            self.net = NetOptions.from_json(self.net)
+        if not isinstance(self.net, NetOptions):
+            raise ValueRangeError(f"net must be a NetOptions, got {type(self.net).__name__}")
+        for name, allowed, takes_argument in (
+            ("geometric_encoder", GEOMETRIC_ENCODERS, True),
+            ("appearance_encoder", APPEARANCE_ENCODERS, True),
+            ("reducer", REDUCERS, False),
+            ("fusion", tuple(FUSIONS), False),
+            ("dit_preset", tuple(PRESETS), False),
+            ("anchor", ANCHORS, False),
+            ("time_sampler", tuple(TIME_SAMPLERS), False),
+            ("solver", tuple(SAMPLERS), False),
+            ("pose_solver", POSE_SOLVERS, False),
+        ):
+            check_name(name, getattr(self, name), allowed, takes_argument=takes_argument)
         if self.num_points < 8:
             raise ValueRangeError(f"num_points must be at least 8, got {self.num_points}")
         if self.dense_points < self.num_points:
@@ -97,49 +296,70 @@ class FunFlow6DConfig:
                 f"dense_points ({self.dense_points}) must be at least num_points "
                 f"({self.num_points})"
             )
-        if self.pose_solver not in _SOLVERS:
-            raise ValueRangeError(
-                f"pose_solver must be one of {_SOLVERS}, got {self.pose_solver!r}"
-            )
-        if self.anchor not in _ANCHORS:
-            raise ValueRangeError(f"anchor must be one of {_ANCHORS}, got {self.anchor!r}")
         if self.steps < 1 or self.num_hypotheses < 1 or self.ransac_iterations < 1:
             raise ValueRangeError("steps, num_hypotheses and ransac_iterations must be >= 1")
         if self.geometric_encoder == "none" and self.appearance_encoder == "none":
             raise ValueRangeError("at least one of the geometric and appearance encoders is needed")
+        self.net.dit.resolve(self.dit_preset, cond_dim=self.feature_dim + self.net.posenc_dim)
 
     def replace(self, **changes: Any) -> FunFlow6DConfig:
-        """A copy with some fields changed."""
+        """A copy with some fields changed (validated again)."""
         return dataclasses.replace(self, **changes)
 
-    def net_config(self, *, geometric_dim: int, semantic_dim: int) -> NetConfig:
-        """The network sizes for descriptors of the given widths."""
-        base = {
-            "geometric_dim": geometric_dim,
-            "semantic_dim": semantic_dim,
-            "feature_dim": self.feature_dim,
-            "fusion": self.fusion,
-            "dit_preset": self.dit_preset,
-        }
-        return NetConfig(**{**base, **self.net})
+    def net_config(self, geometric_dim: int | None, semantic_dim: int | None) -> NetConfig:
+        """The network's configuration for descriptors of the given widths.
+
+        Args:
+            geometric_dim: width of the geometric descriptors, None without an encoder.
+            semantic_dim: width of the (reduced) semantic descriptors, None without an encoder.
+                A missing stream is fed the other one's descriptors, so it takes its width.
+        """
+        if geometric_dim is None:
+            geometric_dim = semantic_dim
+        if semantic_dim is None:
+            semantic_dim = geometric_dim
+        if geometric_dim is None or semantic_dim is None:
+            raise ValueRangeError("the network needs the width of at least one descriptor")
+        options = {f.name: getattr(self.net, f.name) for f in dataclasses.fields(NetOptions)}
+        return NetConfig(
+            **options,
+            geometric_dim=geometric_dim,
+            semantic_dim=semantic_dim,
+            feature_dim=self.feature_dim,
+            fusion=self.fusion,
+            dit_preset=self.dit_preset,
+            noise_conditioning=self.noise_conditioning,
+        )
 
     def to_json(self) -> dict[str, Any]:
         """The configuration as a JSON-serialisable dict."""
-        out = dataclasses.asdict(self)
+        out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
         out["geometric_radii"] = list(self.geometric_radii)
         out["icp_thresholds"] = list(self.icp_thresholds)
+        out["net"] = self.net.to_json()
         return out
 
     @classmethod
-    def from_json(cls, data: dict[str, Any] | str | Path) -> FunFlow6DConfig:
-        """Build from :meth:`to_json`'s dict or a JSON file; unknown keys are an error."""
-        if not isinstance(data, dict):
+    def from_json(cls, data: Mapping[str, Any] | str | Path) -> FunFlow6DConfig:
+        """Build from :meth:`to_json`'s dict or a JSON file; unknown keys are an error.
+
+        Files written before the network options were typed are read as they were meant: a
+        ``fusion`` or ``dit_preset`` inside ``net`` (which then overrode the top-level field)
+        becomes the top-level field, and a ``cond_dim`` inside ``net.dit`` (always replaced by
+        ``D + d_P``) is dropped.
+        """
+        if not isinstance(data, Mapping):
             data = json.loads(Path(data).read_text())
-        names = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(data) - names)
-        if unknown:
-            raise ValueRangeError(f"unknown FunFlow6D config keys: {unknown}")
-        return cls(**data)
+        data = dict(data)  # type: ignore[arg-type]
+        if isinstance(data.get("net"), Mapping):
+            net = dict(data["net"])
+            for name in ("fusion", "dit_preset"):
+                if name in net:
+                    data[name] = net.pop(name)
+            if isinstance(net.get("dit"), Mapping):
+                net["dit"] = {k: v for k, v in net["dit"].items() if k != "cond_dim"}
+            data["net"] = net
+        return _from_mapping(cls, data, "FunFlow6D config")
 
 
 #: Fields a trained model may change at inference: the sampler, the hypotheses, the pose solver

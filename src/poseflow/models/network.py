@@ -12,55 +12,78 @@ cloud attend to the other. Fusion and positional encoding do not depend on the f
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+import dataclasses
+from collections.abc import Mapping
+from dataclasses import dataclass
 from typing import Any
 
 import torch
 from torch import nn
 
 from poseflow._checks import check_mask, check_tensor
-from poseflow.errors import ShapeError
+from poseflow.errors import ShapeError, ValueRangeError
+from poseflow.eval.timing import stage, timed
 from poseflow.flows.dit import PointDiT
 from poseflow.flows.positional import PointPositionalEncoder
+from poseflow.flows.samplers import ODESampler, initial_noise
 from poseflow.fusion import build_fusion
+from poseflow.models.config import NetConfig
 
-__all__ = ["FunFlow6DNet", "NetConfig"]
+__all__ = ["FunFlow6DNet", "NetInputs"]
 
 
-@dataclass(frozen=True, kw_only=True)
-class NetConfig:
-    """Sizes of :class:`FunFlow6DNet`.
+@dataclass(kw_only=True)
+class NetInputs:
+    """What the network reads of ``[Q ; T]`` besides the flow state and the noise.
 
     Attributes:
-        geometric_dim: channels ``Dg`` of the frozen geometric descriptors.
-        semantic_dim: channels ``Ds`` of the (reduced) semantic descriptors.
-        feature_dim: fused channels ``D`` (paper: 64). A stream whose width differs from ``D``
-            goes through a learned linear adapter first.
-        fusion: ``"gated"`` (paper), ``"cross"``, ``"concat_mlp"`` or ``"sum"``.
-        fusion_heads: attention heads of the fusion block (paper: 4).
-        dropout: dropout of the fusion block (paper: 0.1).
-        posenc_dim: positional channels ``d_P``.
-        posenc_frequencies: octaves of the sinusoidal embedding of each attribute.
-        dit_preset: :class:`~poseflow.flows.dit.PointDiT` preset (``"paper"``, ``"small"``,
-            ``"tiny"``).
-        dit: overrides of the preset's :class:`~poseflow.flows.dit.PointDiTConfig` fields, e.g.
-            ``{"hidden_dim": 96}``.
+        geometric: frozen geometric descriptors ``(B, 2N, Dg)``.
+        semantic: (reduced) semantic descriptors ``(B, 2N, Ds)``.
+        points: normalised coordinates ``(B, 2N, 3)``: ``Q`` canonical, ``T`` observed.
+        normals: unit normals ``(B, 2N, 3)``.
+        mask: ``(B, 2N)`` bool, True at valid points (None: all valid).
     """
 
-    geometric_dim: int = 64
-    semantic_dim: int = 64
-    feature_dim: int = 64
-    fusion: str = "gated"
-    fusion_heads: int = 4
-    dropout: float = 0.1
-    posenc_dim: int = 64
-    posenc_frequencies: int = 6
-    dit_preset: str = "small"
-    dit: dict[str, Any] = field(default_factory=dict)
+    geometric: torch.Tensor
+    semantic: torch.Tensor
+    points: torch.Tensor
+    normals: torch.Tensor
+    mask: torch.Tensor | None = None
 
-    def to_json(self) -> dict[str, Any]:
-        """The configuration as a JSON-serialisable dict."""
-        return asdict(self)
+    @classmethod
+    def field_names(cls) -> tuple[str, ...]:
+        """The names of :class:`NetInputs`' own fields (also for a subclass).
+
+        Example:
+            >>> NetInputs.field_names()
+            ('geometric', 'semantic', 'points', 'normals', 'mask')
+        """
+        return tuple(f.name for f in dataclasses.fields(NetInputs))
+
+    @classmethod
+    def from_kwargs(cls, tensors: Mapping[str, torch.Tensor]) -> NetInputs:
+        """Build from keyword tensors named as the fields (e.g. a collated training batch).
+
+        Raises:
+            ValueRangeError: a name that is not a field, or a missing field.
+        """
+        names = cls.field_names()
+        unknown = sorted(set(tensors) - set(names))
+        required = [
+            f.name for f in dataclasses.fields(NetInputs) if f.default is dataclasses.MISSING
+        ]
+        missing = [n for n in required if n not in tensors]
+        if unknown or missing:
+            raise ValueRangeError(
+                f"the network takes {', '.join(names)}; got unknown {unknown}, missing {missing}"
+            )
+        return NetInputs(**tensors)
+
+    def net_kwargs(self) -> dict[str, torch.Tensor]:
+        """The fields of :class:`NetInputs` as keyword tensors (inverse of :meth:`from_kwargs`)."""
+        return {
+            n: value for n in NetInputs.field_names() if (value := getattr(self, n)) is not None
+        }
 
 
 class FunFlow6DNet(nn.Module):
@@ -73,10 +96,11 @@ class FunFlow6DNet(nn.Module):
         >>> net = FunFlow6DNet(NetConfig(geometric_dim=6, semantic_dim=5, feature_dim=8,
         ...                              fusion_heads=2, posenc_dim=8, dit_preset="tiny"))
         >>> B, N = 2, 4
-        >>> inputs = dict(geometric=torch.randn(B, 2 * N, 6), semantic=torch.randn(B, 2 * N, 5),
-        ...               points=torch.randn(B, 2 * N, 3), normals=torch.randn(B, 2 * N, 3),
-        ...               x_0=torch.randn(B, 2 * N, 3))
-        >>> net(x=torch.randn(B, 2 * N, 3), t=torch.rand(B), **inputs).shape
+        >>> inputs = NetInputs(geometric=torch.randn(B, 2 * N, 6),
+        ...                    semantic=torch.randn(B, 2 * N, 5),
+        ...                    points=torch.randn(B, 2 * N, 3), normals=torch.randn(B, 2 * N, 3))
+        >>> x, x_0 = torch.randn(B, 2 * N, 3), torch.randn(B, 2 * N, 3)
+        >>> net(x=x, t=torch.rand(B), inputs=inputs, x_0=x_0).shape
         torch.Size([2, 8, 3])
     """
 
@@ -95,72 +119,95 @@ class FunFlow6DNet(nn.Module):
             kwargs.update(num_heads=cfg.fusion_heads, dropout=cfg.dropout)
         self.fusion = build_fusion(cfg.fusion, **kwargs)
         self.posenc = PointPositionalEncoder(cfg.posenc_dim, num_frequencies=cfg.posenc_frequencies)
-        self.dit = PointDiT.from_preset(
-            cfg.dit_preset, **{**cfg.dit, "cond_dim": d + cfg.posenc_dim}
-        )
+        self.dit = PointDiT(cfg.dit_config())
 
-    def condition(
-        self,
-        *,
-        geometric: torch.Tensor,
-        semantic: torch.Tensor,
-        points: torch.Tensor,
-        normals: torch.Tensor,
-        x_0: torch.Tensor,
-        mask: torch.Tensor | None = None,
-    ) -> torch.Tensor:
+    def condition(self, inputs: NetInputs, *, x_0: torch.Tensor) -> torch.Tensor:
         """The conditioning signal ``C = [F | P]`` of ``[Q ; T]``.
 
         Args:
-            geometric: geometric descriptors ``(B, 2N, Dg)``.
-            semantic: semantic descriptors ``(B, 2N, Ds)``.
-            points: normalised coordinates ``(B, 2N, 3)``: ``Q`` canonical, ``T`` observed.
-            normals: unit normals ``(B, 2N, 3)``.
-            x_0: the noise sample ``X(0)`` ``(B, 2N, 3)``.
-            mask: ``(B, 2N)`` bool, True at valid points (None: all valid).
+            inputs: the frozen descriptors, coordinates, normals and mask of ``[Q ; T]``.
+            x_0: the noise sample ``X(0)`` ``(B, 2N, 3)`` (read as zeros by the positional
+                encoder without ``config.noise_conditioning``).
 
         Returns:
             ``(B, 2N, D + d_P)``.
         """
-        sizes = check_tensor(points, "points", ("B", "L", 3))
+        sizes = check_tensor(inputs.points, "points", ("B", "L", 3))
         if sizes["L"] % 2:
             raise ShapeError(f"[Q ; T] needs an even number of points, got {sizes['L']}")
-        check_tensor(geometric, "geometric", ("B", "L", self.config.geometric_dim), sizes=sizes)
-        check_tensor(semantic, "semantic", ("B", "L", self.config.semantic_dim), sizes=sizes)
+        cfg = self.config
+        check_tensor(inputs.geometric, "geometric", ("B", "L", cfg.geometric_dim), sizes=sizes)
+        check_tensor(inputs.semantic, "semantic", ("B", "L", cfg.semantic_dim), sizes=sizes)
+        mask = inputs.mask
         if mask is not None:
             check_mask(mask, "mask", ("B", "L"), sizes)
         B, L = sizes["B"], sizes["L"]
         n = L // 2
-        g = self.geometric_in(geometric).reshape(2 * B, n, -1)
-        s = self.semantic_in(semantic).reshape(2 * B, n, -1)
+        g = self.geometric_in(inputs.geometric).reshape(2 * B, n, -1)
+        s = self.semantic_in(inputs.semantic).reshape(2 * B, n, -1)
         # Under autocast an Identity adapter keeps float32 while a Linear one gives bfloat16.
         common = torch.promote_types(g.dtype, s.dtype)
         g, s = g.to(common), s.to(common)
         fused = self.fusion(g, s, None if mask is None else mask.reshape(2 * B, n))
         fused = fused.reshape(B, L, -1)
-        is_target = torch.arange(L, device=points.device).expand(B, L) >= n
-        pos = self.posenc(points, normals, x_0, is_target)
+        is_target = torch.arange(L, device=inputs.points.device).expand(B, L) >= n
+        if not cfg.noise_conditioning:
+            x_0 = torch.zeros_like(x_0)
+        pos = self.posenc(inputs.points, inputs.normals, x_0, is_target)
         return torch.cat([fused, pos], dim=-1)
 
-    def forward(
+    @torch.no_grad()
+    def sample(
         self,
+        inputs: NetInputs,
+        sampler: ODESampler,
         *,
-        x: torch.Tensor,
-        t: torch.Tensor,
-        geometric: torch.Tensor,
-        semantic: torch.Tensor,
-        points: torch.Tensor,
-        normals: torch.Tensor,
-        x_0: torch.Tensor,
-        mask: torch.Tensor | None = None,
+        frozen_mask: torch.Tensor,
+        x_frozen: torch.Tensor | None = None,
+        generator: torch.Generator | None = None,
     ) -> torch.Tensor:
-        """Velocity of every point of ``[Q ; T]``, ``(B, 2N, 3)``; see :meth:`condition`."""
-        c = self.condition(
-            geometric=geometric,
-            semantic=semantic,
-            points=points,
-            normals=normals,
-            x_0=x_0,
-            mask=mask,
+        """Integrate the flow from fresh noise ``X(0)`` to ``X(1)``, the condition computed once.
+
+        The stages are reported to the active timer: ``fusion`` (the condition),
+        ``integration`` (the sampler) and ``flow_net`` (each DiT call).
+
+        Args:
+            inputs: as in :meth:`condition`.
+            sampler: the ODE solver.
+            frozen_mask: ``(B, 2N)`` bool, True at the anchor's points (velocity zero).
+            x_frozen: where the anchor sits when it is pinned ``(B, 2N, 3)``, or None.
+            generator: draws ``X(0) ~ N(0, I)``.
+
+        Returns:
+            ``X(1)`` ``(B, 2N, 3)``.
+        """
+        points = inputs.points
+        x_0 = initial_noise(
+            points.shape, generator=generator, device=points.device, dtype=points.dtype
         )
-        return self.dit(x, t, condition=c, mask=mask, num_query=x.shape[1] // 2)
+        with stage("fusion"):
+            cond = self.condition(inputs, x_0=x_0)
+        with stage("integration"):
+            return sampler.sample(
+                timed("flow_net", self.dit),
+                x_0,
+                frozen_mask=frozen_mask,
+                x_frozen=x_frozen,
+                condition=cond,
+                mask=inputs.mask,
+                num_query=points.shape[1] // 2,
+            )
+
+    def forward(
+        self, *, x: torch.Tensor, t: torch.Tensor, inputs: NetInputs, x_0: torch.Tensor
+    ) -> torch.Tensor:
+        """Velocity of every point of ``[Q ; T]``, ``(B, 2N, 3)``; see :meth:`condition`.
+
+        Args:
+            x: the flow state ``X(t)`` ``(B, 2N, 3)``.
+            t: times ``(B,)``.
+            inputs: as in :meth:`condition`.
+            x_0: as in :meth:`condition`.
+        """
+        c = self.condition(inputs, x_0=x_0)
+        return self.dit(x, t, condition=c, mask=inputs.mask, num_query=x.shape[1] // 2)

@@ -18,28 +18,28 @@ from poseflow.data.bop import BOPImageDataset
 from poseflow.errors import DegenerateInputError, ValueRangeError
 from poseflow.flows import CFMObjective, CFMTrainer, TrainConfig
 from poseflow.models.funflow6d import FunFlow6D
+from poseflow.models.inputs import TRAINING_FIELDS
 
 __all__ = ["FlowTrainingSet", "augment", "build_training_set", "train"]
-
-#: The per-instance tensors a training batch holds (``x_1`` and the model's keyword inputs).
-TRAINING_KEYS = ("x_1", "frozen_mask", "geometric", "semantic", "points", "normals", "mask")
 
 
 class FlowTrainingSet(torch.utils.data.Dataset):
     """Precomputed flow inputs of training instances, one dict of tensors per item.
 
     Args:
-        tensors: ``{key: (I, ...)}`` for every key of :data:`TRAINING_KEYS`.
+        tensors: ``{name: (I, ...)}`` for every name of
+            :data:`~poseflow.models.inputs.TRAINING_FIELDS` (fields of
+            :class:`~poseflow.models.inputs.FlowInputs`); a saved set is stored under these names.
     """
 
     def __init__(self, tensors: dict[str, torch.Tensor]) -> None:
-        missing = [k for k in TRAINING_KEYS if k not in tensors]
+        missing = [k for k in TRAINING_FIELDS if k not in tensors]
         if missing:
             raise ValueRangeError(f"training tensors lack {missing}")
         sizes = {len(v) for v in tensors.values()}
         if len(sizes) != 1:
             raise ValueRangeError(f"training tensors have different lengths: {sorted(sizes)}")
-        self.tensors = {k: tensors[k] for k in TRAINING_KEYS}
+        self.tensors = {k: tensors[k] for k in TRAINING_FIELDS}
 
     def __len__(self) -> int:
         return len(self.tensors["x_1"])
@@ -152,7 +152,7 @@ def build_training_set(
     images = BOPImageDataset(root, split)
     count = len(images) if max_images is None else min(max_images, len(images))
     g = torch.Generator().manual_seed(seed)
-    parts: dict[str, list[torch.Tensor]] = {k: [] for k in TRAINING_KEYS}
+    parts: dict[str, list[torch.Tensor]] = {k: [] for k in TRAINING_FIELDS}
     for i in tqdm(range(count), desc=f"features of {split}", disable=not progress):
         s = images[i]
         keep = (s["visib_fract"] >= min_visib_fract) & s["valid"]
@@ -168,8 +168,8 @@ def build_training_set(
                 crop_jitter=crop_jitter if copy else 0.0,
             )  # fmt: skip
             inputs = model.flow_inputs(obs, s["poses"][keep])
-            for k in TRAINING_KEYS:
-                parts[k].append(inputs[k][obs.valid])
+            for k in TRAINING_FIELDS:
+                parts[k].append(getattr(inputs, k)[obs.valid])
     if not parts["x_1"] or sum(len(p) for p in parts["x_1"]) == 0:
         raise DegenerateInputError(f"{root}/{split} holds no usable instance of a prepared object")
     return FlowTrainingSet({k: torch.cat(v) for k, v in parts.items()})

@@ -1,0 +1,258 @@
+"""Prepared objects: what inference needs of each known object, computed once and cached on disk.
+
+Preparing an object samples its query cloud ``Q`` (farthest-point sampling of the model's
+surface, seeded), describes it with the frozen encoders (``Φ(Q)`` and the multi-view appearance
+bank) and fits the reducer on the bank. A prepared object is stored as ``object.safetensors``
+plus ``object.json`` (its diameter and the :func:`object_fingerprint` of the configuration that
+made it) and a reducer folder; a cached object whose fingerprint differs is prepared again.
+
+Shape letters: ``N`` query points, ``Nd`` dense surface points, ``Dg`` geometric channels.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from poseflow.data.objects import ObjectModel
+from poseflow.errors import ValueRangeError
+from poseflow.features import (
+    AppearanceEncoder,
+    GeometricEncoder,
+    QueryFeatureBank,
+    Reducer,
+    lift_query_features,
+    load_reducer,
+)
+from poseflow.geometry.pointcloud import farthest_point_sample
+from poseflow.models.components import build_reducer
+from poseflow.models.config import FunFlow6DConfig
+
+__all__ = [
+    "PreparedObject",
+    "object_fingerprint",
+    "prepare_object",
+    "prepare_objects",
+    "select_objects",
+]
+
+#: Rows of the appearance bank the reducer is fitted on, at most.
+_REDUCER_FIT_ROWS = 4096
+
+
+@dataclass
+class PreparedObject:
+    """What inference needs of one object, computed once by :func:`prepare_object`.
+
+    Attributes:
+        points: the query cloud ``Q`` ``(N, 3)``, canonical frame, metres.
+        normals: its unit normals ``(N, 3)``.
+        dense_points: a denser surface sample ``(Nd, 3)``, the ICP target.
+        diameter: the object's diameter, metres.
+        geometric: ``Φ(Q)`` ``(N, Dg)``, or None without a geometric encoder.
+        bank: the multi-view appearance bank of ``Q``, or None without an appearance encoder.
+        reducer: the reducer fitted on the query's appearance features, or None.
+    """
+
+    points: torch.Tensor
+    normals: torch.Tensor
+    dense_points: torch.Tensor
+    diameter: float
+    geometric: torch.Tensor | None
+    bank: QueryFeatureBank | None
+    reducer: Reducer | None
+
+    def save(self, folder: str | Path, *, fingerprint: Mapping[str, Any]) -> Path:
+        """Write the object to ``folder`` (safetensors + JSON + reducer), tagged ``fingerprint``."""
+        from safetensors.torch import save_file
+
+        folder = Path(folder)
+        folder.mkdir(parents=True, exist_ok=True)
+        tensors = {
+            "points": self.points,
+            "normals": self.normals,
+            "dense_points": self.dense_points,
+        }
+        if self.geometric is not None:
+            tensors["geometric"] = self.geometric
+        if self.bank is not None:
+            tensors.update({f"bank.{k}": v for k, v in self.bank.state().items()})
+        if self.reducer is not None:
+            self.reducer.save(folder / "reducer")
+        tmp = folder / "object.safetensors.tmp"
+        save_file({k: v.contiguous() for k, v in tensors.items()}, str(tmp))
+        tmp.replace(folder / "object.safetensors")
+        meta = {"diameter": self.diameter, "config": dict(fingerprint)}
+        (folder / "object.json").write_text(json.dumps(meta, indent=1))
+        return folder
+
+    @classmethod
+    def load(cls, folder: str | Path, *, fingerprint: Mapping[str, Any]) -> PreparedObject | None:
+        """Read an object written by :meth:`save`; None when absent or of another fingerprint."""
+        from safetensors.torch import load_file
+
+        folder = Path(folder)
+        meta_path = folder / "object.json"
+        if not meta_path.is_file():
+            return None
+        meta = json.loads(meta_path.read_text())
+        if meta.get("config") != dict(fingerprint):
+            return None
+        t = load_file(str(folder / "object.safetensors"))
+        bank_state = {k[5:]: v for k, v in t.items() if k.startswith("bank.")}
+        return cls(
+            points=t["points"],
+            normals=t["normals"],
+            dense_points=t["dense_points"],
+            diameter=float(meta["diameter"]),
+            geometric=t.get("geometric"),
+            bank=QueryFeatureBank.from_state(bank_state) if bank_state else None,
+            reducer=load_reducer(folder / "reducer") if (folder / "reducer").exists() else None,
+        )
+
+
+def object_fingerprint(config: FunFlow6DConfig) -> dict[str, Any]:
+    """The configuration fields a prepared object depends on (the key of the on-disk cache).
+
+    Example:
+        >>> sorted(object_fingerprint(FunFlow6DConfig()))[:3]
+        ['appearance_encoder', 'crop_size', 'feature_dim']
+    """
+    return {
+        "num_points": config.num_points,
+        "geometric_encoder": config.geometric_encoder,
+        "geometric_radii": list(config.geometric_radii),
+        "appearance_encoder": config.appearance_encoder,
+        "crop_size": config.crop_size,
+        "query_views": config.query_views,
+        "reducer": config.reducer,
+        "feature_dim": config.feature_dim,
+    }
+
+
+def prepare_object(
+    model: ObjectModel,
+    config: FunFlow6DConfig,
+    *,
+    geometric_encoder: GeometricEncoder | None,
+    appearance_encoder: AppearanceEncoder | None,
+) -> PreparedObject:
+    """Sample the query cloud of one object, describe it and fit its reducer.
+
+    Args:
+        model: the object (metres; a textured mesh for appearance).
+        config: the model configuration (``num_points``, ``query_views``, ``reducer``,
+            ``feature_dim``).
+        geometric_encoder: the frozen geometric encoder, or None.
+        appearance_encoder: the frozen appearance encoder, or None.
+
+    Returns:
+        The :class:`PreparedObject` (on the CPU, float32).
+    """
+    dense = model.points.detach().cpu().float()
+    dense_normals = model.normals.detach().cpu().float()
+    g = torch.Generator().manual_seed(0)
+    idx, _ = farthest_point_sample(dense[None], config.num_points, generator=g)
+    points, normals = dense[idx[0]], dense_normals[idx[0]]
+    geometric = None
+    if geometric_encoder is not None:
+        geometric = geometric_encoder.encode(points[None], normals[None], None, model.diameter)[0]
+    bank, reducer = None, None
+    if appearance_encoder is not None:
+        bank = lift_query_features(
+            appearance_encoder, model, points, model.diameter, num_views=config.query_views
+        )
+        reducer = build_reducer(config.reducer, n_components=config.feature_dim)
+        reducer.fit(_bank_rows(bank, max_rows=_REDUCER_FIT_ROWS))
+    return PreparedObject(
+        points=points,
+        normals=normals,
+        dense_points=dense,
+        diameter=float(model.diameter),
+        geometric=geometric,
+        bank=bank,
+        reducer=reducer,
+    )
+
+
+def prepare_objects(
+    models: Mapping[int, ObjectModel],
+    config: FunFlow6DConfig,
+    *,
+    geometric_encoder: GeometricEncoder | None,
+    appearance_encoder: AppearanceEncoder | None,
+    cache_dir: str | Path | None = None,
+    progress: bool = True,
+) -> dict[int, PreparedObject]:
+    """:func:`prepare_object` for every object, through the on-disk cache.
+
+    Args:
+        models: ``{obj_id: ObjectModel}``.
+        config: the model configuration.
+        geometric_encoder: the frozen geometric encoder, or None.
+        appearance_encoder: the frozen appearance encoder, or None.
+        cache_dir: where prepared objects are stored and looked up (``obj_XXXXXX`` folders);
+            None computes everything in memory.
+        progress: show a progress bar.
+
+    Returns:
+        ``{obj_id: PreparedObject}``.
+    """
+    from tqdm.auto import tqdm
+
+    fingerprint = object_fingerprint(config)
+    out: dict[int, PreparedObject] = {}
+    for obj_id, model in tqdm(sorted(models.items()), desc="prepare objects", disable=not progress):
+        folder = None if cache_dir is None else Path(cache_dir) / f"obj_{obj_id:06d}"
+        prepared = None
+        if folder is not None:
+            prepared = PreparedObject.load(folder, fingerprint=fingerprint)
+        if prepared is None:
+            prepared = prepare_object(
+                model,
+                config,
+                geometric_encoder=geometric_encoder,
+                appearance_encoder=appearance_encoder,
+            )
+            if folder is not None:
+                prepared.save(folder, fingerprint=fingerprint)
+        out[int(obj_id)] = prepared
+    return out
+
+
+def select_objects(
+    objects: Mapping[int, PreparedObject], obj_ids: torch.Tensor | Sequence[int]
+) -> list[PreparedObject]:
+    """The prepared object of every instance.
+
+    Args:
+        objects: ``{obj_id: PreparedObject}``.
+        obj_ids: object id of each instance ``(B,)``.
+
+    Returns:
+        ``B`` prepared objects (the same object repeats for instances of one object).
+
+    Raises:
+        ValueRangeError: an id is not prepared.
+    """
+    ids = torch.as_tensor(obj_ids).reshape(-1).tolist()
+    missing = sorted({int(i) for i in ids} - set(objects))
+    if missing:
+        raise ValueRangeError(
+            f"object {missing[0]} is not prepared; call prepare_objects first "
+            f"(prepared: {sorted(objects)})"
+        )
+    return [objects[int(i)] for i in ids]
+
+
+def _bank_rows(bank: QueryFeatureBank, *, max_rows: int) -> torch.Tensor:
+    """Visible per-view features of a bank, evenly subsampled to at most ``max_rows`` rows."""
+    rows = bank.features[bank.visible].float()
+    if len(rows) > max_rows:
+        rows = rows[torch.linspace(0, len(rows) - 1, max_rows).round().long()]
+    return rows

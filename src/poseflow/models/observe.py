@@ -1,0 +1,181 @@
+"""Observations: the target cloud of every masked instance of an RGBD image, with its features.
+
+For each instance mask the depth is back-projected (camera frame, metres), cut to a random subset
+of at most ``dense_points`` points, cleaned of statistical outliers and thinned to ``N`` points by
+farthest-point sampling; normals are estimated and the frozen encoders describe the cloud. The
+stages are reported to the active :class:`~poseflow.eval.timing.StageTimer` (``other``,
+``geometric_encoder``, ``appearance_encoder``).
+
+Shape letters: ``B`` instances, ``N`` points per cloud, ``Dg`` geometric channels, ``G`` raw
+appearance channels, ``H`` / ``W`` image size.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import torch
+
+from poseflow._checks import check_tensor
+from poseflow.errors import ShapeError
+from poseflow.eval.timing import stage
+from poseflow.features import AppearanceEncoder, GeometricEncoder, lift_target_features
+from poseflow.geometry.pointcloud import (
+    backproject_depth,
+    estimate_normals,
+    farthest_point_sample,
+    remove_statistical_outliers,
+)
+
+__all__ = ["MIN_POINTS", "Observation", "observe"]
+
+#: Instances with fewer valid target points are flagged invalid.
+MIN_POINTS = 16
+
+
+@dataclass
+class Observation:
+    """Target clouds lifted from an RGBD image, with their frozen features.
+
+    Attributes:
+        obj_ids: object of each instance ``(B,)``.
+        points: target clouds ``(B, N, 3)``, camera frame, metres (padded rows repeat a point).
+        normals: unit normals ``(B, N, 3)`` facing the camera.
+        mask: valid points ``(B, N)``.
+        valid: instances with enough points ``(B,)``; the others are padding only.
+        geometric: ``Φ(T)`` ``(B, N, Dg)`` or None.
+        appearance: raw lifted appearance features ``(B, N, G)`` or None.
+    """
+
+    obj_ids: torch.Tensor
+    points: torch.Tensor
+    normals: torch.Tensor
+    mask: torch.Tensor
+    valid: torch.Tensor
+    geometric: torch.Tensor | None
+    appearance: torch.Tensor | None
+
+
+@torch.no_grad()
+def observe(
+    rgb: torch.Tensor,
+    depth: torch.Tensor,
+    K: torch.Tensor,
+    masks: torch.Tensor,
+    obj_ids: torch.Tensor | Sequence[int],
+    diameters: Sequence[float],
+    *,
+    num_points: int,
+    dense_points: int,
+    geometric_encoder: GeometricEncoder | None = None,
+    appearance_encoder: AppearanceEncoder | None = None,
+    generator: torch.Generator | None = None,
+    crop_jitter: float = 0.0,
+) -> Observation:
+    """Lift the masked depth of each instance to a cloud of ``N`` points with its features.
+
+    Args:
+        rgb: the image ``(3, H, W)`` in ``[0, 1]`` (float) or ``[0, 255]`` (uint8).
+        depth: depth ``(H, W)`` in metres (0 or NaN where missing).
+        K: intrinsics ``(3, 3)``.
+        masks: instance masks ``(B, H, W)`` bool.
+        obj_ids: object id of each mask ``(B,)``.
+        diameters: the diameter of each instance's object, metres ``(B,)``.
+        num_points: points ``N`` per cloud.
+        dense_points: cap on the back-projected cloud before outlier removal and sampling.
+        geometric_encoder: the frozen geometric encoder, or None.
+        appearance_encoder: the frozen appearance encoder, or None.
+        generator: seeds the dense-cloud cap and the start of the farthest-point sampling.
+        crop_jitter: training augmentation of the appearance crop (see
+            :func:`~poseflow.features.lifting.jitter_boxes`); 0 at inference.
+
+    Returns:
+        The :class:`Observation`; instances with fewer than :data:`MIN_POINTS` valid points are
+        flagged invalid (their features are computed on padding and ignored downstream).
+
+    Raises:
+        ShapeError: inconsistent shapes, or as many ids as masks.
+    """
+    obj_ids = torch.as_tensor(obj_ids, dtype=torch.long).reshape(-1)
+    sizes = check_tensor(masks, "masks", ("B", "H", "W"), floating=False)
+    check_tensor(depth, "depth", ("H", "W"), sizes=sizes, floating=False)
+    check_tensor(rgb, "rgb", (3, "H", "W"), sizes=sizes, floating=False)
+    if len(obj_ids) != sizes["B"]:
+        raise ShapeError(f"got {sizes['B']} masks but {len(obj_ids)} object ids")
+    B, n = sizes["B"], num_points
+    image = rgb.float() / 255.0 if not rgb.is_floating_point() else rgb.float()
+    depth = torch.nan_to_num(depth.float(), nan=0.0, posinf=0.0)
+    K = K.float()
+    with stage("other"):
+        cloud = backproject_depth(depth.expand(B, *depth.shape), K, masks.bool())
+        cloud_points, cloud_pixels, keep = cloud.points, cloud.pixels, cloud.mask
+        if cloud_points.shape[1] == 0:  # every mask empty: one padded point each
+            cloud_points = K.new_zeros(B, 1, 3)
+            cloud_pixels = torch.zeros(B, 1, 2, dtype=torch.long, device=K.device)
+            keep = torch.zeros(B, 1, dtype=torch.bool, device=K.device)
+        if cloud_points.shape[1] > dense_points:
+            cloud_points, cloud_pixels, keep = _random_subset(
+                cloud_points, cloud_pixels, keep, dense_points, generator
+            )
+        if cloud_points.shape[1] >= 20:
+            keep = remove_statistical_outliers(cloud_points, keep, k=20)
+        idx, valid_pts = farthest_point_sample(cloud_points, n, keep, generator=generator)
+        points = torch.gather(cloud_points, 1, idx[..., None].expand(-1, -1, 3))
+        pixels = torch.gather(cloud_pixels, 1, idx[..., None].expand(-1, -1, 2))
+        valid = valid_pts.sum(dim=1) >= MIN_POINTS
+        normals = estimate_normals(points, valid_pts, k=min(16, n))
+    diameter = torch.tensor(list(diameters), device=points.device)
+    geometric = appearance = None
+    v = valid  # encoders see only instances with enough points; the others stay zero
+    if geometric_encoder is not None:
+        with stage("geometric_encoder"):
+            geometric = points.new_zeros(B, n, geometric_encoder.dim)
+            if bool(v.any()):
+                geometric[v] = geometric_encoder.encode(
+                    points[v], normals[v], valid_pts[v], diameter[v]
+                )
+    if appearance_encoder is not None:
+        with stage("appearance_encoder"):
+            appearance = points.new_zeros(B, n, appearance_encoder.dim)
+            if bool(v.any()):
+                appearance[v] = lift_target_features(
+                    appearance_encoder,
+                    image.expand(int(v.sum()), *image.shape),
+                    points[v],
+                    K,
+                    valid_pts[v],
+                    pixels=pixels[v].to(points.dtype),
+                    jitter=crop_jitter,
+                    generator=generator if crop_jitter > 0 else None,
+                )
+    return Observation(obj_ids, points, normals, valid_pts, valid, geometric, appearance)
+
+
+def _random_subset(
+    points: torch.Tensor,
+    pixels: torch.Tensor,
+    mask: torch.Tensor,
+    size: int,
+    generator: torch.Generator | None,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """A uniform random subset of at most ``size`` valid points per cloud.
+
+    Args:
+        points: clouds ``(B, P, 3)``.
+        pixels: their pixels ``(B, P, 2)``.
+        mask: validity ``(B, P)`` bool.
+        size: points kept, ``< P``.
+        generator: seeds the draw (None: a fixed seed, so that repeated calls agree).
+
+    Returns:
+        ``(points, pixels, mask)`` with ``size`` columns; clouds with fewer valid points keep
+        them all (and padding).
+    """
+    if generator is None:
+        generator = torch.Generator(device=mask.device).manual_seed(0)
+    keys = torch.rand(mask.shape, generator=generator, device=mask.device)
+    keys = torch.where(mask, keys, 2.0)  # valid points first, in random order
+    idx = keys.topk(size, dim=1, largest=False).indices
+    take = lambda t: torch.gather(t, 1, idx[..., None].expand(-1, -1, t.shape[-1]))  # noqa: E731
+    return take(points), take(pixels), torch.gather(mask, 1, idx)
