@@ -186,7 +186,7 @@ def main(argv: list[str] | None = None) -> None:
     images = sorted(set(zip(results.scene_ids.tolist(), results.im_ids.tolist())))
     if args.quick:
         images = images[:4]
-    parts, added, added_cpu = [], [], []
+    parts, added, added_cpu, by_count = [], [], [], {}
     replaced, per_object, batches = Counter(), Counter(), []
     for s, i in images:
         rows = ((results.scene_ids == s) & (results.im_ids == i)).nonzero()[:, 0]
@@ -212,6 +212,7 @@ def main(argv: list[str] | None = None) -> None:
         elapsed = time.perf_counter() - start
         added.append(elapsed)
         added_cpu.append(time.process_time() - cpu_start)
+        by_count.setdefault(len(ids), []).append(added_cpu[-1])
         for o, c in zip(ids, out.chosen.tolist()):
             per_object[o] += 1
             replaced[o] += int(c != 0)
@@ -240,6 +241,9 @@ def main(argv: list[str] | None = None) -> None:
         "added_ms_per_image_max": 1000 * max(added),
         "added_cpu_ms_per_image_median": 1000 * statistics.median(added_cpu),
         "added_cpu_ms_per_image_mean": 1000 * statistics.mean(added_cpu),
+        "added_cpu_ms_by_instances": {
+            str(n): round(1000 * statistics.median(t), 1) for n, t in sorted(by_count.items())
+        },
         "load_average": list(os.getloadavg()),
         "replaced": {str(o): f"{replaced[o]}/{per_object[o]}" for o in sorted(per_object)},
         "prepare_s": {str(o): t for o, t in prepare_s.items()},

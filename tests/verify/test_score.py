@@ -15,7 +15,7 @@ from poseflow.verify import (
     PointRendering,
     VerifierScore,
     appearance_agreement,
-    balanced_grey,
+    balance_colors,
     depth_agreement,
     score_renderings,
     select_hypotheses,
@@ -26,9 +26,11 @@ from poseflow.verify import (
 S = 16
 
 
-def textured(seed: int, B: int = 1, H: int = 1, dtype: torch.dtype = torch.float64) -> torch.Tensor:
+def textured(
+    seed: int, B: int = 1, H: int = 1, C: int = 3, dtype: torch.dtype = torch.float64
+) -> torch.Tensor:
     g = torch.Generator().manual_seed(seed)
-    return 0.2 + torch.rand(B, H, S, S, generator=g, dtype=dtype)
+    return 0.2 + torch.rand(B, H, C, S, S, generator=g, dtype=dtype)
 
 
 @given(
@@ -43,12 +45,16 @@ def test_appearance_ignores_gain_and_offset(
     dtype = torch.float64 if double else torch.float32
     x = textured(seed, dtype=dtype)
     g = torch.Generator().manual_seed(seed + 1)
-    y = (x[:, 0] + 0.05 * torch.rand(1, S, S, generator=g, dtype=dtype)).clamp_min(0)
+    y = (x[:, 0] + 0.05 * torch.rand(1, 3, S, S, generator=g, dtype=dtype)).clamp_min(0)
     both = torch.ones(1, 1, S, S, dtype=torch.bool)
     kw = {"window": 5, "contrast_reference": 0.1}
     ref = appearance_agreement(x, y, both, **kw)
     # the contrast floor is relative to the local mean, so an offset moves it a little
     moved = appearance_agreement(x, gain * y + offset * y.mean(), both, **kw)
+    # a different gain and offset per channel (a colour cast) changes nothing either
+    cast = torch.tensor([gain, 1.0, 0.5], dtype=dtype).reshape(1, 3, 1, 1)
+    tinted = appearance_agreement(x, cast * y + offset * y.mean(), both, **kw)
+    torch.testing.assert_close(tinted, ref, atol=0.02, rtol=0)
     assert ref.dtype == dtype
     assert (ref[both] > 0.5).float().mean() > 0.9
     torch.testing.assert_close(moved, ref, atol=0.02, rtol=0)
@@ -57,20 +63,25 @@ def test_appearance_ignores_gain_and_offset(
 
 
 @given(seed=st.integers(0, 2**31 - 1), double=st.booleans())
-def test_balanced_grey_ignores_colour_gains(seed: int, double: bool) -> None:
+def test_balance_colors_ignores_colour_gains(seed: int, double: bool) -> None:
     dtype = torch.float64 if double else torch.float32
     g = torch.Generator().manual_seed(seed)
     color = torch.rand(2, 3, S, S, generator=g, dtype=dtype) + 0.01
     mask = torch.rand(2, S, S, generator=g) > 0.3
     gains = 0.1 + 3 * torch.rand(1, 3, 1, 1, generator=g, dtype=dtype)
-    torch.testing.assert_close(balanced_grey(color * gains, mask), balanced_grey(color, mask))
+    balanced = balance_colors(color, mask)
+    torch.testing.assert_close(balance_colors(color * gains, mask), balanced)
+    w = mask[:, None].to(dtype)
+    means = (balanced * w).sum((-2, -1)) / w.sum((-2, -1))
+    torch.testing.assert_close(means, torch.ones(2, 3, dtype=dtype))
 
 
 def test_appearance_of_flat_model_is_zero_and_of_mismatch_is_low() -> None:
     both = torch.ones(1, 1, S, S, dtype=torch.bool)
     kw = {"window": 5, "contrast_reference": 0.1}
     y = textured(0)[:, 0]
-    flat = appearance_agreement(torch.full((1, 1, S, S), 0.5, dtype=torch.float64), y, both, **kw)
+    flat_model = torch.full((1, 1, 3, S, S), 0.5, dtype=torch.float64)
+    flat = appearance_agreement(flat_model, y, both, **kw)
     assert flat.abs().max() < 1e-6
     other = appearance_agreement(textured(5), y, both, **kw)
     same = appearance_agreement(textured(0), y, both, **kw)
@@ -100,10 +111,11 @@ def crops_and_renders(H: int, B: int = 1) -> tuple[PointRendering, ObservedCrops
     mask = torch.zeros(B, S, S, dtype=torch.bool)
     mask[:, 4:12, 4:12] = True
     tint = torch.tensor([0.9, 0.6, 0.3], dtype=torch.float64).reshape(1, 3, 1, 1)
-    color = textured(7, B, 1) * tint
+    albedo = textured(7, B, 1)[:, 0]
+    color = albedo * tint
     r_depth = depth[:, None].repeat(1, H, 1, 1)
     r_mask = mask[:, None].repeat(1, H, 1, 1)
-    r_color = color[:, None, :1].repeat(1, H, 1, 1, 1)
+    r_color = albedo[:, None].repeat(1, H, 1, 1, 1)
     return PointRendering(r_depth, r_mask, r_color), ObservedCrops(depth, mask, color)
 
 

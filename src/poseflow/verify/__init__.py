@@ -39,7 +39,7 @@ from poseflow.verify.render import (
 from poseflow.verify.score import (
     VerifierScore,
     appearance_agreement,
-    balanced_grey,
+    balance_colors,
     depth_agreement,
     score_renderings,
     select_hypotheses,
@@ -67,7 +67,7 @@ __all__ = [
     "VerifierScore",
     "appearance_agreement",
     "axis_angle_matrix",
-    "balanced_grey",
+    "balance_colors",
     "crop_intrinsics",
     "crop_observation",
     "depth_agreement",

@@ -77,7 +77,7 @@ class VerifierConfig:
     silhouette_weight: float = 1.0
     appearance_weight: float = 1.0
     block_size: int = 8
-    significance: float = 0.01
+    significance: float = 0.05
     max_candidates: int = 12
     min_self_overlap: float = 0.6
     self_overlap_distance: float = 0.03
@@ -85,9 +85,9 @@ class VerifierConfig:
     turn_steps: int = 12
     refine_top_k: int = 2
     icp_distances: tuple[float, ...] = (0.1, 0.05, 0.02)
-    icp_iterations: int = 15
+    icp_iterations: int = 10
     icp_relative_rmse: float = 1e-4
-    max_observed_points: int = 300
+    max_observed_points: int = 200
 
     def __post_init__(self) -> None:
         ints = {

@@ -15,12 +15,12 @@ by pixel, and is a mean over a set of pixels, as in the VSD error of the BOP ben
   from 1, over the visible rendering and the masked pixels that have a depth;
 - silhouette agreement (:func:`silhouette_agreement`): IoU of the visible rendering and the mask;
 - appearance agreement (:func:`appearance_agreement`): on the pixels both cover, the local
-  zero-mean normalised cross-correlation of the rendered albedo's grey and the observed grey
-  (white-balanced over the mask, :func:`balanced_grey`) in small windows, weighted by how
-  textured the rendering is in the window, averaged over the same pixels as the silhouette. A
-  gain per colour channel of the image changes nothing, and each window ignores a gain and an
-  offset of the observed grey, so shading, white balance and exposure do not change it; where
-  the model has no texture the weight is 0 and the term stays at 0 for every hypothesis alike.
+  zero-mean normalised cross-correlation of rendered albedo and observed colour (white-balanced
+  over the mask, :func:`balance_colors`), per channel, in small windows, weighted by how
+  textured the rendering is in the window, averaged over the same pixels as the silhouette.
+  Each window's correlation ignores a gain and an offset of each observed channel, so shading,
+  white balance and exposure do not change it; where the model has no texture the weight is 0
+  and the term stays at 0 for every hypothesis alike.
 
 The total is the weighted mean of the three terms. Because each term is a sum over pixels, the
 total splits exactly into the contributions of ``G`` blocks of pixels, kept as
@@ -44,7 +44,7 @@ from poseflow.verify.render import ObservedCrops, PointRendering
 __all__ = [
     "VerifierScore",
     "appearance_agreement",
-    "balanced_grey",
+    "balance_colors",
     "depth_agreement",
     "score_renderings",
     "select_hypotheses",
@@ -195,33 +195,30 @@ def silhouette_agreement(
     return visible & m, visible | m
 
 
-def balanced_grey(color: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """Grey image after a grey-world white balance over the masked pixels.
+def balance_colors(color: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Grey-world white balance over the masked pixels: each channel divided by its mean there.
 
-    Each channel is divided by its mean over ``mask`` and the channels are averaged, so a gain
-    per channel of the whole image (exposure, white balance, the light's colour) changes nothing.
+    A gain per channel of the whole image (exposure, white balance, the light's colour) then
+    changes nothing.
 
     Args:
         color: images ``(B, C, S, S)``.
         mask: ``(B, S, S)`` bool, the pixels the balance is measured on.
 
     Returns:
-        ``(B, S, S)`` grey images, mean 1 over a non-empty mask (0 where the mask is empty).
+        ``(B, C, S, S)``, each channel of mean 1 over a non-empty mask (0 where it is empty).
 
     Example:
         >>> c = torch.rand(2, 3, 8, 8) + 0.1
         >>> m = torch.ones(2, 8, 8, dtype=torch.bool)
         >>> tint = torch.tensor([0.5, 1.0, 2.0]).reshape(1, 3, 1, 1)
-        >>> torch.allclose(balanced_grey(c, m), balanced_grey(c * tint, m))
+        >>> torch.allclose(balance_colors(c, m), balance_colors(c * tint, m))
         True
     """
     w = mask[:, None].to(color.dtype)
-    mean = (color * w).sum((-2, -1)) / w.sum((-2, -1)).clamp_min(1)  # (B, C)
+    mean = ((color * w).sum((-2, -1)) / w.sum((-2, -1)).clamp_min(1))[..., None, None]
     tiny = torch.finfo(color.dtype).tiny
-    scaled = torch.where(
-        mean[..., None, None] > 0, color / mean[..., None, None].clamp_min(tiny), 0
-    )
-    return scaled.mean(1)
+    return torch.where(mean > 0, color / mean.clamp_min(tiny), 0)
 
 
 def appearance_agreement(
@@ -232,19 +229,20 @@ def appearance_agreement(
     window: int,
     contrast_reference: float,
 ) -> torch.Tensor:
-    """Per-pixel, texture-weighted local normalised cross-correlation of two grey images.
+    """Per-pixel, texture-weighted local normalised cross-correlation of two colour images.
 
-    In the ``window x window`` neighbourhood of each pixel, over the pixels ``both`` covers, the
-    rendered and observed values are correlated after removing their means and dividing by their
-    deviations: a gain and an offset of the observed image (shading, exposure) change nothing.
-    The correlation is weighted by the rendering's relative contrast in the window (standard
-    deviation over mean) divided by ``contrast_reference``, capped at 1, so flat parts of the
-    model, where the correlation is only noise, carry no weight. Windows with fewer than half
-    their pixels covered count 0.
+    In the ``window x window`` neighbourhood of each pixel, over the pixels ``both`` covers, each
+    channel's rendered and observed values are correlated after removing their means and dividing
+    by their deviations: a gain and an offset of an observed channel (shading, exposure, white
+    balance) change nothing. Each channel's correlation is weighted by the rendered channel's
+    relative contrast in the window (standard deviation over mean) divided by
+    ``contrast_reference``, capped at 1, so flat parts of the model, where the correlation is
+    only noise, carry no weight; the channels are averaged. Windows with fewer than half their
+    pixels covered count 0.
 
     Args:
-        rendered: rendered grey ``(B, H, S, S)``.
-        observed: observed grey ``(B, S, S)``.
+        rendered: rendered colour ``(B, H, C, S, S)``.
+        observed: observed colour ``(B, C, S, S)``.
         both: ``(B, H, S, S)`` bool, the pixels both images cover.
         window: odd window side in pixels.
         contrast_reference: relative contrast that gets full weight.
@@ -254,21 +252,22 @@ def appearance_agreement(
 
     Example:
         >>> g = torch.Generator().manual_seed(0)
-        >>> x = torch.rand(1, 1, 16, 16, generator=g) + 0.5
+        >>> x = torch.rand(1, 1, 3, 16, 16, generator=g) + 0.5
         >>> both = torch.ones(1, 1, 16, 16, dtype=torch.bool)
         >>> same = appearance_agreement(x, 0.3 * x[:, 0] + 0.1, both, window=5,
         ...                             contrast_reference=0.1)
         >>> round(same[0, 0, 8, 8].item(), 2)
         0.99
     """
-    B, H, S, _ = rendered.shape
-    w = both.to(rendered.dtype)
+    B, H, C, S, _ = rendered.shape
+    w = both[:, :, None].to(rendered.dtype)  # (B, H, 1, S, S)
     x = rendered * w
     y = observed[:, None] * w
-    stack = torch.stack((w, x, y, x * x, y * y, x * y), dim=2)  # (B, H, 6, S, S)
-    n, sx, sy, sxx, syy, sxy = (
-        _box_sum(stack.reshape(-1, S, S), window).reshape(B, H, 6, S, S).unbind(2)
-    )
+    stack = torch.stack((x, y, x * x, y * y, x * y), dim=2)  # (B, H, 5, C, S, S)
+    sums = _box_sum(torch.cat((w, stack.flatten(2, 3)), dim=2).reshape(-1, S, S), window)
+    sums = sums.reshape(B, H, 1 + 5 * C, S, S)
+    n = sums[:, :, :1]
+    sx, sy, sxx, syy, sxy = sums[:, :, 1:].reshape(B, H, 5, C, S, S).unbind(2)
     n_safe = n.clamp_min(1)
     mx, my = sx / n_safe, sy / n_safe
     vx = (sxx / n_safe - mx * mx).clamp_min(0)
@@ -281,8 +280,8 @@ def appearance_agreement(
     ncc = torch.where(denom > 0, cov / denom.clamp_min(tiny), 0.0).clamp(-1.0, 1.0)
     contrast = vx.sqrt() / mx.abs().clamp_min(1e-3)
     weight = (contrast / contrast_reference).clamp(max=1.0)
-    enough = n >= (window * window + 1) // 2
-    return torch.where(both & enough, weight * ncc, 0.0)
+    enough = both & (n[:, :, 0] >= (window * window + 1) // 2)
+    return torch.where(enough, (weight * ncc).mean(2), 0.0)
 
 
 def _box_sum(x: torch.Tensor, window: int) -> torch.Tensor:
@@ -318,8 +317,8 @@ def score_renderings(
     """Score renderings of ``B x H`` hypotheses against the observed crops.
 
     Args:
-        rendering: renderings ``(B, H, ...)`` on ``S x S`` crops; their channels are averaged
-            into the grey the appearance term compares.
+        rendering: renderings ``(B, H, ...)`` on ``S x S`` crops, their colour balanced as
+            :func:`balance_colors` balances the observation's (or over the whole model).
         observed: the observation on the same crops ``(B, ...)``.
         depth_tolerance: ``(B,)`` metres.
         visibility_tolerance: ``(B,)`` metres.
@@ -358,8 +357,8 @@ def score_renderings(
     inter, union = silhouette_agreement(visible, o_mask)
     if observed.color is not None and wa > 0:
         app = appearance_agreement(
-            rendering.color.mean(2),
-            balanced_grey(observed.color.to(dtype), o_mask),
+            rendering.color,
+            balance_colors(observed.color.to(dtype), o_mask),
             inter,
             window=appearance_window,
             contrast_reference=contrast_reference,

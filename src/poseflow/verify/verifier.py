@@ -39,8 +39,8 @@ class PreparedObject:
             farthest-point order (every prefix is spread evenly too).
         normals: outward unit normals ``(N, 3)``.
         colors: albedo ``(N, 3)`` in ``[0, 1]``.
-        grey: the albedo's grey after a grey-world balance over the object ``(N, 1)`` (each
-            channel divided by its mean over the points, then averaged): what is drawn.
+        albedo: ``colors`` after a grey-world balance over the object ``(N, 3)`` (each channel
+            divided by its mean over the points): what is drawn.
         centroid: centre of the points ``(3,)``.
         diameter: the object's diameter.
         candidates: near-symmetry transforms ``(C, 4, 4)``, ``C`` possibly 0.
@@ -50,7 +50,7 @@ class PreparedObject:
     points: torch.Tensor
     normals: torch.Tensor
     colors: torch.Tensor
-    grey: torch.Tensor
+    albedo: torch.Tensor
     centroid: torch.Tensor
     diameter: float
     candidates: torch.Tensor
@@ -173,9 +173,10 @@ class PoseVerifier:
         normals = torch.nn.functional.normalize(torch.from_numpy(nrm)[keep], dim=-1)
         colors = torch.from_numpy(col).to(torch.float64)[keep].clamp(0, 1)
         balance = colors.mean(0).clamp_min(1e-6)
-        grey = (colors / balance).mean(-1, keepdim=True)
-        # self-ICP moves an eighth of the points (a random subset, still spread) onto all
-        sub = torch.randperm(points.shape[0], generator=g)[: max(16, cfg.num_points // 8)]
+        albedo = colors / balance
+        # self-ICP moves an eighth of the points (a random subset, still spread; at least 256)
+        # onto all of them
+        sub = torch.randperm(points.shape[0], generator=g)[: max(256, cfg.num_points // 8)]
         found = near_symmetries(
             points[sub],
             normals[sub],
@@ -195,7 +196,7 @@ class PoseVerifier:
             points=points.float(),
             normals=normals.float(),
             colors=colors.float(),
-            grey=grey.float(),
+            albedo=albedo.float(),
             centroid=points.mean(0).float(),
             diameter=float(model.diameter),
             candidates=found.transforms.float(),
@@ -216,12 +217,12 @@ class PoseVerifier:
     def _stack(
         self, objects: list[PreparedObject], like: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Points, normals, grey ``(B, N, *)`` and diameters ``(B,)`` like ``like``."""
+        """Points, normals, albedo ``(B, N, 3)`` and diameters ``(B,)`` like ``like``."""
         kw = {"dtype": like.dtype, "device": like.device}
         return (
             torch.stack([o.points for o in objects]).to(**kw),
             torch.stack([o.normals for o in objects]).to(**kw),
-            torch.stack([o.grey for o in objects]).to(**kw),
+            torch.stack([o.albedo for o in objects]).to(**kw),
             torch.tensor([o.diameter for o in objects], **kw),
         )
 
@@ -245,7 +246,7 @@ class PoseVerifier:
 
         Example:
             >>> v = PoseVerifier()
-            >>> v.objects[3] = PreparedObject(*[torch.zeros(1, 3)] * 3, torch.zeros(1, 1),
+            >>> v.objects[3] = PreparedObject(*[torch.zeros(1, 3)] * 4,
             ...                               torch.zeros(3), 0.1,
             ...                               torch.eye(4)[None].repeat(2, 1, 1), torch.ones(2))
             >>> v.expand(torch.eye(4)[None], [3]).poses.shape
@@ -381,7 +382,7 @@ class PoseVerifier:
         check_same(("hypotheses", hypotheses), ("masks", masks), dtype=False)
         cfg = self.config
         objects = self._objects(obj_ids, sizes["B"])
-        points, normals, grey, diam = self._stack(objects, hypotheses)
+        points, normals, albedo, diam = self._stack(objects, hypotheses)
         Kd = K.to(hypotheses.dtype)
         if boxes is None:
             boxes = self.crop_boxes(hypotheses[:, 0], obj_ids, Kd, masks)
@@ -392,14 +393,14 @@ class PoseVerifier:
                 f"{cfg.crop_size}, got {crop_size}"
             )
         n = min(points.shape[1], math.ceil(points.shape[1] * (S / cfg.crop_size) ** 2))
-        points, normals, grey = points[:, :n], normals[:, :n], grey[:, :n]
+        points, normals, albedo = points[:, :n], normals[:, :n], albedo[:, :n]
         Kc = crop_intrinsics(Kd, boxes, S)
         pixel = (boxes[:, 2] - boxes[:, 0]) / S / Kd[:2, :2].diagonal().min()  # m per m depth
         z0 = hypotheses[:, 0, 2, 3].abs().clamp_min(1e-3)
         rendering = render_points(
             points,
             normals,
-            grey,
+            albedo,
             hypotheses,
             Kc,
             S,
