@@ -11,9 +11,9 @@ verified CSV (score = the verifier's, time = the estimator's plus the verificati
 many estimates it replaced per object, and the time to prepare each object.
 
 ``--renderers`` also measures the z-buffered point renderer the verifier uses against the
-library's Open3D ray caster on the same hypotheses (each rendered on the verifier's crop, the ray
-caster one call per hypothesis): time per batch, and how far apart their depth, silhouette and
-colour are.
+library's Open3D ray caster (one thread) on the same hypotheses (each rendered on the verifier's
+crop, the ray caster one call per hypothesis): time per batch, how far apart their depth,
+silhouette and colour are, and whether the verifier scores and chooses the same with either.
 
 Run ``python benchmarks/verify.py DATASET --results CSV --out CSV`` (``--quick``: 4 images).
 """
@@ -40,7 +40,16 @@ from poseflow.geometry.pointcloud import (
     remove_statistical_outliers,
     voxel_downsample,
 )
-from poseflow.verify import PoseVerifier, VerifierConfig, crop_intrinsics, render_points
+from poseflow.verify import (
+    PointRendering,
+    PoseVerifier,
+    VerifierConfig,
+    crop_intrinsics,
+    crop_observation,
+    render_points,
+    score_renderings,
+    select_hypotheses,
+)
 
 
 def observed_clouds(
@@ -97,8 +106,10 @@ def compare_renderers(verifier: PoseVerifier, models: dict, batches: list, repea
     casters = {o: Renderer([models[o].mesh], nthreads=1) for o in models}
     S = verifier.config.crop_size
     albedo = Light(ambient=1.0, diffuse=0.0)
+    cfg = verifier.config
     t_points, t_rays, ious, depth_err, color_err = [], [], [], [], []
-    for K, masks, obj_ids, hyps in batches:
+    total_diff, same_best, same_choice = [], [], []
+    for rgb, depth, K, masks, obj_ids, hyps in batches:
         boxes = verifier.crop_boxes(hyps[:, 0], obj_ids, K, masks)
         Kc = crop_intrinsics(K, boxes, S)
         objs = [verifier.objects[o] for o in obj_ids]
@@ -139,9 +150,37 @@ def compare_renderers(verifier: PoseVerifier, models: dict, batches: list, repea
             both = a & r
             dz = (ours.depth[b, h][both] - ref.depth.double()[both]).abs()
             depth_err.append(float(dz.median() / objs[b].diameter))
-            rgb = ref.rgb.double().permute(2, 0, 1) / 255.0
-            dc = (ours.color[b, h][:, both] - rgb[:, both]).abs().mean()
+            albedo_img = ref.rgb.double().permute(2, 0, 1) / 255.0
+            dc = (ours.color[b, h][:, both] - albedo_img[:, both]).abs().mean()
             color_err.append(float(dc))
+        # what matters: the verifier's scores and choices with either rendering
+        B, H = hyps.shape[:2]
+        rays = PointRendering(
+            depth=torch.stack([r.depth.double() for r in theirs]).reshape(B, H, S, S),
+            mask=torch.stack([r.masks_full[0] for r in theirs]).reshape(B, H, S, S),
+            color=torch.stack([r.rgb.double().permute(2, 0, 1) / 255 for r in theirs]).reshape(
+                B, H, 3, S, S
+            ),
+        )
+        observed = crop_observation(depth, masks, boxes, S, rgb)
+        kw = {
+            "depth_tolerance": cfg.depth_tolerance * diam,
+            "visibility_tolerance": cfg.visibility_tolerance * diam,
+            "appearance_window": cfg.appearance_window,
+            "contrast_reference": cfg.contrast_reference,
+            "weights": (cfg.depth_weight, cfg.silhouette_weight, cfg.appearance_weight),
+            "block_size": cfg.block_size,
+        }
+        s_points, s_rays = (
+            score_renderings(ours, observed, **kw),
+            score_renderings(rays, observed, **kw),
+        )
+        total_diff += (s_points.total - s_rays.total).abs().flatten().tolist()
+        same_best += (s_points.total.argmax(-1) == s_rays.total.argmax(-1)).tolist()
+        choice = [
+            select_hypotheses(x, significance=cfg.significance)[0] for x in (s_points, s_rays)
+        ]
+        same_choice += (choice[0] == choice[1]).tolist()
     return {
         "points_ms_per_batch": 1000 * statistics.median(t_points),
         "raycast_ms_per_batch": 1000 * statistics.median(t_rays),
@@ -150,6 +189,10 @@ def compare_renderers(verifier: PoseVerifier, models: dict, batches: list, repea
         "mask_iou_min": min(ious),
         "depth_diff_median_over_diameter": statistics.median(depth_err),
         "color_abs_diff_mean": statistics.mean(color_err),
+        "total_score_abs_diff_median": statistics.median(total_diff),
+        "total_score_abs_diff_max": max(total_diff),
+        "same_best_hypothesis": f"{sum(same_best)}/{len(same_best)}",
+        "same_choice": f"{sum(same_choice)}/{len(same_choice)}",
         "renderings": len(ious),
     }
 
@@ -218,7 +261,7 @@ def main(argv: list[str] | None = None) -> None:
             replaced[o] += int(c != 0)
         if args.renderers:
             hyp = verifier.expand(poses, ids)
-            batches.append((K, masks, ids, hyp.poses))
+            batches.append((rgb, depth, K, masks, ids, hyp.poses))
         parts.append(
             PoseResults.from_columns(
                 results.scene_ids[rows],
