@@ -7,8 +7,9 @@ depth, lifted and thinned as the classic baseline does) onto the model, all are 
 RGB-D image, and a candidate replaces the estimate only where it clearly beats it. Writes the
 verified CSV (score = the verifier's, time = the estimator's plus the verification's) for
 ``poseflow eval DATASET CSV``, and prints one JSON line: the time the verification added per image
-(wall and CPU time of the process; one thread unless ``OMP_NUM_THREADS`` says otherwise), how
-many estimates it replaced per object, and the time to prepare each object.
+(wall and CPU time of the process, the fastest of ``--repeats`` runs per image; one thread unless
+``OMP_NUM_THREADS`` says otherwise), how many estimates it replaced per object, and the time to
+prepare each object.
 
 ``--renderers`` also measures the z-buffered point renderer the verifier uses against the
 library's Open3D ray caster (one thread) on the same hypotheses (each rendered on the verifier's
@@ -206,6 +207,9 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--quick", action="store_true", help="4 images only")
     p.add_argument("--renderers", action="store_true", help="also compare the two renderers")
     p.add_argument(
+        "--repeats", type=int, default=1, help="verify each image this often, keep the fastest"
+    )
+    p.add_argument(
         "--set", nargs="*", default=[], metavar="FIELD=VALUE", help="VerifierConfig fields"
     )
     args = p.parse_args(argv)
@@ -248,13 +252,18 @@ def main(argv: list[str] | None = None) -> None:
             depth, K, masks, [verifier.objects[o].diameter for o in ids]
         )
         # the verifier runs in the dtype of the poses: float32 is twice as fast as float64
-        start, cpu_start = time.perf_counter(), time.process_time()
-        out = verifier.verify(
-            rgb, depth, K, masks, ids, poses.float(), observed.float(), observed_mask
-        )
-        elapsed = time.perf_counter() - start
+        walls, cpus = [], []
+        for _ in range(args.repeats):
+            start, cpu_start = time.perf_counter(), time.process_time()
+            out = verifier.verify(
+                rgb, depth, K, masks, ids, poses.float(), observed.float(), observed_mask
+            )
+            walls.append(time.perf_counter() - start)
+            cpus.append(time.process_time() - cpu_start)
+        # the fastest of the repeats: what the machine does when other jobs leave it alone
+        elapsed = min(walls)
         added.append(elapsed)
-        added_cpu.append(time.process_time() - cpu_start)
+        added_cpu.append(min(cpus))
         by_count.setdefault(len(ids), []).append(added_cpu[-1])
         for o, c in zip(ids, out.chosen.tolist()):
             per_object[o] += 1
@@ -279,6 +288,7 @@ def main(argv: list[str] | None = None) -> None:
         "images": len(images),
         "instances": sum(per_object.values()),
         "threads": torch.get_num_threads(),
+        "repeats": args.repeats,
         "added_ms_per_image_median": 1000 * statistics.median(added),
         "added_ms_per_image_mean": 1000 * statistics.mean(added),
         "added_ms_per_image_max": 1000 * max(added),

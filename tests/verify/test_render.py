@@ -120,17 +120,22 @@ def test_backfaces_zbuffer_and_front_colour() -> None:
 def test_sparse_samples_leave_no_holes_inside() -> None:
     """Samples sparser than the pixels are filled; the silhouette does not grow."""
     g = torch.Generator().manual_seed(0)
-    pts = (torch.rand(3000, 3, generator=g, dtype=torch.float64) - 0.5) * 0.1
+    pts = (torch.rand(2000, 3, generator=g, dtype=torch.float64) - 0.5) * 0.1
     pts[:, 2] = 0.0
     K = torch.tensor(
         [[[400.0, 0.0, 31.5], [0.0, 400.0, 31.5], [0.0, 0.0, 1.0]]], dtype=torch.float64
     )
-    out = render_points(
-        pts[None], facing(pts)[None], torch.ones(1, 3000, 1, dtype=torch.float64),
-        pose_at(1.0)[None, None], K, 64, surface_tolerance=1e-3, occlusion_tolerance=0.01,
-    )  # fmt: skip
-    inner = out.mask[0, 0, 15:48, 15:48]  # the square spans pixels 12..51
-    assert inner.all()
+    args = (pts[None], facing(pts)[None], torch.ones(1, 2000, 1, dtype=torch.float64))
+    kw = {"surface_tolerance": 1e-3, "occlusion_tolerance": 0.01}
+    inner = (0, 0, slice(15, 48), slice(15, 48))  # the square spans pixels 12..51
+
+    def holes(passes: int) -> int:
+        out = render_points(*args, pose_at(1.0)[None, None], K, 64, fill_passes=passes, **kw)
+        return int((~out.mask[inner]).sum())
+
+    counts = [holes(p) for p in (0, 1, 3)]
+    assert counts[0] > 100 and counts[0] > counts[1] > counts[2] == 0
+    out = render_points(*args, pose_at(1.0)[None, None], K, 64, **kw)
     assert not out.mask[0, 0, :10].any() and not out.mask[0, 0, :, 54:].any()
 
 
@@ -281,6 +286,9 @@ def test_bad_inputs_raise() -> None:
     with pytest.raises(ShapeError):
         render_points(pts, pts, torch.zeros(1, 4, 1), torch.eye(4)[None, None], K, 8,
                       surface_tolerance=torch.zeros(2), occlusion_tolerance=0.1)  # fmt: skip
+    with pytest.raises(ValueRangeError):
+        render_points(pts, pts, torch.zeros(1, 4, 1), torch.eye(4)[None, None], K, 8,
+                      surface_tolerance=0.1, occlusion_tolerance=0.1, fill_passes=-1)  # fmt: skip
     with pytest.raises(ValueRangeError):
         crop_intrinsics(torch.eye(3), torch.tensor([[1.0, 1.0, 1.0, 2.0]]), 8)
     with pytest.raises(ShapeError):
