@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 from poseflow.errors import ShapeError, ValueRangeError
 from poseflow.geometry.pointcloud import crop_resize, pixels_to_crop, project_points
 from poseflow.geometry.se3 import random_rotation
-from poseflow.verify import crop_intrinsics, crop_observation, render_points
+from poseflow.verify import box_sum, crop_intrinsics, crop_observation, render_points
 
 K_IMG = torch.tensor([[300.0, 0.0, 80.0], [0.0, 320.0, 60.0], [0.0, 0.0, 1.0]])
 
@@ -59,6 +59,24 @@ def test_crop_intrinsics_match_pixels_to_crop(
     tol = 1e-9 if double else 2e-3
     assert got.dtype == dtype
     torch.testing.assert_close(got, expected, atol=tol * size, rtol=0)
+
+
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    rows=st.integers(1, 20),
+    cols=st.integers(1, 20),
+    half=st.integers(0, 4),
+    double=st.booleans(),
+)
+def test_box_sum_equals_pooling(seed: int, rows: int, cols: int, half: int, double: bool) -> None:
+    dtype = torch.float64 if double else torch.float32
+    x = torch.rand(3, 2, rows, cols, generator=torch.Generator().manual_seed(seed), dtype=dtype)
+    window = 2 * half + 1
+    padded = torch.nn.functional.pad(x, (half, half, half, half))
+    expected = torch.nn.functional.avg_pool2d(padded, window, stride=1, divisor_override=1)
+    torch.testing.assert_close(box_sum(x, window), expected)
+    with pytest.raises(ValueRangeError):
+        box_sum(x, 2)
 
 
 @given(z=st.floats(0.3, 3.0), tilt=st.floats(-0.6, 0.6), size=st.integers(16, 48))

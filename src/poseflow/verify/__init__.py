@@ -32,6 +32,7 @@ from poseflow.verify.config import VerifierConfig
 from poseflow.verify.render import (
     ObservedCrops,
     PointRendering,
+    box_sum,
     crop_intrinsics,
     crop_observation,
     render_points,
@@ -68,6 +69,7 @@ __all__ = [
     "appearance_agreement",
     "axis_angle_matrix",
     "balance_colors",
+    "box_sum",
     "crop_intrinsics",
     "crop_observation",
     "depth_agreement",

@@ -35,6 +35,7 @@ from poseflow.errors import ShapeError, ValueRangeError
 __all__ = [
     "ObservedCrops",
     "PointRendering",
+    "box_sum",
     "crop_intrinsics",
     "crop_observation",
     "render_points",
@@ -224,9 +225,9 @@ def render_points(
     stacked = torch.cat((depth, color), dim=1)
     for _ in range(fill_passes):
         w = drawn.to(dtype)
-        count = F.avg_pool2d(w, 3, stride=1, padding=1, divisor_override=1) - w
+        count = box_sum(w, 3) - w
         hole = ~drawn & (count >= 5)
-        sums = F.avg_pool2d(stacked, 3, stride=1, padding=1, divisor_override=1)
+        sums = box_sum(stacked, 3)
         stacked = torch.where(hole, sums / count.clamp_min(1), stacked)
         drawn = drawn | hole
     return PointRendering(
@@ -318,6 +319,39 @@ def crop_observation(
         samples = samples.reshape(3, B, S * f, S * f).transpose(0, 1)
         color = F.avg_pool2d(samples, f) if f > 1 else samples
     return ObservedCrops(depth=dc, mask=mc, color=color)
+
+
+def box_sum(images: torch.Tensor, window: int) -> torch.Tensor:
+    """Sums over the ``window x window`` neighbourhood of every pixel, zeros outside the image.
+
+    Separable shifted additions: exact, and several times faster on the CPU than ``avg_pool2d``
+    or a convolution with a box kernel at the sizes the verifier uses.
+
+    Args:
+        images: ``(*, S0, S1)`` images.
+        window: odd window side.
+
+    Returns:
+        ``(*, S0, S1)`` sums.
+
+    Example:
+        >>> box_sum(torch.ones(1, 3, 4), 3)
+        tensor([[[4., 6., 6., 4.],
+                 [6., 9., 9., 6.],
+                 [4., 6., 6., 4.]]])
+    """
+    if isinstance(window, bool) or not isinstance(window, int) or window < 1 or window % 2 == 0:
+        raise ValueRangeError(f"window must be an odd int >= 1, got {window!r}")
+    S0, S1 = images.shape[-2:]
+    p = window // 2
+    padded = F.pad(images, (p, p, p, p))
+    rows = padded[..., :, :S1].clone()
+    for j in range(1, window):
+        rows += padded[..., :, j : j + S1]
+    out = rows[..., :S0, :].clone()
+    for j in range(1, window):
+        out += rows[..., j : j + S0, :]
+    return out
 
 
 def _per_instance(

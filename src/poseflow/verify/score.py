@@ -35,11 +35,10 @@ import math
 from dataclasses import dataclass
 
 import torch
-import torch.nn.functional as F
 
 from poseflow._checks import check_mask, check_tensor
 from poseflow.errors import ValueRangeError
-from poseflow.verify.render import ObservedCrops, PointRendering
+from poseflow.verify.render import ObservedCrops, PointRendering, box_sum
 
 __all__ = [
     "VerifierScore",
@@ -264,7 +263,7 @@ def appearance_agreement(
     x = rendered * w
     y = observed[:, None] * w
     stack = torch.stack((x, y, x * x, y * y, x * y), dim=2)  # (B, H, 5, C, S, S)
-    sums = _box_sum(torch.cat((w, stack.flatten(2, 3)), dim=2).reshape(-1, S, S), window)
+    sums = box_sum(torch.cat((w, stack.flatten(2, 3)), dim=2).reshape(-1, S, S), window)
     sums = sums.reshape(B, H, 1 + 5 * C, S, S)
     n = sums[:, :, :1]
     sx, sy, sxx, syy, sxy = sums[:, :, 1:].reshape(B, H, 5, C, S, S).unbind(2)
@@ -282,24 +281,6 @@ def appearance_agreement(
     weight = (contrast / contrast_reference).clamp(max=1.0)
     enough = both & (n[:, :, 0] >= (window * window + 1) // 2)
     return torch.where(enough, (weight * ncc).mean(2), 0.0)
-
-
-def _box_sum(x: torch.Tensor, window: int) -> torch.Tensor:
-    """Sums over ``window x window`` neighbourhoods (zeros outside) of ``(n, S, S)`` images.
-
-    Separable shifted additions: exact, and several times faster on the CPU than
-    ``avg_pool2d`` or a convolution with a box kernel at these sizes.
-    """
-    S0, S1 = x.shape[-2:]
-    p = window // 2
-    xp = F.pad(x, (p, p, p, p))
-    rows = xp[..., :, :S1].clone()
-    for j in range(1, window):
-        rows += xp[..., :, j : j + S1]
-    out = rows[..., :S0, :].clone()
-    for j in range(1, window):
-        out += rows[..., j : j + S0, :]
-    return out
 
 
 def score_renderings(
