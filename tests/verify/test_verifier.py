@@ -236,3 +236,21 @@ def test_verify_imports_only_the_packages_below_it() -> None:
                 if name.startswith("poseflow"):
                     part = name.split(".")[1] if "." in name else ""
                     assert part in ALLOWED, f"{path.name} imports {name}"
+
+
+def test_object_without_near_symmetries_is_scored_alone() -> None:
+    import open3d as o3d
+
+    a = o3d.geometry.TriangleMesh.create_box(0.08, 0.02, 0.02)
+    b = o3d.geometry.TriangleMesh.create_box(0.02, 0.05, 0.02)
+    c = o3d.geometry.TriangleMesh.create_box(0.01, 0.01, 0.03).translate((0.06, 0.0, 0.02))
+    part = ObjectModel.from_mesh((a + b + c).translate((-0.04, -0.025, -0.025)), num_points=64)
+    v = PoseVerifier(VerifierConfig(**{**CONFIG.to_dict(), "min_self_overlap": 0.9}))
+    assert len(v.prepare(2, part).candidates) == 0
+    out = Renderer([part.mesh]).render(box_pose()[None], K, W, H)
+    rgb = out.rgb.permute(2, 0, 1).float() / 255.0
+    result = v.verify(rgb, out.depth, K, out.masks_visible, [2], box_pose()[None])
+    assert result.hypotheses.shape == (1, 1, 4, 4)
+    assert int(result.chosen[0]) == 0 and bool(result.valid[0])
+    # not 1: the splats also cover the edge pixels whose centre lies just outside the object
+    assert float(result.score.depth[0, 0]) > 0.8 and float(result.score.silhouette[0, 0]) > 0.8

@@ -84,24 +84,6 @@ class VerifierScore:
     def __len__(self) -> int:
         return int(self.total.shape[0])
 
-    def take(self, index: torch.Tensor) -> VerifierScore:
-        """The scores of hypotheses ``index`` ``(B, H')`` of each instance.
-
-        Example:
-            >>> z = torch.zeros(1, 3)
-            >>> s = VerifierScore(z, z, z, torch.tensor([[0.1, 0.2, 0.3]]), z.bool(),
-            ...                   torch.zeros(1, 3, 4), torch.zeros(1, 3, 4, dtype=torch.bool))
-            >>> s.take(torch.tensor([[2, 0]])).total
-            tensor([[0.3000, 0.1000]])
-        """
-        fields = {}
-        for name in ("depth", "silhouette", "appearance", "total", "valid"):
-            fields[name] = getattr(self, name).gather(1, index)
-        for name in ("evidence", "support"):
-            value = getattr(self, name)
-            fields[name] = value.gather(1, index[..., None].expand(-1, -1, value.shape[-1]))
-        return VerifierScore(**fields)
-
 
 def visible_rendering(
     rendered_depth: torch.Tensor,

@@ -543,9 +543,7 @@ class PoseVerifier:
         poses_k = hyp.poses.gather(1, keep[..., None, None].expand(-1, -1, 4, 4))
         mask_k = hyp.mask.gather(1, keep)
         mask_k[:, 1:] &= first.valid.gather(1, keep[:, 1:])
-        if k == 0:
-            final = first.take(keep)
-        else:
+        if k:
             if observed is None:
                 observed, observed_mask = self.observed_cloud(depth, Kd, masks)
             if observed.shape[1] >= 3:
@@ -553,7 +551,7 @@ class PoseVerifier:
                     poses_k[:, 1:], obj_ids, observed.to(poses.dtype), observed_mask
                 )
                 poses_k = torch.cat((poses_k[:, :1], refined), dim=1)
-            final = self.score(rgb, depth, Kd, masks, obj_ids, poses_k, mask_k, boxes=boxes)
+        final = self.score(rgb, depth, Kd, masks, obj_ids, poses_k, mask_k, boxes=boxes)
         index, stat = select_hypotheses(final, significance=self.config.significance)
         rows = torch.arange(B, device=poses.device)
         chosen_pose = torch.where((index == 0)[:, None, None], poses, poses_k[rows, index])
