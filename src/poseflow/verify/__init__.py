@@ -1,0 +1,84 @@
+"""Verification of pose hypotheses by rendering and comparing, with near-symmetry candidates.
+
+A pose that fits the depth can still show the wrong side of the object's print: a labelled box
+flipped end for end, a can turned about its axis. :class:`PoseVerifier` renders every hypothesis
+(a z-buffered projection of the model's coloured surface points, batched over instances and
+hypotheses) and scores it against the image by depth agreement (as in VSD), silhouette IoU with
+the instance mask and a lighting-robust appearance agreement. It expands each estimate with the
+object's near-symmetries, found once per object from its geometry, refines them by ICP, and
+replaces the estimate only when a candidate beats it by more than the score's own spread.
+
+Used on its own, with a user's hypotheses::
+
+    import torch
+    from poseflow.data import ObjectModel
+    from poseflow.verify import PoseVerifier, VerifierConfig
+
+    model = ObjectModel.from_file("obj_000001.ply", scale=0.001)  # BOP mesh in mm
+    verifier = PoseVerifier(VerifierConfig())
+    verifier.prepare(1, model)  # once per object: surface samples, near-symmetries
+
+    # rgb (3, H, W) in [0, 1], depth (H, W) in metres, K (3, 3), masks (B, H, W) bool,
+    # hypotheses (B, H', 4, 4) model-to-camera poses of the B instances
+    score = verifier.score(rgb, depth, K, masks, [1] * len(masks), hypotheses)
+    best = score.total.argmax(-1)  # per-term scores: score.depth, .silhouette, .appearance
+
+    # or the whole stage for one estimate per instance: candidates, ICP, scores, the choice
+    result = verifier.verify(rgb, depth, K, masks, [1] * len(masks), poses)
+    result.poses, result.scores, result.chosen  # (B, 4, 4), (B,), (B,) 0 = estimate kept
+"""
+
+from poseflow.verify.config import VerifierConfig
+from poseflow.verify.render import (
+    ObservedCrops,
+    PointRendering,
+    box_sum,
+    crop_intrinsics,
+    crop_observation,
+    render_points,
+)
+from poseflow.verify.score import (
+    VerifierScore,
+    appearance_agreement,
+    balance_colors,
+    depth_agreement,
+    score_renderings,
+    select_hypotheses,
+    silhouette_agreement,
+    visible_rendering,
+)
+from poseflow.verify.symmetry import (
+    NearSymmetries,
+    axis_angle_matrix,
+    near_symmetries,
+    revolution_axis,
+    rotation_distance,
+)
+from poseflow.verify.verifier import Hypotheses, PoseVerifier, PreparedObject, Verification
+
+__all__ = [
+    "Hypotheses",
+    "NearSymmetries",
+    "ObservedCrops",
+    "PointRendering",
+    "PoseVerifier",
+    "PreparedObject",
+    "Verification",
+    "VerifierConfig",
+    "VerifierScore",
+    "appearance_agreement",
+    "axis_angle_matrix",
+    "balance_colors",
+    "box_sum",
+    "crop_intrinsics",
+    "crop_observation",
+    "depth_agreement",
+    "near_symmetries",
+    "render_points",
+    "revolution_axis",
+    "rotation_distance",
+    "score_renderings",
+    "select_hypotheses",
+    "silhouette_agreement",
+    "visible_rendering",
+]

@@ -1,0 +1,182 @@
+"""Configuration of the render-and-compare verifier: one typed field per choice."""
+
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import asdict, dataclass, fields
+from typing import Any
+
+from poseflow.errors import ValueRangeError
+
+__all__ = ["VerifierConfig"]
+
+
+@dataclass(frozen=True)
+class VerifierConfig:
+    """Hyper-parameters of :class:`~poseflow.verify.PoseVerifier`.
+
+    Lengths are fractions of the object's diameter unless named otherwise, so one configuration
+    fits objects of every size.
+
+    Args:
+        num_points: surface points per object for rendering and as the ICP target.
+        crop_size: side ``S`` of the square grid on which renderings and the observation are
+            compared, in pixels.
+        coarse_crop_size: side of the grid on which all candidates are first scored, to pick
+            the ones refined by ICP and scored on the full grid.
+        crop_margin: side of the compared crop over the object's projected diameter at the
+            estimate's depth (1 fits the whole object).
+        depth_tolerance: a rendered pixel agrees with the observed depth when they differ by less
+            than this (VSD's tau).
+        visibility_tolerance: a rendered pixel farther than the observed depth by more than this
+            is hidden by something else and not compared (VSD's delta).
+        occlusion_tolerance: a rendered point farther than the nearest point of its 3 x 3 pixel
+            neighbourhood by more than this is a back surface seen through a gap of the sampling.
+        appearance_window: side of the window of the local normalised cross-correlation, in
+            crop pixels (odd).
+        contrast_reference: relative contrast (standard deviation over mean) of the rendered
+            colour in a window at which the window's correlation gets full weight; flatter
+            windows get proportionally less.
+        depth_weight: weight of the depth agreement in the total.
+        silhouette_weight: weight of the silhouette IoU in the total.
+        appearance_weight: weight of the appearance agreement in the total.
+        block_size: side, in crop pixels, of the blocks over which the evidence of two
+            hypotheses is compared by the selection test.
+        significance: false-replacement rate of the selection test: a candidate replaces the
+            estimate only where its gain exceeds what the blocks' own spread gives by chance at
+            this level (Bonferroni-corrected over the candidates).
+        max_candidates: most near-symmetry candidates kept per object (the most self-similar).
+        min_self_overlap: a rotation of the model is a near-symmetry when at least this fraction
+            of its points land within ``self_overlap_distance`` of the model after self-ICP.
+        self_overlap_distance: see ``min_self_overlap``.
+        min_candidate_angle: candidates closer than this (degrees, modulo the declared
+            symmetries) to the identity or to a kept candidate are dropped.
+        turn_steps: turns about each principal axis tried as near-symmetry seeds (every
+            ``360 / turn_steps`` degrees); half-turns about axes perpendicular to each principal
+            axis are tried every ``360 / turn_steps`` degrees too.
+        refine_top_k: candidates (besides the estimate) refined by ICP and scored again, the best
+            of the first, unrefined scoring.
+        icp_distances: ICP correspondence distances of the refinement, coarse to fine.
+        icp_iterations: ICP iterations per scale, at most.
+        icp_relative_rmse: a scale of ICP stops once its inlier RMSE changes by less than this
+            (a fraction of the diameter) and its inlier count no longer changes.
+        max_observed_points: the observed cloud is thinned to at most this many points for ICP.
+    """
+
+    num_points: int = 4096
+    crop_size: int = 64
+    coarse_crop_size: int = 32
+    crop_margin: float = 1.2
+    depth_tolerance: float = 0.03
+    visibility_tolerance: float = 0.1
+    occlusion_tolerance: float = 0.1
+    appearance_window: int = 5
+    contrast_reference: float = 0.1
+    depth_weight: float = 1.0
+    silhouette_weight: float = 1.0
+    appearance_weight: float = 1.0
+    block_size: int = 8
+    significance: float = 0.05
+    max_candidates: int = 12
+    min_self_overlap: float = 0.6
+    self_overlap_distance: float = 0.03
+    min_candidate_angle: float = 15.0
+    turn_steps: int = 12
+    refine_top_k: int = 2
+    icp_distances: tuple[float, ...] = (0.1, 0.05, 0.02)
+    icp_iterations: int = 10
+    icp_relative_rmse: float = 1e-4
+    max_observed_points: int = 200
+
+    def __post_init__(self) -> None:
+        ints = {
+            "num_points": (self.num_points, 16),
+            "crop_size": (self.crop_size, 8),
+            "coarse_crop_size": (self.coarse_crop_size, 8),
+            "appearance_window": (self.appearance_window, 3),
+            "block_size": (self.block_size, 1),
+            "max_candidates": (self.max_candidates, 0),
+            "turn_steps": (self.turn_steps, 2),
+            "refine_top_k": (self.refine_top_k, 0),
+            "icp_iterations": (self.icp_iterations, 1),
+            "max_observed_points": (self.max_observed_points, 3),
+        }
+        for name, (value, low) in ints.items():
+            if isinstance(value, bool) or not isinstance(value, int) or value < low:
+                raise ValueRangeError(f"{name} must be an int >= {low}, got {value!r}")
+        if self.appearance_window % 2 == 0:
+            raise ValueRangeError(f"appearance_window must be odd, got {self.appearance_window}")
+        if self.crop_size % self.block_size or self.coarse_crop_size % self.block_size:
+            raise ValueRangeError(
+                f"block_size ({self.block_size}) must divide crop_size ({self.crop_size}) and "
+                f"coarse_crop_size ({self.coarse_crop_size})"
+            )
+        if self.coarse_crop_size > self.crop_size:
+            raise ValueRangeError(
+                f"coarse_crop_size ({self.coarse_crop_size}) must not exceed crop_size "
+                f"({self.crop_size})"
+            )
+        positive = (
+            "crop_margin",
+            "depth_tolerance",
+            "visibility_tolerance",
+            "occlusion_tolerance",
+            "contrast_reference",
+            "self_overlap_distance",
+            "icp_relative_rmse",
+        )
+        for name in positive:
+            value = getattr(self, name)
+            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
+                raise ValueRangeError(f"{name} must be finite and > 0, got {value!r}")
+        weights = (self.depth_weight, self.silhouette_weight, self.appearance_weight)
+        if not all(math.isfinite(w) and w >= 0 for w in weights) or not sum(weights) > 0:
+            raise ValueRangeError(f"the weights must be >= 0 and not all 0, got {weights}")
+        if not 0 < self.significance < 1:
+            raise ValueRangeError(f"significance must lie in (0, 1), got {self.significance}")
+        if not 0 < self.min_self_overlap <= 1:
+            raise ValueRangeError(
+                f"min_self_overlap must lie in (0, 1], got {self.min_self_overlap}"
+            )
+        if not 0 <= self.min_candidate_angle < 180:
+            raise ValueRangeError(
+                f"min_candidate_angle must lie in [0, 180), got {self.min_candidate_angle}"
+            )
+        distances = tuple(float(d) for d in self.icp_distances)
+        if not distances or not all(math.isfinite(d) and d > 0 for d in distances):
+            raise ValueRangeError(f"icp_distances must be positive, got {self.icp_distances}")
+        if any(b > a for a, b in itertools.pairwise(distances)):
+            raise ValueRangeError(f"icp_distances must go coarse to fine, got {distances}")
+        object.__setattr__(self, "icp_distances", distances)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The fields as a JSON-ready dict.
+
+        Example:
+            >>> VerifierConfig().to_dict()["crop_size"]
+            64
+        """
+        out = asdict(self)
+        out["icp_distances"] = list(self.icp_distances)
+        return out
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> VerifierConfig:
+        """Build a configuration from :meth:`to_dict`'s output, checking every name.
+
+        Raises:
+            ValueRangeError: an unknown field or a value out of range.
+
+        Example:
+            >>> VerifierConfig.from_dict({"crop_size": 48, "block_size": 8}).crop_size
+            48
+        """
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise ValueRangeError(f"unknown VerifierConfig fields: {unknown}")
+        values = dict(data)
+        if "icp_distances" in values:
+            values["icp_distances"] = tuple(values["icp_distances"])
+        return cls(**values)

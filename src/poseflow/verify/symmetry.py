@@ -1,0 +1,313 @@
+"""Near-symmetries of an object's geometry: the poses a depth-only registration confuses.
+
+A labelled box flipped end for end, a printed can turned about its axis, a prism turned by a
+third of a turn: the geometry maps (almost) onto itself, so depth and silhouette barely tell the
+poses apart and only appearance can. :func:`near_symmetries` finds these transforms once per
+object from its surface points, with no annotation:
+
+1. seeds: turns about each principal axis of the points (every ``360 / turn_steps`` degrees)
+   and half-turns about axes perpendicular to each principal axis (the flips), all about the
+   centroid, and turns about the surface's best axis of revolution (:func:`revolution_axis`),
+   which a handle or a spout moves away from the principal axes;
+2. every seed is refined by ICP of the model onto itself, so a seed near a true near-symmetry
+   lands on it even when that symmetry's axis is not a principal axis (a prism's flips);
+3. a refined transform is kept when enough of the moved points lie on the model's surface, it is
+   not (modulo the declared symmetries) the identity, and it is not a repeat of a kept one.
+
+Declared symmetries (``models_info.json``) leave the object's look unchanged: poses that differ
+by one are the same answer, so they are never returned as candidates.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from poseflow._checks import check_tensor
+from poseflow.errors import DegenerateInputError, ValueRangeError
+from poseflow.geometry.neighbors import nearest_neighbors
+from poseflow.registration.icp import multi_scale_icp
+
+__all__ = [
+    "NearSymmetries",
+    "axis_angle_matrix",
+    "near_symmetries",
+    "revolution_axis",
+    "rotation_distance",
+]
+
+
+@dataclass
+class NearSymmetries:
+    """Near-symmetry transforms of one object, most self-similar first.
+
+    Attributes:
+        transforms: ``(C, 4, 4)`` model-frame transforms ``x -> R x + t`` that map the model
+            (almost) onto itself; ``pose @ transforms[c]`` is the candidate pose.
+        overlap: ``(C,)`` fraction of the model's points that land on its surface.
+    """
+
+    transforms: torch.Tensor
+    overlap: torch.Tensor
+
+    def __len__(self) -> int:
+        return int(self.transforms.shape[0])
+
+
+def axis_angle_matrix(axis: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
+    """Rotation matrices from axes and angles (Rodrigues' formula).
+
+    Args:
+        axis: rotation axes ``(*, 3)``, any non-zero length.
+        angle: angles in radians ``(*)``.
+
+    Returns:
+        Rotations ``(*, 3, 3)``.
+
+    Raises:
+        ShapeError: wrong shapes.
+        DegenerateInputError: a zero axis.
+
+    Example:
+        >>> R = axis_angle_matrix(torch.tensor([0.0, 0.0, 2.0]), torch.tensor(math.pi / 2))
+        >>> (R @ torch.tensor([1.0, 0.0, 0.0])).round(decimals=6)
+        tensor([0., 1., 0.])
+    """
+    check_tensor(axis, "axis", ("*", 3))
+    norm = axis.norm(dim=-1, keepdim=True)
+    if bool((norm == 0).any()):
+        raise DegenerateInputError("rotation axes must be non-zero")
+    k = axis / norm
+    angle = torch.as_tensor(angle, dtype=axis.dtype, device=axis.device)
+    zero = torch.zeros_like(k[..., 0])
+    cross = torch.stack(
+        (zero, -k[..., 2], k[..., 1], k[..., 2], zero, -k[..., 0], -k[..., 1], k[..., 0], zero),
+        dim=-1,
+    ).reshape(*k.shape[:-1], 3, 3)
+    s, c = torch.sin(angle)[..., None, None], torch.cos(angle)[..., None, None]
+    eye = torch.eye(3, dtype=axis.dtype, device=axis.device)
+    return eye + s * cross + (1 - c) * (cross @ cross)
+
+
+def rotation_distance(R1: torch.Tensor, R2: torch.Tensor) -> torch.Tensor:
+    """Angle in degrees of ``R1^T R2``, broadcast over leading dimensions.
+
+    Args:
+        R1: rotations ``(*, 3, 3)``.
+        R2: rotations ``(*, 3, 3)``, broadcastable with ``R1``.
+
+    Returns:
+        Angles ``(*)`` in ``[0, 180]``.
+
+    Example:
+        >>> R = axis_angle_matrix(torch.tensor([1.0, 0.0, 0.0]), torch.tensor(0.5))
+        >>> round(rotation_distance(torch.eye(3), R).item(), 3)
+        28.648
+    """
+    trace = (R1 * R2).sum(dim=(-2, -1))  # trace(R1^T R2)
+    return torch.rad2deg(torch.acos(((trace - 1) / 2).clamp(-1.0, 1.0)))
+
+
+def near_symmetries(
+    points: torch.Tensor,
+    normals: torch.Tensor,
+    diameter: float,
+    *,
+    surface: torch.Tensor | None = None,
+    declared: torch.Tensor | None = None,
+    turn_steps: int = 12,
+    min_overlap: float = 0.6,
+    overlap_distance: float = 0.03,
+    min_angle: float = 15.0,
+    max_candidates: int = 12,
+    icp_distances: tuple[float, ...] = (0.1, 0.05, 0.02),
+    icp_iterations: int = 30,
+    icp_relative_rmse: float = 1e-6,
+) -> NearSymmetries:
+    """Find the transforms that map an object's surface (almost) onto itself.
+
+    Args:
+        points: surface points of the model ``(N, 3)``, spread evenly (they are moved).
+        normals: unit surface normals at ``points`` ``(N, 3)`` (for the axis of revolution).
+        diameter: the object's diameter in the points' unit.
+        surface: a denser sampling of the surface ``(M, 3)`` the moved points are matched to;
+            ``points`` by default.
+        declared: declared symmetries ``(S, 4, 4)`` (identity included or not); candidates equal
+            to one of them up to ``min_angle``, or equal to each other modulo them, are dropped.
+        turn_steps: seeds every ``360 / turn_steps`` degrees (see the module docstring).
+        min_overlap: keep a transform when at least this fraction of the moved points lies
+            within ``overlap_distance * diameter`` of the surface.
+        overlap_distance: see ``min_overlap``, as a fraction of the diameter.
+        min_angle: degrees; closer transforms count as the same.
+        max_candidates: keep at most this many, the most self-similar.
+        icp_distances: self-ICP correspondence distances, fractions of the diameter.
+        icp_iterations: self-ICP iterations per scale, at most.
+        icp_relative_rmse: a scale of self-ICP stops once its inlier RMSE changes by less than
+            this (a fraction of the diameter) and its inlier count no longer changes.
+
+    Returns:
+        :class:`NearSymmetries` in the points' dtype and device.
+
+    Raises:
+        ShapeError: wrong shapes.
+        DegenerateInputError: fewer than 4 points.
+        ValueRangeError: a non-positive diameter or step count.
+
+    Example:
+        >>> import open3d as o3d
+        >>> from poseflow.data.objects import ObjectModel
+        >>> box = o3d.geometry.TriangleMesh.create_box(0.1, 0.06, 0.03)
+        >>> m = ObjectModel.from_mesh(box, num_points=1024, dtype=torch.float64)
+        >>> found = near_symmetries(m.points, m.normals, m.diameter, min_overlap=0.9)
+        >>> len(found), [round(a) for a in rotation_distance(
+        ...     torch.eye(3, dtype=torch.float64), found.transforms[:, :3, :3]).tolist()]
+        (3, [180, 180, 180])
+    """
+    sizes = check_tensor(points, "points", ("N", 3), finite=True)
+    check_tensor(normals, "normals", ("N", 3), finite=True, sizes=sizes)
+    if points.shape[0] < 4:
+        raise DegenerateInputError(f"need at least 4 points, got {points.shape[0]}")
+    if not diameter > 0:
+        raise ValueRangeError(f"diameter must be positive, got {diameter}")
+    if isinstance(turn_steps, bool) or not isinstance(turn_steps, int) or turn_steps < 2:
+        raise ValueRangeError(f"turn_steps must be an int >= 2, got {turn_steps!r}")
+    dtype, device = points.dtype, points.device
+    surface = points if surface is None else surface
+    check_tensor(surface, "surface", ("M", 3), finite=True)
+    seeds = _seeds(points, normals, turn_steps)  # (K, 4, 4)
+    K = seeds.shape[0]
+    refined = multi_scale_icp(
+        points[None].expand(K, -1, -1),
+        surface[None].expand(K, -1, -1),
+        seeds,
+        max_correspondence_distances=[f * diameter for f in icp_distances],
+        max_iterations=icp_iterations,
+        relative_rmse=icp_relative_rmse * diameter,
+    )
+    T = torch.where(refined.valid[:, None, None], refined.transformation, seeds)
+    moved = points[None] @ T[:, :3, :3].transpose(1, 2) + T[:, None, :3, 3]
+    dist, _ = nearest_neighbors(moved, surface[None].expand(K, -1, -1))
+    overlap = (dist[..., 0] <= overlap_distance * diameter).to(dtype).mean(-1)
+
+    sym = torch.eye(4, dtype=dtype, device=device)[None]
+    if declared is not None:
+        check_tensor(declared, "declared", ("S", 4, 4), finite=True)
+        sym = torch.cat((sym, declared.to(dtype=dtype, device=device)))
+    order = torch.argsort(overlap, descending=True, stable=True)
+    kept: list[int] = []
+    for k in order.tolist():
+        if float(overlap[k]) < min_overlap or len(kept) >= max_candidates:
+            break
+        # equal to the identity modulo a declared symmetry: the same answer, not a candidate
+        if float(rotation_distance(sym[:, :3, :3], T[k, :3, :3]).min()) < min_angle:
+            continue
+        if kept:
+            # T_k ~ T_j S for a kept j and a declared S: the same candidate
+            prev = T[kept][:, None, :3, :3] @ sym[None, :, :3, :3]  # (J, S, 3, 3)
+            if float(rotation_distance(prev, T[k, :3, :3]).min()) < min_angle:
+                continue
+        kept.append(k)
+    idx = torch.tensor(kept, dtype=torch.long, device=device)
+    return NearSymmetries(transforms=T[idx], overlap=overlap[idx])
+
+
+def revolution_axis(
+    points: torch.Tensor, normals: torch.Tensor, *, iterations: int = 5
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The line that the surface normals meet best: the axis of a surface of revolution.
+
+    On a surface of revolution every normal line meets the axis. Writing the axis in Plücker
+    coordinates (unit direction ``a``, moment ``m``), the normal line through ``p`` with
+    direction ``n`` meets it when ``a . (p x n) + m . n = 0``; the axis minimising the sum of
+    squares of these residuals is an eigenvector of a 3 x 3 matrix (Pottmann and Randrup's
+    line-geometry fit). All normals through one point (a sphere) leave the axis undefined.
+    Iteratively reweighted (Cauchy weights scaled by the median residual), so
+    that a handle or a label's relief does not pull the axis.
+
+    Args:
+        points: surface points ``(N, 3)``.
+        normals: unit normals at the points ``(N, 3)``.
+        iterations: reweighting rounds.
+
+    Returns:
+        ``(direction (3,), point (3,))``: a unit direction and the axis point closest to the
+        origin, in float64.
+
+    Raises:
+        ShapeError: wrong shapes.
+        DegenerateInputError: the normals do not span 3-D (a plane), so no axis is defined.
+
+    Example:
+        >>> t = torch.linspace(0, 2 * math.pi, 200, dtype=torch.float64)[:-1]
+        >>> ring = torch.stack((torch.cos(t), torch.sin(t), torch.zeros_like(t)), -1)
+        >>> pts = torch.cat((ring + torch.tensor([0.0, 0.0, 0.5]), ring * 0.5)) + 3.0
+        >>> nrm = torch.cat((ring, ring - torch.tensor([0.0, 0.0, 0.5])))  # a cylinder, a cone
+        >>> a, c = revolution_axis(pts, torch.nn.functional.normalize(nrm, dim=-1))
+        >>> a.abs().round(decimals=6).tolist(), c.round(decimals=6).abs().tolist()
+        ([0.0, 0.0, 1.0], [3.0, 3.0, 0.0])
+    """
+    sizes = check_tensor(points, "points", ("N", 3), finite=True)
+    check_tensor(normals, "normals", ("N", 3), finite=True, sizes=sizes)
+    p, n = points.to(torch.float64), normals.to(torch.float64)
+    pn = torch.linalg.cross(p, n)
+    w = torch.ones(p.shape[0], dtype=torch.float64, device=p.device)
+    a = m = None
+    for _ in range(max(1, iterations)):
+        A = (pn * w[:, None]).T @ pn
+        Bm = (pn * w[:, None]).T @ n
+        C = (n * w[:, None]).T @ n
+        if float(torch.linalg.eigvalsh(C)[0]) <= 1e-9 * float(C.trace()):
+            raise DegenerateInputError("the normals do not span 3-D: no axis of revolution")
+        Cinv_Bt = torch.linalg.solve(C, Bm.T)
+        schur = A - Bm @ Cinv_Bt
+        _, vecs = torch.linalg.eigh((schur + schur.T) / 2)
+        a = vecs[:, 0]
+        m = -Cinv_Bt @ a
+        r = (pn @ a + n @ m).abs()
+        scale = r.median().clamp_min(1e-12)
+        w = 1 / (1 + (r / (2 * scale)).square())
+    return a, torch.linalg.cross(a, m)
+
+
+def _seeds(points: torch.Tensor, normals: torch.Tensor, turn_steps: int) -> torch.Tensor:
+    """Seed transforms ``(K, 4, 4)`` of the near-symmetry search.
+
+    Turns about the principal axes and the axis of revolution; half-turns (flips) about axes
+    perpendicular to the principal axes, through the centroid.
+    """
+    dtype, device = points.dtype, points.device
+    centre = points.mean(0)
+    cov = (points - centre).T @ (points - centre) / points.shape[0]
+    _, axes = torch.linalg.eigh(cov.to(torch.float64))
+    axes = axes.to(dtype).T  # rows: principal axes
+    step = 2 * math.pi / turn_steps
+    turn_angles = torch.arange(1, turn_steps, dtype=dtype, device=device) * step
+    flip_angles = torch.arange(0, (turn_steps + 1) // 2, dtype=dtype, device=device) * step
+    axis_list, angle_list = [], []
+    for i in range(3):
+        a = axes[i]
+        b, c = axes[(i + 1) % 3], axes[(i + 2) % 3]
+        axis_list.append(a.expand(turn_angles.shape[0], 3))
+        angle_list.append(turn_angles)
+        perp = torch.cos(flip_angles)[:, None] * b + torch.sin(flip_angles)[:, None] * c
+        axis_list.append(perp)
+        angle_list.append(torch.full_like(flip_angles, math.pi))
+    pivots = [centre.expand(sum(a.shape[0] for a in axis_list), 3)]
+    try:
+        direction, on_axis = revolution_axis(points, normals)
+    except DegenerateInputError:  # flat: the principal axes already hold its turns
+        pass
+    else:
+        axis_list.append(direction.to(dtype).expand(turn_angles.shape[0], 3))
+        angle_list.append(turn_angles)
+        # pivot on the axis, at the foot of the centroid
+        foot = on_axis + ((centre.to(torch.float64) - on_axis) @ direction) * direction
+        pivots.append(foot.to(dtype).expand(turn_angles.shape[0], 3))
+    R = axis_angle_matrix(torch.cat(axis_list), torch.cat(angle_list))
+    pivot = torch.cat(pivots)
+    T = torch.eye(4, dtype=dtype, device=device).repeat(R.shape[0], 1, 1)
+    T[:, :3, :3] = R
+    T[:, :3, 3] = pivot - (R @ pivot[:, :, None])[..., 0]
+    return T

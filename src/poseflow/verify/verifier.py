@@ -1,0 +1,568 @@
+"""The pose verifier: candidates, ICP refinement, render-and-compare scores and the choice.
+
+Shape letters: B instances of one image, H hypotheses per instance, N model points, M observed
+points, Hi x Wi the image.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import torch
+
+from poseflow._checks import check_mask, check_same, check_tensor
+from poseflow.data.objects import ObjectModel, sample_surface
+from poseflow.errors import ShapeError, ValueRangeError
+from poseflow.geometry.pointcloud import (
+    backproject_depth,
+    farthest_point_sample,
+    remove_statistical_outliers,
+)
+from poseflow.geometry.se3 import inverse_transform
+from poseflow.registration.icp import multi_scale_icp
+from poseflow.verify.config import VerifierConfig
+from poseflow.verify.render import crop_intrinsics, crop_observation, render_points
+from poseflow.verify.score import VerifierScore, score_renderings, select_hypotheses
+from poseflow.verify.symmetry import near_symmetries
+
+__all__ = ["Hypotheses", "PoseVerifier", "PreparedObject", "Verification"]
+
+
+@dataclass
+class PreparedObject:
+    """What the verifier keeps per object (metres, model frame, float32 on the CPU).
+
+    Attributes:
+        points: evenly spread surface points ``(N, 3)``, drawn and ICP target, in
+            farthest-point order (every prefix is spread evenly too).
+        normals: outward unit normals ``(N, 3)``.
+        colors: albedo ``(N, 3)`` in ``[0, 1]``.
+        albedo: ``colors`` after a grey-world balance over the object ``(N, 3)`` (each channel
+            divided by its mean over the points): what is drawn.
+        centroid: centre of the points ``(3,)``.
+        diameter: the object's diameter.
+        candidates: near-symmetry transforms ``(C, 4, 4)``, ``C`` possibly 0.
+        overlap: self-overlap of each candidate ``(C,)``.
+    """
+
+    points: torch.Tensor
+    normals: torch.Tensor
+    colors: torch.Tensor
+    albedo: torch.Tensor
+    centroid: torch.Tensor
+    diameter: float
+    candidates: torch.Tensor
+    overlap: torch.Tensor
+
+
+@dataclass
+class Hypotheses:
+    """Pose hypotheses of ``B`` instances, padded to ``H`` each.
+
+    Attributes:
+        poses: model-to-camera transforms ``(B, H, 4, 4)``; hypothesis 0 is the estimate.
+        mask: ``(B, H)`` bool, False for padding (a copy of the estimate).
+    """
+
+    poses: torch.Tensor
+    mask: torch.Tensor
+
+
+@dataclass
+class Verification:
+    """The outcome of :meth:`PoseVerifier.verify` for ``B`` instances.
+
+    Attributes:
+        poses: the chosen poses ``(B, 4, 4)``: the estimate itself where it was kept, else the
+            ICP-refined candidate that beat it.
+        scores: the chosen hypothesis's total score clipped to ``[0, 1]`` ``(B,)`` (0 where
+            invalid), for ranking estimates.
+        valid: ``(B,)`` bool, whether the chosen hypothesis could be scored.
+        chosen: ``(B,)`` int64, the index of the chosen hypothesis in ``hypotheses`` (0: the
+            estimate was kept).
+        hypotheses: the finally scored hypotheses ``(B, H, 4, 4)``: the estimate, then the
+            refined candidates.
+        score: their scores.
+        statistic: each candidate's test statistic against the estimate ``(B, H)``.
+    """
+
+    poses: torch.Tensor
+    scores: torch.Tensor
+    valid: torch.Tensor
+    chosen: torch.Tensor
+    hypotheses: torch.Tensor
+    score: VerifierScore
+    statistic: torch.Tensor
+
+
+class PoseVerifier:
+    """Render-and-compare verification of 6D pose hypotheses with near-symmetry candidates.
+
+    Built once; :meth:`prepare` caches what each object needs (surface points with normals and
+    albedo, its near-symmetries). For the instances of one image, :meth:`verify` runs the whole
+    stage: :meth:`expand` each estimate with its near-symmetric candidates, :meth:`score` them
+    all on a coarse grid, :meth:`refine` the best ``refine_top_k`` candidates by ICP of the
+    observed cloud onto the model (the estimate is taken as its estimator's ICP left it), score
+    the estimate and those again and keep the estimate unless a candidate beats it by more than
+    the score's own spread (:func:`~poseflow.verify.select_hypotheses`).
+    Each step is public, so the verifier also scores hypotheses from anywhere.
+
+    Args:
+        config: the hyper-parameters; default :class:`VerifierConfig()`.
+        seed: seed of the surface sampling and of the observed cloud's thinning.
+
+    Example:
+        >>> import open3d as o3d
+        >>> from poseflow.data.objects import ObjectModel
+        >>> from poseflow.render import Renderer
+        >>> box = o3d.geometry.TriangleMesh.create_box(0.1, 0.06, 0.03)
+        >>> model = ObjectModel.from_mesh(box.translate((-0.05, -0.03, -0.015)), num_points=64)
+        >>> cfg = VerifierConfig(num_points=1024, crop_size=32, min_self_overlap=0.9)
+        >>> verifier = PoseVerifier(cfg)
+        >>> verifier.prepare(1, model).candidates.shape  # the box's three half-turns
+        torch.Size([3, 4, 4])
+        >>> K = torch.tensor([[300.0, 0, 80], [0, 300.0, 60], [0, 0, 1]])
+        >>> pose = torch.eye(4); pose[2, 3] = 0.4
+        >>> out = Renderer([model.mesh]).render(pose[None], K, 160, 120)
+        >>> wrong = pose.clone(); wrong[0, 3] = 0.02  # 2 cm off
+        >>> score = verifier.score(None, out.depth, K, out.masks_full, [1],
+        ...                        torch.stack((pose, wrong))[None])
+        >>> score.total[0, 0] > score.total[0, 1]
+        tensor(True)
+    """
+
+    def __init__(self, config: VerifierConfig | None = None, *, seed: int = 0) -> None:
+        self.config = VerifierConfig() if config is None else config
+        if not isinstance(self.config, VerifierConfig):
+            raise ValueRangeError(f"config must be a VerifierConfig, got {type(config).__name__}")
+        self.seed = int(seed)
+        self.objects: dict[int, PreparedObject] = {}
+
+    def __repr__(self) -> str:
+        return f"PoseVerifier({self.config!r}, objects={sorted(self.objects)})"
+
+    # --------------------------------------------------------------------------------------
+    # Per object
+
+    def prepare(self, obj_id: int, model: ObjectModel) -> PreparedObject:
+        """Sample the object's surface and find its near-symmetries (once per object id).
+
+        Args:
+            obj_id: the id the object is known by in later calls.
+            model: its :class:`~poseflow.data.objects.ObjectModel` (metres); its declared
+                symmetries are not returned as candidates.
+
+        Returns:
+            The cached :class:`PreparedObject`.
+
+        Raises:
+            DegenerateInputError: the mesh has no surface.
+        """
+        obj_id = int(obj_id)
+        if obj_id in self.objects:
+            return self.objects[obj_id]
+        cfg = self.config
+        g = torch.Generator().manual_seed(self.seed)
+        pts, nrm, col = sample_surface(model.mesh, 4 * cfg.num_points, generator=g)
+        P = torch.from_numpy(pts)
+        idx, _ = farthest_point_sample(P[None], cfg.num_points, generator=g)
+        keep = idx[0]
+        points = P[keep]
+        normals = torch.nn.functional.normalize(torch.from_numpy(nrm)[keep], dim=-1)
+        colors = torch.from_numpy(col).to(torch.float64)[keep].clamp(0, 1)
+        balance = colors.mean(0).clamp_min(1e-6)
+        albedo = colors / balance
+        # self-ICP moves an eighth of the points (a random subset, still spread; at least 256)
+        # onto all of them
+        sub = torch.randperm(points.shape[0], generator=g)[: max(256, cfg.num_points // 8)]
+        found = near_symmetries(
+            points[sub],
+            normals[sub],
+            model.diameter,
+            surface=points,
+            declared=model.symmetries.to(torch.float64),
+            turn_steps=cfg.turn_steps,
+            min_overlap=cfg.min_self_overlap,
+            overlap_distance=cfg.self_overlap_distance,
+            min_angle=cfg.min_candidate_angle,
+            max_candidates=cfg.max_candidates,
+            icp_distances=cfg.icp_distances,
+            icp_iterations=2 * cfg.icp_iterations,
+            icp_relative_rmse=cfg.icp_relative_rmse,
+        )
+        prepared = PreparedObject(
+            points=points.float(),
+            normals=normals.float(),
+            colors=colors.float(),
+            albedo=albedo.float(),
+            centroid=points.mean(0).float(),
+            diameter=float(model.diameter),
+            candidates=found.transforms.float(),
+            overlap=found.overlap.float(),
+        )
+        self.objects[obj_id] = prepared
+        return prepared
+
+    def _objects(self, obj_ids: Sequence[int] | torch.Tensor, B: int) -> list[PreparedObject]:
+        ids = [int(o) for o in torch.as_tensor(obj_ids).reshape(-1).tolist()]
+        if len(ids) != B:
+            raise ShapeError(f"got {B} instances but {len(ids)} object ids")
+        missing = sorted({o for o in ids if o not in self.objects})
+        if missing:
+            raise ValueRangeError(f"objects {missing} are not prepared: call prepare() first")
+        return [self.objects[o] for o in ids]
+
+    def _stack(
+        self, objects: list[PreparedObject], like: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Points, normals, albedo ``(B, N, 3)`` and diameters ``(B,)`` like ``like``."""
+        kw = {"dtype": like.dtype, "device": like.device}
+        return (
+            torch.stack([o.points for o in objects]).to(**kw),
+            torch.stack([o.normals for o in objects]).to(**kw),
+            torch.stack([o.albedo for o in objects]).to(**kw),
+            torch.tensor([o.diameter for o in objects], **kw),
+        )
+
+    # --------------------------------------------------------------------------------------
+    # Per image
+
+    def expand(self, poses: torch.Tensor, obj_ids: Sequence[int] | torch.Tensor) -> Hypotheses:
+        """Add each estimate's near-symmetric candidates: ``pose @ S`` for every candidate ``S``.
+
+        Args:
+            poses: estimates ``(B, 4, 4)``, model to camera.
+            obj_ids: object id of each instance ``(B,)``.
+
+        Returns:
+            :class:`Hypotheses` ``(B, H, 4, 4)`` with ``H = 1 +`` the largest candidate count,
+            the estimate first.
+
+        Raises:
+            ShapeError: wrong shapes.
+            ValueRangeError: an object that was not prepared.
+
+        Example:
+            >>> v = PoseVerifier()
+            >>> v.objects[3] = PreparedObject(*[torch.zeros(1, 3)] * 4,
+            ...                               torch.zeros(3), 0.1,
+            ...                               torch.eye(4)[None].repeat(2, 1, 1), torch.ones(2))
+            >>> v.expand(torch.eye(4)[None], [3]).poses.shape
+            torch.Size([1, 3, 4, 4])
+        """
+        sizes = check_tensor(poses, "poses", ("B", 4, 4), finite=True)
+        objects = self._objects(obj_ids, sizes["B"])
+        B = sizes["B"]
+        H = 1 + max((len(o.candidates) for o in objects), default=0)
+        out = poses[:, None].repeat(1, H, 1, 1)
+        mask = torch.zeros(B, H, dtype=torch.bool, device=poses.device)
+        mask[:, 0] = True
+        for b, o in enumerate(objects):
+            c = len(o.candidates)
+            if c:
+                S = o.candidates.to(dtype=poses.dtype, device=poses.device)
+                out[b, 1 : 1 + c] = poses[b] @ S
+                mask[b, 1 : 1 + c] = True
+        return Hypotheses(out, mask)
+
+    def refine(
+        self,
+        hypotheses: torch.Tensor,
+        obj_ids: Sequence[int] | torch.Tensor,
+        observed: torch.Tensor,
+        observed_mask: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        """Refine hypotheses by multi-scale ICP of the observed cloud onto the model.
+
+        Args:
+            hypotheses: ``(B, H, 4, 4)`` model-to-camera poses.
+            obj_ids: ``(B,)`` object ids.
+            observed: the observed clouds, camera frame, ``(B, M, 3)``.
+            observed_mask: ``(B, M)`` bool, True for real points.
+
+        Returns:
+            Refined poses ``(B, H, 4, 4)``; a hypothesis ICP could not refine (too few pairs) is
+            returned unchanged.
+
+        Raises:
+            ShapeError: wrong shapes, devices or dtypes.
+            ValueRangeError: an object that was not prepared.
+        """
+        sizes = check_tensor(hypotheses, "hypotheses", ("B", "H", 4, 4), finite=True)
+        check_tensor(observed, "observed", ("B", "M", 3), sizes=sizes)
+        check_same(("hypotheses", hypotheses), ("observed", observed))
+        if observed_mask is not None:
+            check_mask(observed_mask, "observed_mask", ("B", "M"), sizes)
+        B, H = sizes["B"], sizes["H"]
+        objects = self._objects(obj_ids, B)
+        points, _, _, diam = self._stack(objects, hypotheses)
+        src, src_mask = self._thin(observed, observed_mask)
+        # One ICP call for every instance and hypothesis: each instance is measured in units of
+        # its object's diameter (ICP commutes with scaling), so the correspondence distances,
+        # fractions of the diameter, are the same numbers for all.
+        scale = diam[:, None, None]
+        n = src.shape[1]
+        init = inverse_transform(hypotheses).clone()  # camera -> model, (B, H, 4, 4)
+        init[..., :3, 3] = init[..., :3, 3] / scale
+        result = multi_scale_icp(
+            (src / scale)[:, None].expand(B, H, n, 3).reshape(B * H, n, 3),
+            (points / scale)[:, None].expand(B, H, -1, 3).reshape(B * H, -1, 3),
+            init.reshape(B * H, 4, 4),
+            max_correspondence_distances=list(self.config.icp_distances),
+            max_iterations=self.config.icp_iterations,
+            relative_rmse=self.config.icp_relative_rmse,
+            source_mask=src_mask[:, None].expand(B, H, n).reshape(B * H, n),
+        )
+        T = result.transformation.reshape(B, H, 4, 4).clone()
+        T[..., :3, 3] = T[..., :3, 3] * scale
+        ok = result.valid.reshape(B, H)[..., None, None]
+        return torch.where(ok, inverse_transform(T), hypotheses)
+
+    def _thin(
+        self, observed: torch.Tensor, mask: torch.Tensor | None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """At most ``max_observed_points`` valid points per cloud, an even random subset."""
+        B, M, _ = observed.shape
+        if mask is None:
+            mask = torch.ones(B, M, dtype=torch.bool, device=observed.device)
+        cap = self.config.max_observed_points
+        if B == 0 or int(mask.sum(-1).max()) <= cap:
+            return observed, mask
+        g = torch.Generator().manual_seed(self.seed)
+        r = torch.rand(B, M, generator=g).to(observed.device)
+        r = torch.where(mask, r, torch.full_like(r, 2.0))
+        pick = r.argsort(-1)[:, :cap].sort(-1).values
+        return observed.gather(1, pick[..., None].expand(-1, -1, 3)), mask.gather(1, pick)
+
+    def score(
+        self,
+        rgb: torch.Tensor | None,
+        depth: torch.Tensor,
+        K: torch.Tensor,
+        masks: torch.Tensor,
+        obj_ids: Sequence[int] | torch.Tensor,
+        hypotheses: torch.Tensor,
+        hypothesis_mask: torch.Tensor | None = None,
+        *,
+        boxes: torch.Tensor | None = None,
+        crop_size: int | None = None,
+    ) -> VerifierScore:
+        """Render every hypothesis and compare it with the observation.
+
+        Args:
+            rgb: colour image ``(3, Hi, Wi)`` (float in ``[0, 1]`` or uint8), or None to score
+                depth and silhouette only.
+            depth: depth in metres ``(Hi, Wi)``, 0 or NaN where missing.
+            K: intrinsics ``(3, 3)``.
+            masks: instance masks ``(B, Hi, Wi)`` bool.
+            obj_ids: object id per instance ``(B,)``.
+            hypotheses: model-to-camera poses ``(B, H, 4, 4)``.
+            hypothesis_mask: ``(B, H)`` bool, False for padding.
+            boxes: the crops ``(B, 4)`` (see :meth:`crop_boxes`); by default those of
+                hypothesis 0, so that all hypotheses of an instance share one crop.
+            crop_size: side of the compared grid; default ``config.crop_size``. A coarser grid
+                draws a proportional prefix of the surface points (the points are in
+                farthest-point order, so every prefix is spread evenly), keeping the points per
+                pixel, and costs proportionally less.
+
+        Returns:
+            A :class:`~poseflow.verify.VerifierScore` in the hypotheses' dtype.
+
+        Raises:
+            ShapeError: wrong shapes, devices or dtypes.
+            ValueRangeError: an object that was not prepared, NaN in the hypotheses.
+        """
+        sizes = check_tensor(hypotheses, "hypotheses", ("B", "H", 4, 4), finite=True)
+        d_sizes = check_tensor(depth, "depth", ("Hi", "Wi"))
+        check_mask(masks, "masks", ("B", "Hi", "Wi"), {**d_sizes, "B": sizes["B"]})
+        check_tensor(K, "K", (3, 3), finite=True)
+        check_same(("hypotheses", hypotheses), ("depth", depth), ("K", K), dtype=False)
+        check_same(("hypotheses", hypotheses), ("masks", masks), dtype=False)
+        cfg = self.config
+        objects = self._objects(obj_ids, sizes["B"])
+        points, normals, albedo, diam = self._stack(objects, hypotheses)
+        Kd = K.to(hypotheses.dtype)
+        if boxes is None:
+            boxes = self.crop_boxes(hypotheses[:, 0], obj_ids, Kd, masks)
+        S = cfg.crop_size if crop_size is None else int(crop_size)
+        if not 0 < S <= cfg.crop_size or S % cfg.block_size:
+            raise ValueRangeError(
+                f"crop_size must be a multiple of block_size ({cfg.block_size}) up to "
+                f"{cfg.crop_size}, got {crop_size}"
+            )
+        n = min(points.shape[1], math.ceil(points.shape[1] * (S / cfg.crop_size) ** 2))
+        points, normals, albedo = points[:, :n], normals[:, :n], albedo[:, :n]
+        Kc = crop_intrinsics(Kd, boxes, S)
+        pixel = (boxes[:, 2] - boxes[:, 0]) / S / Kd[:2, :2].diagonal().min()  # m per m depth
+        z0 = hypotheses[:, 0, 2, 3].abs().clamp_min(1e-3)
+        rendering = render_points(
+            points,
+            normals,
+            albedo,
+            hypotheses,
+            Kc,
+            S,
+            surface_tolerance=2 * pixel * z0,
+            occlusion_tolerance=cfg.occlusion_tolerance * diam,
+        )
+        observed = crop_observation(depth, masks, boxes, S, rgb)
+        return score_renderings(
+            rendering,
+            observed,
+            depth_tolerance=cfg.depth_tolerance * diam,
+            visibility_tolerance=cfg.visibility_tolerance * diam,
+            appearance_window=cfg.appearance_window,
+            contrast_reference=cfg.contrast_reference,
+            weights=(cfg.depth_weight, cfg.silhouette_weight, cfg.appearance_weight),
+            block_size=cfg.block_size,
+            hypothesis_mask=hypothesis_mask,
+        )
+
+    def crop_boxes(
+        self,
+        poses: torch.Tensor,
+        obj_ids: Sequence[int] | torch.Tensor,
+        K: torch.Tensor,
+        masks: torch.Tensor,
+    ) -> torch.Tensor:
+        """The square crop each instance is compared on, ``(B, 4)``.
+
+        Centred on the projection of the object's centre at ``poses``, with a side of
+        ``crop_margin`` times the projected diameter, so that every crop pixel covers the same
+        fraction of the object whatever its distance. An estimate with its centre behind the
+        camera gets the bounding square of its mask (of the image if the mask is empty).
+
+        Args:
+            poses: ``(B, 4, 4)`` model-to-camera poses.
+            obj_ids: ``(B,)`` object ids.
+            K: intrinsics ``(3, 3)``.
+            masks: ``(B, Hi, Wi)`` bool.
+
+        Returns:
+            Boxes ``(x0, y0, x1, y1)`` ``(B, 4)`` in the poses' dtype.
+        """
+        B = poses.shape[0]
+        objects = self._objects(obj_ids, B)
+        kw = {"dtype": poses.dtype, "device": poses.device}
+        centroid = torch.stack([o.centroid for o in objects]).to(**kw)
+        diam = torch.tensor([o.diameter for o in objects], **kw)
+        K = K.to(**kw)
+        c = (poses[:, :3, :3] @ centroid[..., None])[..., 0] + poses[:, :3, 3]
+        z = c[:, 2]
+        ahead = z > 0.1 * diam
+        zs = torch.where(ahead, z, torch.ones_like(z))
+        uv = (c @ K.T)[:, :2] / zs[:, None]
+        half = 0.5 * self.config.crop_margin * K[:2, :2].diagonal().max() * diam / zs
+        boxes = torch.cat((uv - half[:, None], uv + half[:, None]), -1)
+        if bool(ahead.all()):
+            return boxes
+        Hi, Wi = masks.shape[-2:]
+        fallback = torch.tensor([-0.5, -0.5, Wi - 0.5, Hi - 0.5], **kw).repeat(B, 1)
+        for b in (~ahead).nonzero()[:, 0].tolist():
+            vv, uu = masks[b].nonzero(as_tuple=True)
+            if vv.numel():
+                lo = torch.stack((uu.min(), vv.min())).to(**kw) - 0.5
+                hi = torch.stack((uu.max(), vv.max())).to(**kw) + 0.5
+                centre, side = (lo + hi) / 2, (hi - lo).max()
+                fallback[b] = torch.cat((centre - side / 2, centre + side / 2))
+        return torch.where(ahead[:, None], boxes, fallback)
+
+    def observed_cloud(
+        self, depth: torch.Tensor, K: torch.Tensor, masks: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Lift each instance's masked depth to a camera-frame cloud for :meth:`refine`.
+
+        For callers that have not lifted the depth themselves: statistical outliers (flying
+        pixels at depth edges) are dropped and at most ``max_observed_points`` points kept.
+
+        Args:
+            depth: ``(Hi, Wi)`` metres.
+            K: ``(3, 3)`` floating intrinsics.
+            masks: ``(B, Hi, Wi)`` bool.
+
+        Returns:
+            ``(points (B, M, 3), mask (B, M))`` in ``K``'s dtype.
+        """
+        B = masks.shape[0]
+        d = torch.nan_to_num(depth, nan=0.0, posinf=0.0, neginf=0.0)
+        cloud = backproject_depth(d.expand(B, *d.shape), K, masks)
+        if cloud.points.shape[1] == 0:
+            return cloud.points, cloud.mask
+        ok = cloud.mask & remove_statistical_outliers(cloud.points, cloud.mask)
+        return self._thin(cloud.points, ok)
+
+    def verify(
+        self,
+        rgb: torch.Tensor | None,
+        depth: torch.Tensor,
+        K: torch.Tensor,
+        masks: torch.Tensor,
+        obj_ids: Sequence[int] | torch.Tensor,
+        poses: torch.Tensor,
+        observed: torch.Tensor | None = None,
+        observed_mask: torch.Tensor | None = None,
+    ) -> Verification:
+        """Check each estimate against its near-symmetric candidates and keep the best.
+
+        Args:
+            rgb: colour image ``(3, Hi, Wi)`` or None (depth and silhouette only).
+            depth: depth in metres ``(Hi, Wi)``.
+            K: intrinsics ``(3, 3)``.
+            masks: instance masks ``(B, Hi, Wi)`` bool.
+            obj_ids: object ids ``(B,)``, all prepared.
+            poses: the estimates ``(B, 4, 4)``.
+            observed: the observed clouds ``(B, M, 3)`` (camera frame) that ICP registers;
+                lifted from ``depth`` and ``masks`` when None.
+            observed_mask: ``(B, M)`` bool for ``observed``.
+
+        Returns:
+            A :class:`Verification`.
+
+        Raises:
+            ShapeError: wrong shapes, devices or dtypes.
+            ValueRangeError: an object that was not prepared.
+        """
+        sizes = check_tensor(poses, "poses", ("B", 4, 4), finite=True)
+        B = sizes["B"]
+        check_mask(masks, "masks", ("B", None, None), sizes)
+        Kd = K.to(poses.dtype)
+        hyp = self.expand(poses, obj_ids)
+        boxes = self.crop_boxes(poses, obj_ids, Kd, masks)
+        first = self.score(
+            rgb, depth, Kd, masks, obj_ids, hyp.poses, hyp.mask, boxes=boxes,
+            crop_size=self.config.coarse_crop_size,
+        )  # fmt: skip
+        H = hyp.poses.shape[1]
+        k = min(self.config.refine_top_k, H - 1)
+        keep = torch.zeros(B, 1 + k, dtype=torch.long, device=poses.device)
+        if k:
+            cand = torch.where(first.valid[:, 1:], first.total[:, 1:], -torch.inf)
+            keep[:, 1:] = cand.topk(k, dim=-1).indices + 1
+        poses_k = hyp.poses.gather(1, keep[..., None, None].expand(-1, -1, 4, 4))
+        mask_k = hyp.mask.gather(1, keep)
+        mask_k[:, 1:] &= first.valid.gather(1, keep[:, 1:])
+        if k:
+            if observed is None:
+                observed, observed_mask = self.observed_cloud(depth, Kd, masks)
+            if observed.shape[1] >= 3:
+                refined = self.refine(
+                    poses_k[:, 1:], obj_ids, observed.to(poses.dtype), observed_mask
+                )
+                poses_k = torch.cat((poses_k[:, :1], refined), dim=1)
+        final = self.score(rgb, depth, Kd, masks, obj_ids, poses_k, mask_k, boxes=boxes)
+        index, stat = select_hypotheses(final, significance=self.config.significance)
+        rows = torch.arange(B, device=poses.device)
+        chosen_pose = torch.where((index == 0)[:, None, None], poses, poses_k[rows, index])
+        total = final.total[rows, index]
+        valid = final.valid[rows, index]
+        return Verification(
+            poses=chosen_pose,
+            scores=torch.where(valid, total.clamp(0, 1), 0.0),
+            valid=valid,
+            chosen=index,
+            hypotheses=poses_k,
+            score=final,
+            statistic=stat,
+        )

@@ -1,0 +1,144 @@
+"""Tests of the near-symmetry search and its rotation helpers."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given
+from hypothesis import strategies as st
+
+from poseflow.data.objects import ObjectModel
+from poseflow.errors import DegenerateInputError
+from poseflow.geometry.se3 import random_rotation
+from poseflow.render.mesh import TexturedMesh
+from poseflow.verify import axis_angle_matrix, near_symmetries, revolution_axis, rotation_distance
+
+
+def box_model(size=(0.1, 0.06, 0.03), **kw: object) -> ObjectModel:
+    import open3d as o3d
+
+    box = o3d.geometry.TriangleMesh.create_box(*size)
+    box.translate([-s / 2 for s in size])
+    return ObjectModel.from_mesh(box, num_points=1024, dtype=torch.float64, **kw)
+
+
+def cylinder_model(radius: float = 0.03, height: float = 0.1) -> ObjectModel:
+    import open3d as o3d
+
+    cyl = o3d.geometry.TriangleMesh.create_cylinder(radius, height, resolution=96)
+    return ObjectModel.from_mesh(cyl, num_points=1024, dtype=torch.float64)
+
+
+def l_block_model() -> ObjectModel:
+    """Two boxes in an L with a knob: no rotation maps it onto itself."""
+    import open3d as o3d
+
+    a = o3d.geometry.TriangleMesh.create_box(0.08, 0.02, 0.02)
+    b = o3d.geometry.TriangleMesh.create_box(0.02, 0.05, 0.02)
+    c = o3d.geometry.TriangleMesh.create_box(0.01, 0.01, 0.03).translate((0.06, 0.0, 0.02))
+    return ObjectModel.from_mesh(a + b + c, num_points=1024, dtype=torch.float64)
+
+
+def angles(found) -> list[float]:
+    eye = torch.eye(3, dtype=found.transforms.dtype)
+    return rotation_distance(eye, found.transforms[:, :3, :3]).tolist()
+
+
+@given(seed=st.integers(0, 2**31 - 1), double=st.booleans())
+def test_axis_angle_is_a_rotation_by_that_angle(seed: int, double: bool) -> None:
+    dtype = torch.float64 if double else torch.float32
+    g = torch.Generator().manual_seed(seed)
+    axis = torch.randn(5, 3, generator=g, dtype=dtype)
+    angle = torch.rand(5, generator=g, dtype=dtype) * math.pi
+    R = axis_angle_matrix(axis, angle)
+    eye = torch.eye(3, dtype=dtype).expand(5, 3, 3)
+    tol = 1e-5 if not double else 1e-12
+    torch.testing.assert_close(R @ R.transpose(1, 2), eye, atol=tol, rtol=0)
+    torch.testing.assert_close(torch.linalg.det(R), torch.ones(5, dtype=dtype), atol=tol, rtol=0)
+    torch.testing.assert_close((R @ axis[..., None])[..., 0], axis, atol=10 * tol, rtol=0)
+    got = rotation_distance(eye, R)
+    torch.testing.assert_close(got, torch.rad2deg(angle), atol=0.05 if not double else 1e-6, rtol=0)
+
+
+def test_zero_axis_raises() -> None:
+    with pytest.raises(DegenerateInputError):
+        axis_angle_matrix(torch.zeros(3), torch.tensor(1.0))
+
+
+@given(seed=st.integers(0, 2**31 - 1), outliers=st.floats(0.0, 0.15))
+def test_revolution_axis_of_a_moved_cone_with_a_handle(seed: int, outliers: float) -> None:
+    g = torch.Generator().manual_seed(seed)
+    n = 600
+    t = torch.rand(n, generator=g, dtype=torch.float64) * 2 * math.pi
+    h = torch.rand(n, generator=g, dtype=torch.float64)
+    r = 0.05 + 0.02 * h  # a cone: radius grows with height
+    pts = torch.stack((r * torch.cos(t), r * torch.sin(t), 0.1 * h), -1)
+    nrm = torch.stack((torch.cos(t), torch.sin(t), torch.full_like(t, -0.2)), -1)
+    k = int(outliers * n)  # a "handle": points whose normals ignore the axis
+    nrm[:k] = torch.randn(k, 3, generator=g, dtype=torch.float64)
+    nrm = torch.nn.functional.normalize(nrm, dim=-1)
+    R = random_rotation(1, generator=g, dtype=torch.float64)[0]
+    shift = torch.randn(3, generator=g, dtype=torch.float64) * 0.2
+    a, c = revolution_axis(pts @ R.T + shift, nrm @ R.T)
+    assert abs(float(a @ R[:, 2])) > math.cos(math.radians(2.0))
+    # the axis passes through the moved origin
+    off = (shift - c) - ((shift - c) @ a) * a
+    assert float(off.norm()) < 3e-3
+
+
+def test_revolution_axis_of_a_sphere_is_undefined() -> None:
+    nrm = torch.eye(3, dtype=torch.float64)
+    with pytest.raises(DegenerateInputError):
+        revolution_axis(torch.zeros(3, 3, dtype=torch.float64), nrm[:, :1].expand(3, 3))
+
+
+def test_box_has_its_three_half_turns() -> None:
+    m = box_model()
+    found = near_symmetries(m.points, m.normals, m.diameter, min_overlap=0.9)
+    assert len(found) == 3
+    assert all(a > 179 for a in angles(found))
+    assert (found.overlap > 0.97).all()
+    # each is one of the box's exact half-turns about its centre
+    exact = [torch.diag(torch.tensor(d, dtype=torch.float64)) for d in
+             ([1.0, -1.0, -1.0], [-1.0, 1.0, -1.0], [-1.0, -1.0, 1.0])]  # fmt: skip
+    for T in found.transforms:
+        assert min(float(rotation_distance(E, T[:3, :3])) for E in exact) < 1.0
+        assert float(T[:3, 3].norm()) < 0.01 * m.diameter
+
+
+def test_declared_symmetries_are_not_candidates() -> None:
+    declared = np.eye(4)
+    declared[:3, :3] = np.diag([-1.0, -1.0, 1.0])  # the half-turn about z
+    m = box_model(symmetries_discrete=[declared])
+    found = near_symmetries(m.points, m.normals, m.diameter, declared=m.symmetries, min_overlap=0.9)
+    # the half-turns about x and y are equal to each other modulo the declared one
+    assert len(found) == 1
+    R = found.transforms[0, :3, :3]
+    assert not torch.allclose(R, torch.as_tensor(declared[:3, :3]), atol=0.1)
+
+
+def test_cylinder_turns_about_its_axis() -> None:
+    m = cylinder_model()
+    found = near_symmetries(m.points, m.normals, m.diameter, min_overlap=0.9, max_candidates=30)
+    axis = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    turns = [T for T in found.transforms if float((T[:3, :3] @ axis) @ axis) > 0.99]
+    # every 30 degrees about the axis, kept apart by at least 15 degrees
+    assert len(turns) == 11
+    flips = len(found) - len(turns)
+    assert flips >= 1  # upside down
+
+
+def test_asymmetric_block_has_no_near_symmetry() -> None:
+    m = l_block_model()
+    assert len(near_symmetries(m.points, m.normals, m.diameter, min_overlap=0.8)) == 0
+
+
+def test_flat_object_uses_its_principal_axes() -> None:
+    v = np.array([[0, 0, 0], [0.1, 0, 0], [0.1, 0.04, 0], [0, 0.04, 0.0]])
+    quad = TexturedMesh(v, np.array([[0, 1, 2], [0, 2, 3]]))
+    m = ObjectModel.from_mesh(quad, num_points=512, dtype=torch.float64)
+    found = near_symmetries(m.points, m.normals, m.diameter, min_overlap=0.9)
+    assert len(found) == 3  # the rectangle's three half-turns; no axis of revolution
