@@ -76,7 +76,9 @@ def icp(
         A :class:`~poseflow.registration.result.RegistrationResult` evaluated at the final
         transforms: ``inliers`` marks the source points with a target point within
         ``max_correspondence_distance``. Instances with fewer than 3 such pairs (at the start
-        or the end), or whose pairs are collinear, get ``valid = False`` and the identity.
+        or the end), or whose pairs are collinear, get ``valid = False`` and the identity; so
+        does an instance whose target has no valid point (``M = 0``, or ``target_mask`` all
+        False).
 
     Raises:
         ShapeError: wrong shapes, mismatched devices or dtypes, non-bool masks.
@@ -294,6 +296,11 @@ class _Problem:
                 check_same(("source", source), (name, mask), dtype=False)
         source = zero_masked_points(source, source_mask, "source")
         target = zero_masked_points(target, target_mask, "target")
+        if target.shape[1] == 0:
+            # No target point at all: one masked stand-in, so that every instance finds no pair
+            # and is reported invalid, as an instance whose target mask is all False is.
+            target = target.new_zeros(B, 1, 3)
+            target_mask = torch.zeros(B, 1, dtype=torch.bool, device=target.device)
         if source_mask is None:
             source_mask = torch.ones(B, N, dtype=torch.bool, device=source.device)
         return cls(
@@ -442,7 +449,7 @@ def _run_scale_fixed(problem: _Problem, T: torch.Tensor, scale: _Scale, *, captu
     active = inliers.sum(-1) >= 3
     state = (T, inliers, matched, fitness, rmse, iterations, solvable, active)
     f64 = {"dtype": torch.float64, "device": T.device}
-    mu_s, mu_d = T.new_zeros(B, 3), T.new_zeros(B, 3)
+    mu_s, mu_d = torch.zeros(B, 3, **f64), torch.zeros(B, 3, **f64)
     cov, U, Vh = (torch.zeros(B, 3, 3, **f64) for _ in range(3))
     S = torch.zeros(B, 3, **f64)
 
@@ -458,7 +465,8 @@ def _run_scale_fixed(problem: _Problem, T: torch.Tensor, scale: _Scale, *, captu
 
     def finish() -> None:
         ok = is_well_posed(inliers.to(dtype), mu_s, mu_d, S)
-        T_new = torch.where(ok[:, None, None], rigid_from_svd(mu_s, mu_d, U, S, Vh, ok), T)
+        T_new = rigid_from_svd(mu_s, mu_d, U, S, Vh, ok, dtype=dtype)
+        T_new = torch.where(ok[:, None, None], T_new, T)
         new_inliers, new_matched, new_fitness, new_rmse = problem.evaluate_unchecked(
             T_new, distance
         )
