@@ -329,8 +329,10 @@ class NeighborTracker:
     the anchor to every other reference point. After the point moved by ``delta``, the other
     points are at least ``L - delta`` away, so the nearest candidate, if closer than that, is the
     nearest neighbour; if both are beyond ``max_distance``, nothing is in range. Only the other
-    points are searched again. Late ICP iterations then search almost nothing. Other backends
-    search every point at every call.
+    points are searched again. Late ICP iterations then search almost nothing. The test and the
+    searches run in one compiled pass over the points (numba, ``poseflow.geometry._tracker_cpu``,
+    with its own k-d tree built once per index). Other backends search every point at every
+    call.
 
     Args:
         index: the reference clouds.
