@@ -111,6 +111,7 @@ def _build_leaves(x, y, z, perm, leaf_size):  # type: ignore[no-untyped-def]
 
 @_jit
 def _one_cloud(x, y, z, valid, start, idx, leaf_size):  # type: ignore[no-untyped-def]
+    """:func:`fps_kernel` for one cloud: coordinates, validity ``(N,)``, samples ``(M,)``."""
     M = idx.shape[0]
     perm = np.flatnonzero(valid)
     n = perm.shape[0]

@@ -1,6 +1,8 @@
-"""The CPU work of :class:`poseflow.geometry.neighbors.NeighborTracker`, compiled with numba.
+"""The CPU nearest-neighbour searches of :mod:`poseflow.geometry.neighbors`, compiled with numba.
 
-One call per query does what the tracker needs for every point: how far it moved from its
+:func:`knn` answers :meth:`~poseflow.geometry.neighbors.NeighborIndex.query` on the CPU.
+:func:`track` is the work of :class:`~poseflow.geometry.neighbors.NeighborTracker`:
+one call per query does what the tracker needs for every point: how far it moved from its
 anchor, its nearest remembered candidate, whether that candidate is certainly its nearest
 neighbour (or certainly nothing is in range) and, where not, a new search of a k-d tree of the
 reference points, after which the point is anchored where it is now. Doing it in one compiled
@@ -20,7 +22,7 @@ import math
 import numba
 import numpy as np
 
-__all__ = ["LEAF_SIZE", "build_trees", "track"]
+__all__ = ["LEAF_SIZE", "build_trees", "knn", "track"]
 
 #: Largest number of points in a leaf of the k-d tree.
 LEAF_SIZE = 16
@@ -271,3 +273,39 @@ def track(  # type: ignore[no-untyped-def]
                 dist[j, n] = math.inf
                 nearest[j, n] = none
     return searched
+
+
+@_jit
+def knn(tree, root, q, items, bound2, M, out_d, out_i):  # type: ignore[no-untyped-def]
+    """The ``k`` nearest valid reference points of every query point, exact.
+
+    Args:
+        tree: ``(perm, points, lo, hi, left, right, box)`` from :func:`build_trees`.
+        root: int64 ``(B,)`` root node of each item (-1: no valid point).
+        q: float64 ``(B', N, 3)`` query points.
+        items: int64 ``(B',)``, the batch item of each row of ``q``.
+        bound2: only points at a squared distance below this are returned.
+        M: reference points per batch item.
+        out_d: float64 ``(B', N, k)``, out: ascending distances, ``inf`` where missing.
+        out_i: int64 ``(B', N, k)``, out: indices into the item's ``M`` points, 0 where missing.
+    """
+    k = out_d.shape[2]
+    best_d2 = np.empty(k)
+    best_i = np.empty(k, np.int64)
+    stack = np.empty(256, np.int64)
+    stack_d2 = np.empty(256)
+    for j in range(q.shape[0]):
+        b = items[j]
+        for n in range(q.shape[1]):
+            if root[b] >= 0:
+                x, y, z = q[j, n, 0], q[j, n, 1], q[j, n, 2]
+                _search(tree, root[b], x, y, z, bound2, best_d2, best_i, stack, stack_d2)
+            else:
+                best_d2[:] = np.inf
+            for r in range(k):
+                if best_d2[r] < math.inf:
+                    out_d[j, n, r] = math.sqrt(best_d2[r])
+                    out_i[j, n, r] = best_i[r] - b * M
+                else:
+                    out_d[j, n, r] = math.inf
+                    out_i[j, n, r] = 0

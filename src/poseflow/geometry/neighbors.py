@@ -2,9 +2,10 @@
 
 One entry point, :func:`nearest_neighbors`, picks the fastest exact backend for the device:
 
-- CPU: a KD-tree per batch item (``scipy.spatial.cKDTree``; large searches run the batch items in
-  parallel threads, one item per task) unless the problem is small enough (at most 16,384
-  query-reference pairs per item) that a brute-force distance matrix is cheaper;
+- CPU: a k-d tree per batch item, built once per index and searched by compiled code (numba,
+  ``poseflow.geometry._tracker_cpu``; large searches run the batch items in parallel threads,
+  one item per task) unless the problem is small enough (at most 16,384 query-reference pairs
+  per item) that a brute-force distance matrix is cheaper;
 - CUDA (and any other device): brute force, the distance matrix built in chunks of query points
   with one matrix multiply each, so memory stays bounded.
 
@@ -92,8 +93,6 @@ class NeighborIndex:
         self.reference = reference
         self.reference_mask = reference_mask
         self.backend = backend
-        self._trees: list | None = None
-        self._valid_index: list[np.ndarray] | None = None
         self._ref64: np.ndarray | None = None
         self._columns: np.ndarray | None = None
         self._max_abs: float | None = None
@@ -191,17 +190,6 @@ class NeighborIndex:
             self._columns = np.ascontiguousarray(columns)
         return self._columns
 
-    def _build_trees(self) -> None:
-        from scipy.spatial import cKDTree
-
-        ref = self._reference64()
-        mask = None if self.reference_mask is None else self.reference_mask.numpy()
-        self._trees, self._valid_index = [], []
-        for b in range(ref.shape[0]):
-            valid = np.arange(ref.shape[1]) if mask is None else np.flatnonzero(mask[b])
-            self._valid_index.append(valid)
-            self._trees.append(cKDTree(ref[b, valid]) if len(valid) else None)
-
     def _tracker_tree(self) -> tuple[np.ndarray, tuple[np.ndarray, ...], np.ndarray]:
         """The reference as float64 columns and the compiled tracker's k-d trees, built once.
 
@@ -229,42 +217,29 @@ class NeighborIndex:
         max_distance: float | None,
         items: torch.Tensor | None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        q = query.detach().to(torch.float64).numpy()
-        item_ids = list(range(q.shape[0])) if items is None else items.tolist()
-        found = self._kdtree_search(list(q), item_ids, k, max_distance)
-        dist = torch.from_numpy(np.stack([d for d, _ in found])).to(query.dtype)
-        return dist, torch.from_numpy(np.stack([i for _, i in found]))
+        from poseflow.geometry._tracker_cpu import knn  # numba: imported when first needed
 
-    def _kdtree_search(
-        self,
-        points: list[np.ndarray],
-        items: list[int],
-        k: int,
-        max_distance: float | None,
-    ) -> list[tuple[np.ndarray, np.ndarray]]:
-        """Query the tree of batch item ``items[j]`` with ``points[j]`` ``(n_j, 3)`` (float64).
+        _, tree, root = self._tracker_tree()
+        q = np.ascontiguousarray(query.detach().to(torch.float64).numpy())
+        ids = np.arange(q.shape[0]) if items is None else items.cpu().numpy().astype(np.int64)
+        # points at exactly max_distance are in range: search a hair beyond, then cut
+        bound2 = np.inf if max_distance is None else np.nextafter(float(max_distance) ** 2, np.inf)
+        dist = np.empty((*q.shape[:2], k))
+        idx = np.empty((*q.shape[:2], k), dtype=np.int64)
+        M = self.reference.shape[1]
 
-        Returns one ``(dist, idx)`` pair of ``(n_j, k)`` arrays per query set, missing neighbours
-        as ``(inf, 0)``.
-        """
-        if self._trees is None:
-            self._build_trees()
-        bound = np.inf if max_distance is None else float(max_distance)
+        def run(rows: slice) -> None:
+            knn(tree, root, q[rows], ids[rows], bound2, M, dist[rows], idx[rows])
 
-        def one(j: int) -> tuple[np.ndarray, np.ndarray]:
-            n, tree = len(points[j]), self._trees[items[j]]  # type: ignore[index]
-            if tree is None or n == 0:
-                return np.full((n, k), np.inf), np.zeros((n, k), dtype=np.int64)
-            d, i = tree.query(points[j], k=k, distance_upper_bound=bound)
-            d, i = d.reshape(n, k), i.reshape(n, k)
-            valid = self._valid_index[items[j]]  # type: ignore[index]
-            return d, np.where(np.isfinite(d), valid[np.minimum(i, tree.n - 1)], 0)
-
-        # cKDTree releases the GIL while it searches: one task per batch item keeps the cores
-        # busy without splitting each (small) query across threads.
-        if len(points) > 1 and sum(map(len, points)) >= _PARALLEL_POINTS and _pool() is not None:
-            return list(_pool().map(one, range(len(points))))  # type: ignore[union-attr]
-        return [one(j) for j in range(len(points))]
+        # The compiled search releases the GIL: one task per batch item keeps the cores busy.
+        if len(ids) > 1 and q.shape[0] * q.shape[1] >= _PARALLEL_POINTS and _pool() is not None:
+            list(_pool().map(run, [slice(j, j + 1) for j in range(len(ids))]))  # type: ignore[union-attr]
+        else:
+            run(slice(None))
+        if max_distance is not None:
+            far = dist > max_distance
+            dist[far], idx[far] = np.inf, 0
+        return torch.from_numpy(dist).to(query.dtype), torch.from_numpy(idx)
 
     def _query_brute(
         self,
