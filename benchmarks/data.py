@@ -15,6 +15,10 @@ once). The Open3D baseline is what a user would write with the same library: a
 colour).
 
 Prints one JSON line with images/s and renders/s for both and their ratios, then the command.
+Lifting is timed alternately on both sides after a warm-up; its figures are the best of
+``--repeats`` (the ratio of the medians is given too). For one core on both sides run
+``OMP_NUM_THREADS=1 taskset -c 0 python benchmarks/data.py --threads 1`` (``taskset`` also keeps
+poseflow's k-d tree searches, which otherwise use a thread per core, on one core).
 Run ``python benchmarks/data.py`` (``--quick`` for CI).
 """
 
@@ -52,6 +56,23 @@ def timed(fn, repeats: int) -> tuple[float, object]:
         out = fn()
         times.append(time.perf_counter() - t)
     return statistics.median(times), out
+
+
+def timed_pair(ours, theirs, repeats: int) -> tuple[list[float], list[float], object, object]:
+    """Both functions warmed up, then timed alternately ``repeats`` times each (seconds).
+
+    Alternating keeps a change of the machine's load from favouring one side.
+    """
+    out_ours, out_theirs = ours(), theirs()
+    t_ours, t_theirs = [], []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        out_ours = ours()
+        t_ours.append(time.perf_counter() - start)
+        start = time.perf_counter()
+        out_theirs = theirs()
+        t_theirs.append(time.perf_counter() - start)
+    return t_ours, t_theirs, out_ours, out_theirs
 
 
 def scene_poses(n: int, g: torch.Generator) -> torch.Tensor:
@@ -98,8 +119,9 @@ def bench_lifting(args: argparse.Namespace) -> dict:
             clouds.append(pcd)
         return clouds
 
-    ours_s, (_, valid, _, normals) = timed(ours, args.repeats)
-    theirs_s, clouds = timed(theirs, args.repeats)
+    t_ours, t_theirs, (_, valid, _, normals), clouds = timed_pair(ours, theirs, args.repeats)
+    ours_s, theirs_s = min(t_ours), min(t_theirs)
+    median_ratio = statistics.median(t_ours) / statistics.median(t_theirs)
     pixels_per_instance = masks.flatten(1).sum(1)
     return {
         "instances": n,
@@ -107,11 +129,13 @@ def bench_lifting(args: argparse.Namespace) -> dict:
         "cap": args.cap,
         "M": args.points,
         "k": args.k,
+        "repeats": args.repeats,
         "poseflow_ms": round(ours_s * 1000, 2),
         "open3d_ms": round(theirs_s * 1000, 2),
         "poseflow_images_per_s": round(1 / ours_s, 2),
         "open3d_images_per_s": round(1 / theirs_s, 2),
         "ratio_poseflow_over_open3d_time": round(ours_s / theirs_s, 3),
+        "ratio_of_medians": round(median_ratio, 3),
         "poseflow_points": int(valid.sum()),
         "open3d_points": sum(len(c.points) for c in clouds),
         "poseflow_unit_normals": bool(((normals[valid].norm(dim=-1) - 1).abs() < 1e-4).all()),

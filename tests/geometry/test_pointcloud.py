@@ -7,11 +7,12 @@ import math
 import numpy as np
 import pytest
 import torch
-from hypothesis import given
+from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from poseflow.errors import DegenerateInputError, ShapeError, ValueRangeError
 from poseflow.geometry.pointcloud import (
+    _smallest_eigenvector,
     backproject_depth,
     cloud_diameter,
     crop_box_around,
@@ -217,6 +218,100 @@ def test_fps_matches_reference_and_is_batched(seed, N, M) -> None:
         assert len(set(idx[b, : min(n, M)].tolist())) == min(n, M)
 
 
+# dtype and device fixtures hold no state: they may be shared by hypothesis' examples
+FIXTURES = settings(
+    suppress_health_check=[*settings().suppress_health_check, HealthCheck.function_scoped_fixture]
+)
+
+
+def fps_as_released(points, M, mask, generator):
+    """Farthest-point sampling exactly as poseflow 0.1.0 computed it (a loop of tensor ops)."""
+    B, N = points.shape[:2]
+    device = points.device
+    count = mask.sum(1)
+    idx = torch.zeros(B, M, dtype=torch.long, device=device)
+    pts = torch.where(mask.unsqueeze(-1), points, torch.zeros_like(points))
+    if generator is None:
+        cur = mask.to(torch.int8).argmax(1)
+    else:
+        r = torch.rand(B, N, generator=generator, device=generator.device).to(device)
+        cur = r.masked_fill(~mask, -1.0).argmax(1)
+    x, y, z = (pts[..., c].contiguous() for c in range(3))
+    dist = torch.full((B, N), torch.inf, dtype=points.dtype, device=device)
+    dist = dist.masked_fill(~mask, -1.0)
+    d, tmp = torch.empty_like(x), torch.empty_like(x)
+    rows = torch.arange(B, device=device)
+    for i in range(M):
+        idx[:, i] = cur
+        dist[rows, cur] = -1.0
+        torch.sub(x, x[rows, cur].unsqueeze(1), out=d)
+        d.mul_(d)
+        torch.sub(y, y[rows, cur].unsqueeze(1), out=tmp)
+        d.addcmul_(tmp, tmp)
+        torch.sub(z, z[rows, cur].unsqueeze(1), out=tmp)
+        d.addcmul_(tmp, tmp)
+        torch.minimum(dist, d, out=dist)
+        cur = dist.argmax(1)
+    valid = torch.arange(M, device=device)[None] < count[:, None]
+    return torch.where(valid, idx, idx[:, :1]), valid
+
+
+@FIXTURES
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    B=st.integers(1, 4),
+    N=st.integers(1, 400),
+    M=st.integers(1, 300),
+    layout=st.sampled_from(["uniform", "grid", "plane", "duplicates", "far", "tiny"]),
+    keep=st.floats(0.0, 1.0),
+    seeded=st.booleans(),
+)
+def test_fps_gives_the_released_samples(dtype, device, seed, B, N, M, layout, keep, seeded) -> None:
+    """Same indices as the released loop, ties (grids, duplicates) and every layout included."""
+    g = torch.Generator().manual_seed(seed)
+    pts = torch.rand(B, N, 3, generator=g, dtype=torch.float64)
+    if layout == "grid":  # many exactly equal distances
+        pts = (pts * 4).round() / 4
+    elif layout == "plane":
+        pts[..., 2] = 0.5
+    elif layout == "duplicates":
+        pts = pts[:, torch.randint(0, max(1, N // 4), (N,), generator=g)]
+    elif layout == "far":  # 10 km away, float32 spacing ~1 mm
+        pts = pts * 0.5 + 1e4
+    elif layout == "tiny":
+        pts = pts * 1e-20
+    pts = pts.to(dtype).to(device)
+    mask = (torch.rand(B, N, generator=g) < keep).to(device)
+    got = farthest_point_sample(
+        pts, M, mask, generator=torch.Generator().manual_seed(seed) if seeded else None
+    )
+    want = fps_as_released(pts, M, mask, torch.Generator().manual_seed(seed) if seeded else None)
+    assert torch.equal(got[0], want[0])
+    assert torch.equal(got[1], want[1])
+
+
+def test_fps_rounds_distances_as_the_released_loop() -> None:
+    """Offsets (a, b, c) and (c, b, a) are equally far; only the rounding of the squared sum
+    (fused multiply-adds, as torch.addcmul does) decides which comes second."""
+    a = [0.9337689280509949, 0.684050440788269, 0.8237813711166382]
+    pts = torch.tensor([[[0.0, 0.0, 0.0], a, a[::-1]]])
+    mask = torch.ones(1, 3, dtype=torch.bool)
+    got, _ = farthest_point_sample(pts, 2, mask)
+    want, _ = fps_as_released(pts, 2, mask, None)
+    assert torch.equal(got, want)
+
+
+def test_fps_compiled_kernel_on_a_lifted_cloud() -> None:
+    """The CPU kernel prunes most of the work on a real-sized cloud and still agrees."""
+    g = torch.Generator().manual_seed(3)
+    u = torch.rand(2, 3000, 2, generator=g, dtype=torch.float32)
+    pts = torch.stack([u[..., 0], u[..., 1], 0.7 + 0.1 * torch.sin(6 * u[..., 0])], -1)
+    mask = torch.rand(2, 3000, generator=g) > 0.2
+    got = farthest_point_sample(pts, 700, mask, generator=torch.Generator().manual_seed(1))
+    want = fps_as_released(pts, 700, mask, torch.Generator().manual_seed(1))
+    assert torch.equal(got[0], want[0]) and bool(got[1].all())
+
+
 def test_fps_seeded_start_and_dtype(dtype, device) -> None:
     pts = torch.rand(2, 100, 3, generator=torch.Generator().manual_seed(0), dtype=dtype).to(device)
     a = farthest_point_sample(pts, 10, generator=torch.Generator().manual_seed(5))
@@ -228,6 +323,33 @@ def test_fps_seeded_start_and_dtype(dtype, device) -> None:
     cover = torch.cdist(p, chosen).min(1).values.max()
     spread = torch.pdist(chosen).min()
     assert cover <= spread + 1e-6
+
+
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    spectrum=st.lists(
+        st.sampled_from([0.0, 1e-12, 1e-6, 0.3, 1.0, 1.0 + 1e-9, 5.0]), min_size=3, max_size=3
+    ),
+    scale=st.sampled_from([1e-8, 1.0, 1e6]),
+)
+def test_smallest_eigenvector_matches_eigh(seed, spectrum, scale) -> None:
+    """The closed form finds a unit vector of the smallest eigenvalue's eigenspace, repeated
+    eigenvalues, zero and multiples of the identity included; where the two smallest are
+    nearly equal (within 1e-6 of the largest), a vector of their joint eigenspace."""
+    g = torch.Generator().manual_seed(seed)
+    Q, _ = torch.linalg.qr(torch.randn(4, 3, 3, generator=g, dtype=torch.float64))
+    lam = torch.tensor(spectrum, dtype=torch.float64) * scale
+    A = Q @ torch.diag(lam) @ Q.transpose(1, 2)
+    A = (A + A.transpose(1, 2)) / 2
+    v = _smallest_eigenvector(A)
+    assert torch.allclose(v.norm(dim=-1), torch.ones(4, dtype=torch.float64), atol=1e-12)
+    rayleigh = (v.unsqueeze(-2) @ A @ v.unsqueeze(-1)).reshape(4)
+    top = lam.abs().max()
+    low, gap = lam.min(), lam.sort().values[1] - lam.min()
+    excess = rayleigh - low
+    assert bool((excess >= -1e-10 * top).all())
+    bound = 1e-10 * top + (gap if gap <= 1e-6 * top else 0.0)
+    assert bool((excess <= bound + 1e-300).all())
 
 
 @given(seed=st.integers(0, 2**31 - 1), voxel=st.floats(0.05, 0.5))

@@ -193,6 +193,68 @@ def test_hopeless_instances_get_identity():
     )
 
 
+def test_an_empty_target_gives_invalid_instances_not_an_error():
+    """No target point at all (M = 0) is reported like a target mask that is all False."""
+    g = torch.Generator().manual_seed(0)
+    source = torch.rand(2, 50, 3, generator=g, dtype=torch.float64)
+    for target, target_mask in (
+        (torch.zeros(2, 0, 3, dtype=torch.float64), None),
+        (source + 0.01, torch.zeros(2, 50, dtype=torch.bool)),
+    ):
+        for run in (
+            lambda t, m: icp(source, t, max_correspondence_distance=0.1, target_mask=m),
+            lambda t, m: multi_scale_icp(
+                source, t, max_correspondence_distances=[0.2, 0.1], target_mask=m
+            ),
+        ):
+            result = run(target, target_mask)
+            assert result.valid.tolist() == [False, False]
+            assert torch.equal(
+                result.transformation, torch.eye(4, dtype=torch.float64).expand(2, 4, 4)
+            )
+            assert result.fitness.eq(0).all() and not result.inliers.any()
+    # one instance empty, the other solved as it would be alone
+    mask = torch.tensor([[True] * 50, [False] * 50])
+    both = icp(source, source + 0.01, max_correspondence_distance=0.1, target_mask=mask)
+    alone = icp(source[:1], source[:1] + 0.01, max_correspondence_distance=0.1)
+    assert both.valid.tolist() == [True, False]
+    torch.testing.assert_close(both.transformation[:1], alone.transformation)
+
+
+@FIXTURES
+@given(seed=seeds, offset=st.floats(1.0, 1e4))
+def test_far_from_the_origin_in_float32(seed, offset, device):
+    """Float32 clouds kilometres away converge as near the origin (the degeneracy test judges
+    the clouds' extent, not their distance from the origin)."""
+    model, obs, half, pose, extent, g = _bumpy_clouds(seed, 1, 500)
+    init = _perturbed(inverse_transform(pose), extent, 3.0, 0.01, g)
+    shift = torch.eye(4, dtype=torch.float64)
+    shift[:3, 3] = (
+        torch.nn.functional.normalize(torch.randn(3, generator=g, dtype=torch.float64), dim=0)
+        * offset
+    )
+    far_obs = transform_points(shift, obs)
+    far_model = transform_points(shift, model)
+    far_init = compose(shift, compose(init, inverse_transform(shift)))
+    kw = {"max_correspondence_distance": 0.1 * float(extent.max())}
+    near = icp(obs.float(), model.float(), init.float(), source_mask=half, **kw)
+    far = icp(
+        far_obs.float().to(device),
+        far_model.float().to(device),
+        far_init.float().to(device),
+        source_mask=half.to(device),
+        **kw,
+    )
+    assert near.valid.item() and far.valid.item()
+    truth = compose(shift, compose(inverse_transform(pose), inverse_transform(shift)))
+    rot = rotation_angle_error(far.transformation.cpu().double(), truth)
+    assert rot.item() < 1.0  # degrees
+    resolution = torch.finfo(torch.float32).eps * offset
+    moved = transform_points(far.transformation.cpu().double(), far_obs)
+    err = (moved - transform_points(truth, far_obs))[half].norm(dim=-1).median().item()
+    assert err < 0.05 * float(extent.max()) + 50 * resolution
+
+
 def test_solver_classes_and_stopping():
     model, obs, half, pose, extent, g = _bumpy_clouds(2, 2, 400)
     init = _perturbed(inverse_transform(pose), extent, 5.0, 0.02, g)

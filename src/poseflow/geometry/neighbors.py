@@ -2,9 +2,10 @@
 
 One entry point, :func:`nearest_neighbors`, picks the fastest exact backend for the device:
 
-- CPU: a KD-tree per batch item (``scipy.spatial.cKDTree``; large searches run the batch items in
-  parallel threads, one item per task) unless the problem is small enough (at most 16,384
-  query-reference pairs per item) that a brute-force distance matrix is cheaper;
+- CPU: a k-d tree per batch item, built once per index and searched by compiled code (numba,
+  ``poseflow.geometry._tracker_cpu``; large searches run the batch items in parallel threads,
+  one item per task) unless the problem is small enough (at most 16,384 query-reference pairs
+  per item) that a brute-force distance matrix is cheaper;
 - CUDA (and any other device): brute force, the distance matrix built in chunks of query points
   with one matrix multiply each, so memory stays bounded.
 
@@ -92,11 +93,10 @@ class NeighborIndex:
         self.reference = reference
         self.reference_mask = reference_mask
         self.backend = backend
-        self._trees: list | None = None
-        self._valid_index: list[np.ndarray] | None = None
         self._ref64: np.ndarray | None = None
         self._columns: np.ndarray | None = None
         self._max_abs: float | None = None
+        self._tracker: tuple[np.ndarray, tuple[np.ndarray, ...], np.ndarray] | None = None
 
     @property
     def batch_size(self) -> int:
@@ -179,24 +179,36 @@ class NeighborIndex:
             self._ref64 = self.reference.detach().to(torch.float64).numpy()
         return self._ref64
 
-    def _reference_columns(self, dtype: type) -> np.ndarray:
-        """The reference as columns ``(3, B * M + 1)`` of ``dtype``, the last one at infinity."""
-        if self._columns is None or self._columns.dtype != dtype:
+    def columns(self) -> np.ndarray:
+        """The reference as float64 columns ``(3, B * M + 1)`` (CPU), the last one at infinity.
+
+        Item ``b``'s point ``m`` is column ``b * M + m``; masked points are zero.
+        """
+        if self._columns is None:
             ref = self._reference64().reshape(-1, 3)
-            columns = np.concatenate((ref, np.full((1, 3), np.inf))).T.astype(dtype)
+            columns = np.concatenate((ref, np.full((1, 3), np.inf))).T
             self._columns = np.ascontiguousarray(columns)
         return self._columns
 
-    def _build_trees(self) -> None:
-        from scipy.spatial import cKDTree
+    def _tracker_tree(self) -> tuple[np.ndarray, tuple[np.ndarray, ...], np.ndarray]:
+        """The reference as float64 columns and the compiled tracker's k-d trees, built once.
 
-        ref = self._reference64()
-        mask = None if self.reference_mask is None else self.reference_mask.numpy()
-        self._trees, self._valid_index = [], []
-        for b in range(ref.shape[0]):
-            valid = np.arange(ref.shape[1]) if mask is None else np.flatnonzero(mask[b])
-            self._valid_index.append(valid)
-            self._trees.append(cKDTree(ref[b, valid]) if len(valid) else None)
+        Returns ``(columns, tree, root)`` as :func:`poseflow.geometry._tracker_cpu.track`
+        takes them.
+        """
+        if self._tracker is None:
+            from poseflow.geometry._tracker_cpu import LEAF_SIZE, build_trees
+
+            columns = self.columns()
+            B, M = self.reference.shape[:2]
+            valid = (
+                np.ones((B, M), dtype=bool)
+                if self.reference_mask is None
+                else self.reference_mask.cpu().numpy()
+            )
+            perm, points, root, nodes = build_trees(columns, valid, M, LEAF_SIZE)
+            self._tracker = (columns, (perm, points, *nodes), root)
+        return self._tracker
 
     def _query_kdtree(
         self,
@@ -205,42 +217,29 @@ class NeighborIndex:
         max_distance: float | None,
         items: torch.Tensor | None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        q = query.detach().to(torch.float64).numpy()
-        item_ids = list(range(q.shape[0])) if items is None else items.tolist()
-        found = self._kdtree_search(list(q), item_ids, k, max_distance)
-        dist = torch.from_numpy(np.stack([d for d, _ in found])).to(query.dtype)
-        return dist, torch.from_numpy(np.stack([i for _, i in found]))
+        from poseflow.geometry._tracker_cpu import knn  # numba: imported when first needed
 
-    def _kdtree_search(
-        self,
-        points: list[np.ndarray],
-        items: list[int],
-        k: int,
-        max_distance: float | None,
-    ) -> list[tuple[np.ndarray, np.ndarray]]:
-        """Query the tree of batch item ``items[j]`` with ``points[j]`` ``(n_j, 3)`` (float64).
+        _, tree, root = self._tracker_tree()
+        q = np.ascontiguousarray(query.detach().to(torch.float64).numpy())
+        ids = np.arange(q.shape[0]) if items is None else items.cpu().numpy().astype(np.int64)
+        # points at exactly max_distance are in range: search a hair beyond, then cut
+        bound2 = np.inf if max_distance is None else np.nextafter(float(max_distance) ** 2, np.inf)
+        dist = np.empty((*q.shape[:2], k))
+        idx = np.empty((*q.shape[:2], k), dtype=np.int64)
+        M = self.reference.shape[1]
 
-        Returns one ``(dist, idx)`` pair of ``(n_j, k)`` arrays per query set, missing neighbours
-        as ``(inf, 0)``.
-        """
-        if self._trees is None:
-            self._build_trees()
-        bound = np.inf if max_distance is None else float(max_distance)
+        def run(rows: slice) -> None:
+            knn(tree, root, q[rows], ids[rows], bound2, M, dist[rows], idx[rows])
 
-        def one(j: int) -> tuple[np.ndarray, np.ndarray]:
-            n, tree = len(points[j]), self._trees[items[j]]  # type: ignore[index]
-            if tree is None or n == 0:
-                return np.full((n, k), np.inf), np.zeros((n, k), dtype=np.int64)
-            d, i = tree.query(points[j], k=k, distance_upper_bound=bound)
-            d, i = d.reshape(n, k), i.reshape(n, k)
-            valid = self._valid_index[items[j]]  # type: ignore[index]
-            return d, np.where(np.isfinite(d), valid[np.minimum(i, tree.n - 1)], 0)
-
-        # cKDTree releases the GIL while it searches: one task per batch item keeps the cores
-        # busy without splitting each (small) query across threads.
-        if len(points) > 1 and sum(map(len, points)) >= _PARALLEL_POINTS and _pool() is not None:
-            return list(_pool().map(one, range(len(points))))  # type: ignore[union-attr]
-        return [one(j) for j in range(len(points))]
+        # The compiled search releases the GIL: one task per batch item keeps the cores busy.
+        if len(ids) > 1 and q.shape[0] * q.shape[1] >= _PARALLEL_POINTS and _pool() is not None:
+            list(_pool().map(run, [slice(j, j + 1) for j in range(len(ids))]))  # type: ignore[union-attr]
+        else:
+            run(slice(None))
+        if max_distance is not None:
+            far = dist > max_distance
+            dist[far], idx[far] = np.inf, 0
+        return torch.from_numpy(dist).to(query.dtype), torch.from_numpy(idx)
 
     def _query_brute(
         self,
@@ -305,8 +304,10 @@ class NeighborTracker:
     the anchor to every other reference point. After the point moved by ``delta``, the other
     points are at least ``L - delta`` away, so the nearest candidate, if closer than that, is the
     nearest neighbour; if both are beyond ``max_distance``, nothing is in range. Only the other
-    points are searched again. Late ICP iterations then search almost nothing. Other backends
-    search every point at every call.
+    points are searched again. Late ICP iterations then search almost nothing. The test and the
+    searches run in one compiled pass over the points (numba, ``poseflow.geometry._tracker_cpu``,
+    with its own k-d tree built once per index). Other backends search every point at every
+    call.
 
     Args:
         index: the reference clouds.
@@ -375,57 +376,53 @@ class NeighborTracker:
         ):
             return index.query_unchecked(points, 1, self.max_distance, items)
 
-        # Coordinates first, (3, B', N): every step below is a flat, contiguous array operation,
-        # in float32 for float32 points (half the memory traffic), else in float64.
+        # Coordinates first, (3, B', N), in float32 for float32 points (half the memory
+        # traffic), else in float64; the compiled kernel computes in float64.
         work = torch.float32 if points.dtype == torch.float32 else torch.float64
         q = np.ascontiguousarray(np.moveaxis(points.detach().to(work).numpy(), -1, 0))
+        B, M = index.batch_size, index.reference.shape[1]
+        item_ids = np.arange(B) if items is None else items.cpu().numpy().astype(np.int64)
+        dist, nearest = self.query_columns(q, item_ids)
+        out = torch.from_numpy(dist).to(points.dtype).unsqueeze(-1)
+        idx = np.where(np.isfinite(dist), nearest - item_ids[:, None] * M, 0)
+        return out, torch.from_numpy(idx).unsqueeze(-1)
+
+    def query_columns(self, q: np.ndarray, items: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`query` for callers that hold their points as arrays, with no checks (CPU).
+
+        Always searches the compiled k-d tree (whatever the backend and the size), and answers
+        with columns of :meth:`NeighborIndex.columns`: item ``b``'s reference point ``m`` is
+        column ``b * M + m``, the last column (at infinity) stands for none.
+
+        Args:
+            q: finite query points, coordinates first: C-contiguous ``(3, B', N)``, float32 or
+                float64.
+            items: int64 ``(B',)``, the batch item of each row of ``q``.
+
+        Returns:
+            ``(dist, nearest)``: distances ``(B', N)`` in ``q``'s dtype, ``inf`` where nothing
+            is within ``max_distance``, and the nearest reference columns ``(B', N)`` (int64).
+        """
+        index = self.index
         B, N, M, K = index.batch_size, q.shape[2], index.reference.shape[1], self.candidates
-        ref = index._reference_columns(q.dtype)  # (3, B * M + 1), the last column at infinity
-        if self._anchor is None or self._anchor.shape[2] != N or self._anchor.dtype != q.dtype:
-            self._anchor = np.zeros((3, B, N), dtype=q.dtype)
+        columns, tree, root = index._tracker_tree()
+        if self._anchor is None or self._anchor.shape[2] != N:
+            self._anchor = np.zeros((3, B, N))
             self._cand = np.full((K, B, N), B * M, dtype=np.int64)
             self._lower = np.full((B, N), -np.inf)  # never searched
-        sel = slice(None) if items is None else items.cpu().numpy()
-        item_ids = np.arange(B) if items is None else sel
+        from poseflow.geometry._tracker_cpu import track  # numba: imported when first needed
 
-        diff = q - self._anchor[:, sel]
-        moved = np.sqrt(np.einsum("cbn,cbn->bn", diff, diff))
-        cand = self._cand[:, sel]  # (K, B', N)
-        dist2 = sum(np.square(np.take(ref[c], cand) - q[c]) for c in range(3))  # (K, B', N)
-        nearest, best2 = cand[0], dist2[0]
-        for k in range(1, K):
-            closer = dist2[k] < best2
-            nearest = np.where(closer, cand[k], nearest)
-            best2 = np.where(closer, dist2[k], best2)
-        dist = np.sqrt(best2)
-        # Every other reference point is at least this far, less the rounding of the arithmetic
-        # above (a few units in the last place of the coordinates).
-        slack = 16 * np.finfo(q.dtype).eps * max(float(np.abs(q).max(initial=0)), index._extent())
-        others = self._lower[sel] - moved - slack
-        settled = (dist < others) | ((dist > self.max_distance) & (others > self.max_distance))
-
-        redo = ~settled
-        rows = [np.flatnonzero(r) for r in redo]
-        found = index._kdtree_search(
-            [q[:, j, r].T for j, r in enumerate(rows)], item_ids.tolist(), K, self._bound
-        )
-        jj, ii = np.nonzero(redo)  # row-major: the order of the per-item searches above
-        if len(jj):
-            bb = item_ids[jj]
-            d = np.concatenate([f[0] for f in found])
-            i = np.concatenate([f[1] for f in found]) + (bb * M)[:, None]
-            i[np.isinf(d)] = B * M
-            self._anchor[:, bb, ii] = q[:, jj, ii]
-            self._cand[:, bb, ii] = i.T
-            # Unlisted points lie beyond the K-th candidate, or beyond the search bound when
-            # fewer were found; a hair less, against rounding.
-            self._lower[bb, ii] = np.minimum(d[:, K - 1], self._bound) * (1 - 1e-12)
-            nearest[jj, ii], dist[jj, ii] = i[:, 0], d[:, 0].astype(q.dtype)
-
-        ok = dist <= self.max_distance
-        out = torch.from_numpy(np.where(ok, dist, np.inf)).to(points.dtype).unsqueeze(-1)
-        idx = np.where(ok, nearest - item_ids[:, None] * M, 0)
-        return out, torch.from_numpy(idx).unsqueeze(-1)
+        # The bound L less the distance moved, less the rounding of the float64 arithmetic (a
+        # few units in the last place of the coordinates).
+        extent = max(float(np.abs(q).max(initial=0)), index._extent())
+        slack = 16 * np.finfo(np.float64).eps * extent
+        dist = np.empty(q.shape[1:], dtype=q.dtype)
+        nearest = np.empty(q.shape[1:], dtype=np.int64)
+        track(
+            q, self._anchor, self._cand, self._lower, columns, tree, root, items,
+            self.max_distance, self._bound, slack, dist, nearest,
+        )  # fmt: skip
+        return dist, nearest
 
 
 def nearest_neighbors(

@@ -12,8 +12,10 @@ in which crop boxes are given. ``poseflow.render`` casts its rays through the sa
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
+import numpy as np
 import torch
 
 from poseflow._checks import check_mask, check_same, check_tensor
@@ -406,7 +408,14 @@ def farthest_point_sample(
     """Farthest-point sampling of ``M`` points per cloud, batched.
 
     Starts from a valid point drawn with ``generator`` (the first valid point when None), then
-    repeatedly adds the valid point farthest from those already chosen.
+    repeatedly adds the valid point farthest from those already chosen (the one of smallest
+    index among equally far points).
+
+    float32 and float64 clouds on the CPU go through a compiled kernel (numba; see
+    ``poseflow.geometry._fps_cpu``) that skips the parts of a cloud a new sample cannot change;
+    other devices and dtypes run a loop of batched tensor ops over the samples. Both give the
+    same indices. The kernel is compiled on its first use in an environment (seconds, once per
+    dtype) and cached on disk.
 
     Args:
         points: clouds ``(B, N, 3)``.
@@ -435,19 +444,68 @@ def farthest_point_sample(
     if not bool(torch.isfinite(points[mask]).all()):
         raise ValueRangeError("valid points contain NaN or inf")
     count = mask.sum(1)
-    idx = torch.zeros(B, M, dtype=torch.long, device=device)
     if N == 0:
-        return idx, torch.zeros(B, M, dtype=torch.bool, device=device)
+        empty = torch.zeros(B, M, dtype=torch.long, device=device)
+        return empty, empty.bool()
     pts = torch.where(mask.unsqueeze(-1), points, torch.zeros_like(points))
     if generator is None:
         cur = mask.to(torch.int8).argmax(1)
     else:
         r = torch.rand(B, N, generator=generator, device=generator.device).to(device)
         cur = r.masked_fill(~mask, -1.0).argmax(1)
+    if device.type == "cpu" and points.dtype in (torch.float32, torch.float64):
+        idx = _fps_compiled(pts.detach(), mask, cur, M)
+    else:
+        idx = _fps_loop(pts.detach(), mask, cur, M)
+    valid = torch.arange(M, device=device)[None] < count[:, None]
+    # slots past a cloud's size repeat its first sample, so gathering stays well defined
+    idx = torch.where(valid, idx, idx[:, :1])
+    return idx, valid
+
+
+def _fps_compiled(
+    pts: torch.Tensor, mask: torch.Tensor, start: torch.Tensor, M: int
+) -> torch.Tensor:
+    """:func:`_fps_loop`'s indices from the compiled CPU kernel (``poseflow.geometry._fps_cpu``).
+
+    Args:
+        pts: CPU clouds ``(B, N, 3)``, float32 or float64, zero at masked points.
+        mask: ``(B, N)`` bool validity.
+        start: ``(B,)`` int64 first sample of each cloud.
+        M: number of samples.
+
+    Returns:
+        ``(B, M)`` int64 indices, equal to :func:`_fps_loop`'s.
+    """
+    from poseflow.geometry._fps_cpu import fps_kernel
+
+    x, y, z = (pts[..., c].contiguous().numpy() for c in range(3))
+    idx = np.zeros((pts.shape[0], M), dtype=np.int64)
+    fps_kernel(x, y, z, mask.contiguous().numpy(), start.contiguous().numpy(), idx)
+    return torch.from_numpy(idx)
+
+
+def _fps_loop(pts: torch.Tensor, mask: torch.Tensor, start: torch.Tensor, M: int) -> torch.Tensor:
+    """Farthest-point sampling as a loop of batched tensor ops over the samples (any device).
+
+    Args:
+        pts: clouds ``(B, N, 3)``, zero at masked points.
+        mask: ``(B, N)`` bool validity.
+        start: ``(B,)`` int64 first sample of each cloud.
+        M: number of samples.
+
+    Returns:
+        ``(B, M)`` int64 indices in the order they were chosen; once a cloud's valid points are
+        all chosen, its further slots hold 0.
+    """
+    B, N = mask.shape
+    device = pts.device
+    idx = torch.zeros(B, M, dtype=torch.long, device=device)
+    cur = start
     # One coordinate at a time with in-place ops: this loop is memory-bound, and avoiding
     # (B, N, 3) temporaries makes it several times faster than the vectorised form.
     x, y, z = (pts[..., c].contiguous() for c in range(3))
-    dist = torch.full((B, N), torch.inf, dtype=points.dtype, device=device)
+    dist = torch.full((B, N), torch.inf, dtype=pts.dtype, device=device)
     dist = dist.masked_fill(~mask, -1.0)
     d, tmp = torch.empty_like(x), torch.empty_like(x)
     rows = torch.arange(B, device=device)
@@ -462,10 +520,7 @@ def farthest_point_sample(
         d.addcmul_(tmp, tmp)
         torch.minimum(dist, d, out=dist)
         cur = dist.argmax(1)
-    valid = torch.arange(M, device=device)[None] < count[:, None]
-    # slots past a cloud's size repeat its first sample, so gathering stays well defined
-    idx = torch.where(valid, idx, idx[:, :1])
-    return idx, valid
+    return idx
 
 
 def estimate_normals(
@@ -509,15 +564,15 @@ def estimate_normals(
         return torch.zeros_like(points)
     dist, nn = nearest_neighbors(pts, pts, k=min(k, N), reference_mask=mask)
     found = torch.isfinite(dist)
-    nbr = torch.gather(pts, 1, nn.reshape(B, -1, 1).expand(-1, -1, 3)).reshape(B, N, -1, 3)
+    # one flat index_select (a gather with an expanded index is several times slower)
+    rows = nn + N * torch.arange(B, device=nn.device).reshape(B, 1, 1)
+    nbr64 = pts.to(torch.float64).reshape(B * N, 3)[rows.reshape(-1)].reshape(B, N, -1, 3)
     w = found.to(torch.float64).unsqueeze(-1)
-    nbr64 = nbr.to(torch.float64)
     cnt = w.sum(2)
     mean = (nbr64 * w).sum(2) / cnt.clamp(min=1)
     dev = (nbr64 - mean.unsqueeze(2)) * w
     cov = dev.transpose(-1, -2) @ dev
-    _, vecs = torch.linalg.eigh(cov)
-    normals = vecs[..., 0]
+    normals = _smallest_eigenvector(cov)
     ok = cnt.squeeze(-1) >= 3
     if mask is not None:
         ok &= mask
@@ -528,6 +583,101 @@ def estimate_normals(
         normals = torch.where(flip.unsqueeze(-1), -normals, normals)
     normals = torch.where(ok.unsqueeze(-1), normals, 0.0)
     return normals.to(points.dtype)
+
+
+def _smallest_eigenvector(A: torch.Tensor) -> torch.Tensor:
+    """Unit eigenvectors of the smallest eigenvalue of symmetric 3 x 3 matrices, in closed form.
+
+    Eberly's non-iterative solver ("A Robust Eigensolver for 3 x 3 Symmetric Matrices", Geometric
+    Tools, 2014; Open3D's normals use it too): the eigenvalues from the trigonometric solution of
+    the characteristic cubic of the matrix scaled to entries in ``[-1, 1]``; the eigenvector of
+    the eigenvalue farther from the other two from cross products of rows of ``A - lambda I``,
+    the middle one in that vector's orthogonal complement, the third their cross product. Where
+    the smallest eigenvalue is repeated, any unit vector of its eigenspace is an answer.
+    Elementwise tensor work only, an order of magnitude faster than ``torch.linalg.eigh`` on
+    many small matrices.
+
+    Args:
+        A: symmetric matrices ``(..., 3, 3)``.
+
+    Returns:
+        Unit vectors ``(..., 3)``, ``A v = lambda_min v``; ``(0, 0, 1)`` for multiples of the
+        identity (zero included).
+    """
+    scale = A.abs().amax((-1, -2), keepdim=True)
+    A = A / torch.where(scale > 0, scale, 1.0)
+    a00, a01, a02 = A[..., 0, 0], A[..., 0, 1], A[..., 0, 2]
+    a11, a12, a22 = A[..., 1, 1], A[..., 1, 2], A[..., 2, 2]
+    q = (a00 + a11 + a22) / 3
+    b00, b11, b22 = a00 - q, a11 - q, a22 - q
+    p = ((b00**2 + b11**2 + b22**2 + 2 * (a01**2 + a02**2 + a12**2)) / 6).sqrt()
+    round_ = p > 0  # False: A is a multiple of the identity, every vector an eigenvector
+    p_safe = torch.where(round_, p, 1.0)
+    c00 = b11 * b22 - a12 * a12
+    c01 = a01 * b22 - a12 * a02
+    c02 = a01 * a12 - b11 * a02
+    half_det = ((b00 * c00 - a01 * c01 + a02 * c02) / p_safe**3 / 2).clamp(-1.0, 1.0)
+    angle = torch.acos(half_det) / 3
+    beta = torch.stack(  # ascending: 2 cos(angle + 2 pi / 3) <= middle <= 2 cos(angle)
+        (2 * torch.cos(angle + 2 * math.pi / 3), torch.zeros_like(angle), 2 * torch.cos(angle)),
+        dim=-1,
+    )
+    beta[..., 1] = -(beta[..., 0] + beta[..., 2])
+    lam = q.unsqueeze(-1) + p.unsqueeze(-1) * beta  # (..., 3) ascending
+    # The eigenvalue farther from the other two: the largest when half_det >= 0, else the least.
+    far_is_top = half_det >= 0
+    far = _eigenvector_by_cross(A, torch.where(far_is_top, lam[..., 2], lam[..., 0]))
+    mid = _middle_eigenvector(A, far, lam[..., 1])
+    third = torch.linalg.cross(mid, far)  # for far = top: the smallest's; else unused
+    v = torch.where(far_is_top.unsqueeze(-1), third, far)
+    v = v / v.norm(dim=-1, keepdim=True)
+    z_axis = torch.tensor([0.0, 0.0, 1.0], dtype=A.dtype, device=A.device)
+    return torch.where(round_.unsqueeze(-1), v, z_axis)
+
+
+def _eigenvector_by_cross(A: torch.Tensor, lam: torch.Tensor) -> torch.Tensor:
+    """Unit null vector of ``A - lam I`` (rank 2): the longest cross product of two rows."""
+    M = A - lam[..., None, None] * torch.eye(3, dtype=A.dtype, device=A.device)
+    r0, r1, r2 = M[..., 0, :], M[..., 1, :], M[..., 2, :]
+    crosses = torch.stack(
+        (torch.linalg.cross(r0, r1), torch.linalg.cross(r0, r2), torch.linalg.cross(r1, r2)), -2
+    )
+    sq = crosses.square().sum(-1)  # (..., 3)
+    best = sq.argmax(-1, keepdim=True)
+    pick = crosses.gather(-2, best.unsqueeze(-1).expand(*best.shape, 3)).squeeze(-2)
+    length = sq.gather(-1, best).sqrt()
+    return pick / torch.where(length > 0, length, 1.0)
+
+
+def _middle_eigenvector(A: torch.Tensor, w: torch.Tensor, lam: torch.Tensor) -> torch.Tensor:
+    """Unit eigenvector of ``lam`` orthogonal to the unit eigenvector ``w`` (Eberly's method).
+
+    ``A`` restricted to the plane orthogonal to ``w`` is a symmetric 2 x 2 matrix in a basis
+    ``(u, v)`` of that plane; the eigenvector is the null vector of that matrix less ``lam``.
+    """
+    w0, w1, w2 = w[..., 0], w[..., 1], w[..., 2]
+    zero = torch.zeros_like(w0)
+    first = w0.abs() > w1.abs()
+    u = torch.where(
+        first.unsqueeze(-1),
+        torch.stack((-w2, zero, w0), -1),
+        torch.stack((zero, w2, -w1), -1),
+    )
+    u = u / u.norm(dim=-1, keepdim=True).clamp_min(torch.finfo(A.dtype).tiny)
+    v = torch.linalg.cross(w, u)
+    Au, Av = (A @ u.unsqueeze(-1)).squeeze(-1), (A @ v.unsqueeze(-1)).squeeze(-1)
+    m00 = (u * Au).sum(-1) - lam
+    m01 = (u * Av).sum(-1)
+    m11 = (v * Av).sum(-1) - lam
+    # The null vector of [[m00, m01], [m01, m11]] from its larger row, (m01, -m00) or (m11, -m01).
+    use_first = m00.abs() >= m11.abs()
+    x = torch.where(use_first, m01, m11)
+    y = torch.where(use_first, -m00, -m01)
+    length = (x * x + y * y).sqrt()
+    degenerate = length == 0  # lam is a double eigenvalue in that plane: any vector of it
+    x = torch.where(degenerate, 1.0, x / torch.where(degenerate, 1.0, length))
+    y = torch.where(degenerate, 0.0, y / torch.where(degenerate, 1.0, length))
+    return x.unsqueeze(-1) * u + y.unsqueeze(-1) * v
 
 
 def remove_statistical_outliers(

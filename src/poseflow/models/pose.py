@@ -126,9 +126,8 @@ def solve_pose(
             )
             T, score, ok = rr.transformation, rr.fitness, rr.valid
         else:
-            T = procrustes(source, predicted, mask=mask)
+            T, ok = procrustes(source, predicted, mask=mask)
             score = torch.ones(len(T), dtype=T.dtype, device=T.device)
-            ok = mask.sum(1) >= 3
     dense, dense_mask = dense_targets(dense_clouds, scale)
     if config.icp_thresholds:
         with stage("icp"):

@@ -2,15 +2,18 @@
 
 Each iteration pairs every valid source point (moved by the current estimate) with its nearest
 valid target point, keeps the pairs closer than ``max_correspondence_distance`` and re-solves
-Procrustes on them (:mod:`poseflow.geometry.neighbors` picks the search backend per device; the
-target's search structure is built once per call, and on CPU a
-:class:`~poseflow.geometry.neighbors.NeighborTracker` searches again only the points whose
-nearest neighbour may have changed, with the same answers). Instances stop independently: an
-instance whose fitness and inlier RMSE both change less than ``relative_fitness`` and
-``relative_rmse`` (Open3D's criteria) is frozen while the others go on. On CPU the solver's
-tensor ops run on the calling thread (see :func:`poseflow.registration._threads.serial_cpu_ops`)
-and the batch shrinks as instances stop; on CUDA, where small clouds make ICP launch-bound, every
-iteration is the same masked step, captured once as CUDA graphs and replayed (same results).
+Procrustes on them (the centroids and cross-covariance in float64). Instances stop
+independently: an instance whose fitness and inlier RMSE both change less than
+``relative_fitness`` and ``relative_rmse`` (Open3D's criteria) is frozen while the others go on.
+
+On the CPU the batch shrinks as instances stop, and an iteration is two compiled passes over the
+points (:mod:`poseflow.registration._icp_cpu`: moving the source; pairing it with the moments
+Procrustes needs) around a :class:`~poseflow.geometry.neighbors.NeighborTracker` search, which
+searches its k-d tree again only for the points whose nearest neighbour may have changed (same
+answers); the 3 x 3 SVDs and the stopping rule run as tensor ops on the calling thread (see
+:func:`poseflow.registration._threads.serial_cpu_ops`). On CUDA, where small clouds make ICP
+launch-bound, every iteration is the same masked step on a brute-force search, captured once as
+CUDA graphs and replayed (same results as the early-exit loop).
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
+import numpy as np
 import torch
 
 from poseflow._api import Solver
@@ -33,7 +37,6 @@ from poseflow.registration.procrustes import (
     is_well_posed,
     procrustes_moments,
     rigid_from_svd,
-    solve_procrustes,
     zero_masked_points,
 )
 from poseflow.registration.result import RegistrationResult
@@ -76,7 +79,9 @@ def icp(
         A :class:`~poseflow.registration.result.RegistrationResult` evaluated at the final
         transforms: ``inliers`` marks the source points with a target point within
         ``max_correspondence_distance``. Instances with fewer than 3 such pairs (at the start
-        or the end), or whose pairs are collinear, get ``valid = False`` and the identity.
+        or the end), or whose pairs are collinear, get ``valid = False`` and the identity; so
+        does an instance whose target has no valid point (``M = 0``, or ``target_mask`` all
+        False).
 
     Raises:
         ShapeError: wrong shapes, mismatched devices or dtypes, non-bool masks.
@@ -254,6 +259,23 @@ class _State:
 
 
 @dataclass
+class _Moments:
+    """Procrustes moments of the current pairs, float64: the centroids and cross-covariance."""
+
+    mu_s: torch.Tensor  # (B, 3)
+    mu_d: torch.Tensor  # (B, 3)
+    cov: torch.Tensor  # (B, 3, 3)
+
+    def select(self, sel: slice | torch.Tensor) -> _Moments:
+        """The moments of the batch items ``sel``."""
+        return _Moments(self.mu_s[sel], self.mu_d[sel], self.cov[sel])
+
+    def put(self, items: torch.Tensor, new: _Moments) -> None:
+        """Overwrite the moments of the batch items ``items`` with ``new``."""
+        self.mu_s[items], self.mu_d[items], self.cov[items] = new.mu_s, new.mu_d, new.cov
+
+
+@dataclass
 class _Problem:
     """Validated inputs shared by all scales, with the target's search structure."""
 
@@ -263,6 +285,7 @@ class _Problem:
     n_valid: torch.Tensor  # (B,) valid source points, as the dtype
     init: torch.Tensor  # (B, 4, 4)
     index: NeighborIndex
+    _source64: np.ndarray | None = None
 
     @property
     def B(self) -> int:
@@ -294,6 +317,11 @@ class _Problem:
                 check_same(("source", source), (name, mask), dtype=False)
         source = zero_masked_points(source, source_mask, "source")
         target = zero_masked_points(target, target_mask, "target")
+        if target.shape[1] == 0:
+            # No target point at all: one masked stand-in, so that every instance finds no pair
+            # and is reported invalid, as an instance whose target mask is all False is.
+            target = target.new_zeros(B, 1, 3)
+            target_mask = torch.zeros(B, 1, dtype=torch.bool, device=target.device)
         if source_mask is None:
             source_mask = torch.ones(B, N, dtype=torch.bool, device=source.device)
         return cls(
@@ -305,18 +333,43 @@ class _Problem:
             index=NeighborIndex(target.detach(), target_mask),
         )
 
-    def evaluate(
+    def evaluate_cpu(
         self, T: torch.Tensor, tracker: NeighborTracker, items: torch.Tensor | None = None
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Pairs under ``T``, for the batch ``items`` only if given.
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, _Moments]:
+        """Pairs under ``T`` on the CPU, for the batch ``items`` only if given.
 
-        Returns inliers ``(B', N)``, matched target points ``(B', N, 3)``, fitness and inlier
-        RMSE ``(B',)``.
+        Returns inliers ``(B', N)``, fitness and inlier RMSE ``(B',)`` and the Procrustes
+        moments of the pairs in range.
         """
+        from poseflow.registration._icp_cpu import move, pair_moments  # numba: when needed
+
+        source = self.source64()
+        valid = self.source_valid.numpy()
+        ids = np.arange(self.B) if items is None else items.numpy()
+        Bq, N = len(ids), source.shape[1]
+        q = np.empty((3, Bq, N))
+        move(source, T.detach().to(torch.float64).numpy(), ids, q)
+        dist, nearest = tracker.query_columns(q, ids)
+        inliers = np.empty((Bq, N), dtype=bool)
+        stats, mu, cov = np.empty((Bq, 2)), np.empty((Bq, 2, 3)), np.empty((Bq, 3, 3))
+        pair_moments(
+            source, valid, self.index.columns(), nearest, dist, ids, tracker.max_distance,
+            inliers, stats, mu, cov,
+        )  # fmt: skip
+        count, d2 = torch.from_numpy(stats).to(T.dtype).unbind(-1)
         sel = slice(None) if items is None else items
-        moved = torch.baddbmm(T[:, None, :3, 3], self.source[sel], T[:, :3, :3].transpose(1, 2))
-        dist, idx = tracker.query(moved, items)
-        return self._pairs(sel, dist, idx, tracker.max_distance)
+        fitness = count / self.n_valid[sel].clamp_min(1)
+        rmse = (d2 / count.clamp_min(1)).sqrt()
+        moments = _Moments(
+            torch.from_numpy(mu[:, 0]), torch.from_numpy(mu[:, 1]), torch.from_numpy(cov)
+        )
+        return torch.from_numpy(inliers), fitness, rmse, moments
+
+    def source64(self) -> np.ndarray:
+        """The source as a float64 array ``(B, N, 3)``, made once."""
+        if self._source64 is None:
+            self._source64 = np.ascontiguousarray(self.source.to(torch.float64).numpy())
+        return self._source64
 
     def evaluate_unchecked(
         self, T: torch.Tensor, distance: float
@@ -351,21 +404,22 @@ class _Problem:
 
 
 def _scale(problem: _Problem, T: torch.Tensor, scale: _Scale) -> _State:
-    """One scale of ICP: the early-exit loop on the CPU, fixed graph-replayed steps on CUDA."""
-    if T.device.type == "cuda":
-        return _run_scale_fixed(problem, T, scale, capture=True)
-    return _run_scale(problem, T, scale)
+    """One scale of ICP: the early-exit loop on the CPU, fixed masked steps elsewhere."""
+    if T.device.type == "cpu":
+        return _run_scale(problem, T, scale)
+    return _run_scale_fixed(problem, T, scale, capture=T.device.type == "cuda")
 
 
 def _run_scale(problem: _Problem, T: torch.Tensor, scale: _Scale) -> _State:
-    """Iterate ICP at one correspondence distance from ``T``; returns the state at the end."""
+    """Iterate ICP at one correspondence distance from ``T`` on the CPU; the state at the end."""
     distance, max_iterations, relative_fitness, relative_rmse = scale
     T = T.clone()
+    dtype = T.dtype
     tracker = NeighborTracker(problem.index, max_distance=distance)
-    inliers, matched, fitness, rmse = problem.evaluate(T, tracker)
+    inliers, fitness, rmse, moments = problem.evaluate_cpu(T, tracker)
     B = problem.B
-    iterations = torch.zeros(B, dtype=torch.int64, device=T.device)
-    solvable = torch.ones(B, dtype=torch.bool, device=T.device)
+    iterations = torch.zeros(B, dtype=torch.int64)
+    solvable = torch.ones(B, dtype=torch.bool)
     active = inliers.sum(-1) >= 3
     n_active = int(active.sum())
     for _ in range(max_iterations):
@@ -374,27 +428,33 @@ def _run_scale(problem: _Problem, T: torch.Tensor, scale: _Scale) -> _State:
         # Only the instances still iterating are solved and searched.
         items = None if n_active == B else active.nonzero()[:, 0]
         sel = slice(None) if items is None else items
-        T_new, ok = solve_procrustes(problem.source[sel], matched[sel], inliers[sel].to(T.dtype))
+        now = moments.select(sel)
+        U, S, Vh = torch.linalg.svd(now.cov)
+        ok = is_well_posed(inliers[sel].to(dtype), now.mu_s, now.mu_d, S)
+        T_new = rigid_from_svd(now.mu_s, now.mu_d, U, S, Vh, ok, dtype=dtype)
         T_new = torch.where(ok[:, None, None], T_new, T[sel])
-        new_inliers, new_matched, new_fitness, new_rmse = problem.evaluate(T_new, tracker, items)
+        new_inliers, new_fitness, new_rmse, new_moments = problem.evaluate_cpu(
+            T_new, tracker, items
+        )
         going = _goes_on(
             ok, new_inliers, fitness[sel], rmse[sel], new_fitness, new_rmse, relative_fitness,
             relative_rmse,
         )  # fmt: skip
         if items is None:
-            T, inliers, matched, fitness, rmse = (
+            T, inliers, fitness, rmse, moments = (
                 T_new,
                 new_inliers,
-                new_matched,
                 new_fitness,
                 new_rmse,
+                new_moments,
             )
             iterations += ok
             solvable &= ok
             active = going
         else:
-            T[items], inliers[items], matched[items] = T_new, new_inliers, new_matched
+            T[items], inliers[items] = T_new, new_inliers
             fitness[items], rmse[items] = new_fitness, new_rmse
+            moments.put(items, new_moments)
             iterations[items] += ok
             solvable[items] = ok
             active[items] = going
@@ -442,7 +502,7 @@ def _run_scale_fixed(problem: _Problem, T: torch.Tensor, scale: _Scale, *, captu
     active = inliers.sum(-1) >= 3
     state = (T, inliers, matched, fitness, rmse, iterations, solvable, active)
     f64 = {"dtype": torch.float64, "device": T.device}
-    mu_s, mu_d = T.new_zeros(B, 3), T.new_zeros(B, 3)
+    mu_s, mu_d = torch.zeros(B, 3, **f64), torch.zeros(B, 3, **f64)
     cov, U, Vh = (torch.zeros(B, 3, 3, **f64) for _ in range(3))
     S = torch.zeros(B, 3, **f64)
 
@@ -458,7 +518,8 @@ def _run_scale_fixed(problem: _Problem, T: torch.Tensor, scale: _Scale, *, captu
 
     def finish() -> None:
         ok = is_well_posed(inliers.to(dtype), mu_s, mu_d, S)
-        T_new = torch.where(ok[:, None, None], rigid_from_svd(mu_s, mu_d, U, S, Vh, ok), T)
+        T_new = rigid_from_svd(mu_s, mu_d, U, S, Vh, ok, dtype=dtype)
+        T_new = torch.where(ok[:, None, None], T_new, T)
         new_inliers, new_matched, new_fitness, new_rmse = problem.evaluate_unchecked(
             T_new, distance
         )

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import torch
 
 from poseflow._api import Solver
@@ -10,6 +12,7 @@ from poseflow.errors import ValueRangeError
 
 __all__ = [
     "Procrustes",
+    "ProcrustesResult",
     "check_pairs",
     "is_well_posed",
     "procrustes",
@@ -18,6 +21,22 @@ __all__ = [
     "solve_procrustes",
     "zero_masked_points",
 ]
+
+
+class ProcrustesResult(NamedTuple):
+    """What :func:`procrustes` returns: the transforms and which instances were solvable.
+
+    Unpacks as ``T, valid = procrustes(...)``.
+
+    Attributes:
+        transformation: ``(B, 4, 4)`` transforms mapping source to target, in the inputs' dtype;
+            the identity where ``valid`` is False.
+        valid: ``(B,)`` bool, False where the problem has no unique solution (fewer than 3
+            pairs of positive weight, collinear or coincident points).
+    """
+
+    transformation: torch.Tensor
+    valid: torch.Tensor
 
 
 def procrustes(
@@ -37,7 +56,9 @@ def procrustes(
     (they are undefined where two singular values coincide, e.g. symmetric point sets).
 
     An instance with fewer than 3 points of positive weight, or whose points are (numerically)
-    collinear or coincident, has no unique solution and gets the identity.
+    collinear or coincident, has no unique solution: it gets the identity and ``valid = False``.
+    Centroids and centred points are computed in float64, so a cloud far from the origin (float32
+    coordinates in kilometres) is solved as well as one near it.
 
     Args:
         source: source points, shape ``(B, N, 3)``.
@@ -48,7 +69,8 @@ def procrustes(
             ``c R`` in its upper-left block.
 
     Returns:
-        Transforms ``(B, 4, 4)`` mapping source to target (``d ≈ R s + t``), in the inputs' dtype.
+        A :class:`ProcrustesResult`: ``transformation`` ``(B, 4, 4)`` mapping source to target
+        (``d ≈ R s + t``) in the inputs' dtype, and ``valid`` ``(B,)`` bool.
 
     Raises:
         ShapeError: wrong shapes, mismatched devices or dtypes, a non-bool mask.
@@ -56,15 +78,17 @@ def procrustes(
 
     Example:
         >>> src = torch.tensor([[[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]]])
-        >>> T = procrustes(src, src + torch.tensor([1.0, 2.0, 3.0]))
-        >>> T[0, :3, 3].round(decimals=4).tolist()
-        [1.0, 2.0, 3.0]
+        >>> T, valid = procrustes(src, src + torch.tensor([1.0, 2.0, 3.0]))
+        >>> T[0, :3, 3].round(decimals=4).tolist(), valid.tolist()
+        ([1.0, 2.0, 3.0], [True])
+        >>> procrustes(src[:, :2], src[:, :2]).valid  # two points: no unique rotation
+        tensor([False])
     """
     source, target, w = check_pairs(source, target, weights, mask)
-    return solve_procrustes(source, target, w, with_scaling=with_scaling)[0]
+    return solve_procrustes(source, target, w, with_scaling=with_scaling)
 
 
-class Procrustes(Solver[torch.Tensor]):
+class Procrustes(Solver[ProcrustesResult]):
     """Solver object for :func:`procrustes`: stores ``with_scaling`` and solves when called.
 
     ``Procrustes(with_scaling=...)(source, target, weights, mask)`` is :func:`procrustes`.
@@ -75,7 +99,7 @@ class Procrustes(Solver[torch.Tensor]):
     Example:
         >>> solver = Procrustes()
         >>> src = torch.tensor([[[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]]])
-        >>> solver(src, src).shape
+        >>> solver(src, src).transformation.shape
         torch.Size([1, 4, 4])
     """
 
@@ -157,8 +181,8 @@ def solve_procrustes(
     weights: torch.Tensor,
     *,
     with_scaling: bool = False,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """:func:`procrustes` without the input checks, also saying which instances were solvable.
+) -> ProcrustesResult:
+    """:func:`procrustes` without the input checks.
 
     Args:
         source: source points ``(B, N, 3)``, finite.
@@ -167,8 +191,9 @@ def solve_procrustes(
         with_scaling: also estimate a uniform scale (Umeyama).
 
     Returns:
-        ``(T, ok)``: transforms ``(B, 4, 4)`` in the points' dtype, the identity where ``ok``
-        ``(B,)`` is False (fewer than 3 weighted points, collinear or coincident points).
+        A :class:`ProcrustesResult`: transforms ``(B, 4, 4)`` in the points' dtype, the identity
+        where ``valid`` ``(B,)`` is False (fewer than 3 weighted points, collinear or coincident
+        points).
     """
     mu_s, mu_d, cov64, xs, xs_w = procrustes_moments(source, target, weights)
     U, S, Vh = torch.linalg.svd(cov64.detach() if cov64.requires_grad else cov64)
@@ -178,8 +203,9 @@ def solve_procrustes(
         # SVD's backward stays finite there (those instances get the identity and zero gradient).
         stand_in = torch.diag(torch.tensor([3.0, 2.0, 1.0], dtype=torch.float64, device=U.device))
         U, S, Vh = torch.linalg.svd(torch.where(ok[:, None, None], cov64, stand_in))
-    spread = (xs * xs_w).sum((1, 2)).to(torch.float64) if with_scaling else None
-    return rigid_from_svd(mu_s, mu_d, U, S, Vh, ok, spread=spread), ok
+    spread = (xs * xs_w).sum((1, 2)) if with_scaling else None
+    T = rigid_from_svd(mu_s, mu_d, U, S, Vh, ok, dtype=source.dtype, spread=spread)
+    return ProcrustesResult(T, ok)
 
 
 def procrustes_moments(
@@ -187,26 +213,32 @@ def procrustes_moments(
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Weighted moments of corresponding points, the first step of :func:`solve_procrustes`.
 
+    Everything is computed in float64: far from the origin, float32 centroids and centring
+    would lose the cloud's extent to rounding.
+
     Args:
         source: source points ``(B, N, 3)``.
         target: corresponding target points ``(B, N, 3)``.
         weights: non-negative weights ``(B, N)`` in the points' dtype.
 
     Returns:
-        ``(mu_s, mu_d, cov, xs, xs_w)``: the weighted centroids ``(B, 3)`` of source and target,
-        the float64 cross-covariance ``(B, 3, 3)`` (``sum_i w_i xd_i xs_i^T`` of the centred
-        points, weights normalised to sum to 1), the centred source ``(B, N, 3)`` and its weighted
-        copy ``(B, N, 3)``.
+        ``(mu_s, mu_d, cov, xs, xs_w)``, all float64: the weighted centroids ``(B, 3)`` of source
+        and target, the cross-covariance ``(B, 3, 3)`` (``sum_i w_i xd_i xs_i^T`` of the centred
+        points, weights normalised to sum to 1), the centred source ``(B, N, 3)`` and its
+        weighted copy ``(B, N, 3)``.
     """
-    total = weights.sum(-1, keepdim=True)  # (B, 1)
-    wn = (weights / total.clamp_min(torch.finfo(source.dtype).tiny)).unsqueeze(1)  # (B, 1, N)
+    f64 = torch.float64
+    w = weights.to(f64)
+    total = w.sum(-1, keepdim=True)  # (B, 1)
+    wn = (w / total.clamp_min(torch.finfo(f64).tiny)).unsqueeze(1)  # (B, 1, N)
+    source, target = source.to(f64), target.to(f64)
     mu_s = (wn @ source).squeeze(1)  # (B, 3)
     mu_d = (wn @ target).squeeze(1)
     xs = source - mu_s.unsqueeze(1)
     xd = target - mu_d.unsqueeze(1)
     xs_w = xs * wn.transpose(1, 2)
     cov = xd.transpose(1, 2) @ xs_w  # (B, 3, 3) = sum_i w_i xd_i xs_i^T
-    return mu_s, mu_d, cov.to(torch.float64), xs, xs_w
+    return mu_s, mu_d, cov, xs, xs_w
 
 
 def is_well_posed(
@@ -214,25 +246,27 @@ def is_well_posed(
 ) -> torch.Tensor:
     """Which instances have a unique Procrustes rotation, from the cross-covariance's SVD.
 
-    Unique iff the cross-covariance has rank >= 2, judged against the rounding noise of the
-    input dtype: the second singular value must stand out of the first, and the first out of
-    the noise left by centring (coincident points); at least 3 pairs must have weight.
+    Unique iff the cross-covariance of the centred points has rank >= 2: the second singular
+    value must stand out of the first by more than the rounding of the points' dtype, and the
+    first must exceed the square of one unit in the last place of the coordinates (a cloud
+    whose extent is below the resolution of its own coordinates is a point); at least 3 pairs
+    must have weight. Only the extent is judged, never the distance from the origin.
 
     Args:
-        weights: the weights ``(B, N)`` of the pairs.
-        mu_s: source centroids ``(B, 3)`` in the points' dtype.
+        weights: the weights ``(B, N)`` of the pairs, in the points' dtype.
+        mu_s: source centroids ``(B, 3)``.
         mu_d: target centroids ``(B, 3)``.
         S: singular values ``(B, 3)`` of the float64 cross-covariance, in decreasing order.
 
     Returns:
         ``(B,)`` bool, True where the rotation is unique.
     """
-    eps = torch.finfo(mu_s.dtype).eps
-    scale = (mu_s.square().sum(-1) + mu_d.square().sum(-1)).detach().to(torch.float64)
+    eps = torch.finfo(weights.dtype).eps
+    ulp2 = eps**2 * (mu_s.square().sum(-1) + mu_d.square().sum(-1)).detach().to(torch.float64)
     return (
         ((weights > 0).sum(-1) >= 3)
         & (S[:, 1] > eps**0.5 * S[:, 0])
-        & (S[:, 0] > eps * scale)
+        & (S[:, 0] > ulp2)
         & torch.isfinite(S).all(-1)
     )
 
@@ -245,6 +279,7 @@ def rigid_from_svd(
     Vh: torch.Tensor,
     ok: torch.Tensor,
     *,
+    dtype: torch.dtype,
     spread: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """The Procrustes transforms from the SVD ``U diag(S) Vh`` of the cross-covariance.
@@ -253,26 +288,26 @@ def rigid_from_svd(
     translation maps the source centroid onto the target centroid.
 
     Args:
-        mu_s: source centroids ``(B, 3)``; their dtype is the result's.
-        mu_d: target centroids ``(B, 3)``.
+        mu_s: source centroids ``(B, 3)``, float64.
+        mu_d: target centroids ``(B, 3)``, float64.
         U: left singular vectors ``(B, 3, 3)``, float64.
         S: singular values ``(B, 3)``, float64.
         Vh: right singular vectors, transposed, ``(B, 3, 3)``, float64.
         ok: ``(B,)`` bool; instances where it is False get the identity.
+        dtype: the result's dtype (the points').
         spread: the weighted sum of squared centred source norms ``(B,)`` (float64) to also
             estimate a uniform scale (Umeyama), or None for a rigid transform.
 
     Returns:
-        Transforms ``(B, 4, 4)`` in the centroids' dtype.
+        Transforms ``(B, 4, 4)`` in ``dtype``.
     """
-    dtype = mu_s.dtype
     # det(U Vh) = det(U) det(Vh), each the triple product of its columns (or rows).
     sign = (_det3(U.detach()) * _det3(Vh.detach())).sign()
     D = torch.cat((torch.ones_like(S[:, :2]), torch.where(sign < 0, -1.0, 1.0)[:, None]), -1)
     R = (U * D.unsqueeze(1)) @ Vh  # U diag(D) Vh
     if spread is not None:
         R = R * ((S * D).sum(-1) / torch.where(ok, spread, 1.0))[:, None, None]
-    t = mu_d.to(torch.float64) - (R @ mu_s.to(torch.float64).unsqueeze(-1)).squeeze(-1)
+    t = mu_d - (R @ mu_s.unsqueeze(-1)).squeeze(-1)
 
     B = mu_s.shape[0]
     T = torch.zeros(B, 4, 4, dtype=dtype, device=mu_s.device)
