@@ -1,0 +1,237 @@
+"""Where FunFlow6D loses accuracy on a BOP split: generation, selection or refinement.
+
+Runs a trained FunFlow6D over a split's targets (ground-truth visible masks) once, and scores, with
+the BOP 2019 AR per object, the estimator as it is next to oracle replacements of its stages:
+
+- ``model``: the estimator as shipped (``H`` hypotheses, best by its own score);
+- ``oracle_choice``: the same hypotheses, the one closest to the ground truth (MSSD) kept:
+  what a perfect selection would give (generation is the limit where this stays low);
+- ``oracle_flow``: the predicted canonical points replaced by the ground truth ``Tʳ``, then the
+  same RANSAC + ICP: the ceiling of the pose solver on this observation;
+- ``no_icp``: the model without ICP (what refinement adds).
+
+It also reports, per object, the flow's endpoint error (median over instances and hypotheses of
+the mean distance between predicted and true canonical points, symmetry-aware, as a fraction of
+the diameter) and the conditioning's correspondence inliers (mutual nearest neighbours of the
+query's and the target's features, within 3 % of the diameter under the ground truth; geometric
+and semantic inputs separately, next to the count perfect features would give on these
+clouds), the paper's feature-discriminativity metric at ``--inlier-threshold`` (0.1: the
+clouds hold only ``N`` points, too sparse for the paper's 3 %).
+
+Prints the table, one JSON line and the command. Run
+``python benchmarks/diagnose.py DATASET --model RUN/model``; ``--quick`` (CI) runs the shipped
+model on a one-image generated split.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import tempfile
+from collections import defaultdict
+from pathlib import Path
+
+import torch
+
+from poseflow.assets import DEMO_CHECKPOINT
+from poseflow.cli.common import load_object_models, object_cache_dir
+from poseflow.data.bop import BOPDataset
+from poseflow.eval import evaluate_bop
+from poseflow.eval.errors import mssd
+from poseflow.eval.inliers import correspondence_inliers
+from poseflow.eval.recall import Target
+from poseflow.eval.results import PoseResults, write_results
+from poseflow.flows import get_sampler
+from poseflow.models import FunFlow6D
+from poseflow.models.objects import select_objects
+from poseflow.models.pose import select_hypotheses, solve_pose
+
+VARIANTS = ("model", "oracle_choice", "oracle_flow", "no_icp")
+
+
+def _targets(ds: BOPDataset, max_images: int | None) -> list[Target]:
+    """The split's BOP19 targets, on its first ``max_images`` images."""
+    targets = [Target(t.scene_id, t.im_id, t.obj_id, t.inst_count) for t in ds.test_targets()]
+    keep = sorted({(t.scene_id, t.im_id) for t in targets})[:max_images]
+    return [t for t in targets if (t.scene_id, t.im_id) in set(keep)]
+
+
+def _symmetric_epe(pred, truth, mask, symmetries, scale):
+    """Mean endpoint error ``(R,)`` of each row, minimised over the object's symmetries.
+
+    Args:
+        pred: predicted canonical target points ``(R, N, 3)``, normalised by ``scale``.
+        truth: true ones ``(R, N, 3)``, same unit.
+        mask: valid points ``(R, N)``.
+        symmetries: per row the symmetry set ``(S_r, 4, 4)`` in metres (identity first).
+        scale: half diameters ``(R,)``, metres.
+
+    Returns:
+        Errors as fractions of the diameter ``(R,)``.
+    """
+    out = []
+    w = mask.to(pred.dtype)
+    for r in range(len(pred)):
+        S = symmetries[r].to(pred)
+        # The pose T S is as right as T: its canonical points are S⁻¹ Tʳ.
+        R_inv = S[:, :3, :3].transpose(1, 2)
+        t = S[:, :3, 3] / scale[r]
+        alt = (truth[r][None] - t[:, None]) @ R_inv.transpose(1, 2)
+        err = (pred[r][None] - alt).norm(dim=-1)
+        mean = (err * w[r]).sum(-1) / w[r].sum().clamp_min(1)
+        out.append(mean.min() / 2)  # normalised unit: the diameter is 2
+    return torch.stack(out)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("dataset", nargs="?", help="BOP dataset folder")
+    parser.add_argument("--model", default=str(DEMO_CHECKPOINT), help="FunFlow6D model folder")
+    parser.add_argument("--out", default=None, help="folder of the variants' CSVs and reports")
+    parser.add_argument("--hypotheses", type=int, default=None, help="H (default: model's)")
+    parser.add_argument("--max-images", type=int, default=None)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--inlier-threshold", type=float, default=0.1, help="inlier distance, x diameter"
+    )
+    parser.add_argument("--quick", action="store_true", help="shipped model, one generated image")
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    with tempfile.TemporaryDirectory() as tmp:
+        if args.quick:
+            from poseflow.data.synthetic import generate_dataset
+
+            args.dataset = str(
+                generate_dataset(Path(tmp) / "data", num_train_images=0, num_test_images=1,
+                                 seed=3, progress=False)
+            )  # fmt: skip
+            args.model = str(DEMO_CHECKPOINT)
+        if args.dataset is None:
+            parser.error("give a BOP dataset folder, or --quick")
+        report = diagnose(args, Path(args.out or Path(tmp) / "diagnosis"))
+    print(json.dumps(report))
+    print("command:", " ".join([sys.executable, *sys.argv]))
+
+
+def diagnose(args: argparse.Namespace, out: Path) -> dict:
+    """Run the variants over the split; returns the report (also printed as a table)."""
+    root = Path(args.dataset)
+    model = FunFlow6D.load(args.model)
+    if args.hypotheses is not None:
+        model.config = model.config.replace(num_hypotheses=args.hypotheses)
+    cfg = model.config
+    H = cfg.num_hypotheses
+    ds = BOPDataset(root, "test")
+    targets = _targets(ds, args.max_images)
+    images: dict[tuple[int, int], set[int]] = defaultdict(set)
+    for t in targets:
+        images[(t.scene_id, t.im_id)].add(t.obj_id)
+    objects = load_object_models(root, obj_ids=sorted({o for v in images.values() for o in v}))
+    model.prepare_objects(objects, cache_dir=object_cache_dir(args.model, root), progress=False)
+    model.eval()
+    g = torch.Generator().manual_seed(args.seed)
+    sampler = get_sampler(cfg.solver, steps=cfg.steps)
+    no_icp = cfg.replace(icp_thresholds=())
+    rows: dict[str, list[PoseResults]] = defaultdict(list)
+    epe: dict[int, list[float]] = defaultdict(list)
+    # Inliers of the conditioning's features, and of perfect features (the true canonical
+    # coordinates) as the ceiling this cloud size allows.
+    inliers: dict[str, dict[int, list[float]]] = {
+        k: defaultdict(list) for k in ("geometric", "semantic", "ceiling")
+    }
+    for (s, i), wanted in sorted(images.items()):
+        scene = ds.scene(s)
+        gts = scene.gt_of(i)
+        sel = [g_ for g_, gt in enumerate(gts) if gt.obj_id in wanted]
+        obj_ids = [gts[k].obj_id for k in sel]
+        masks = torch.stack([scene.load_mask(i, k, visible=True) for k in sel])
+        gt = torch.stack([torch.as_tensor(gts[k].pose, dtype=torch.float32) for k in sel])
+        rgb, depth = scene.load_rgb_image(i), scene.load_depth_image(i)
+        K = torch.as_tensor(scene.camera[i].K, dtype=torch.float32)
+        with torch.no_grad():
+            obs = model.observe(rgb, depth, K, masks, obj_ids, generator=g)
+            inputs = model.flow_inputs(obs, poses=gt)
+            n = inputs.points.shape[1] // 2
+            rep = inputs.repeat_interleave(H)
+            x = model.net.sample(rep, sampler, frozen_mask=rep.frozen_mask,
+                                 x_frozen=rep.anchor if cfg.anchor == "pinned" else None,
+                                 generator=g)  # fmt: skip
+            dense = [o.dense_points for o in select_objects(model.objects, rep.obj_ids)]
+            solved = solve_pose(rep, x[:, n:], dense, cfg, generator=g)
+            est = {"model": select_hypotheses(*solved, obs.valid, H)}
+            # Oracle choice: the hypothesis with the smallest MSSD to the ground truth.
+            poses_h = torch.linalg.inv(solved[0].double()).float()  # camera->canonical inverted
+            B = len(sel)
+            err = torch.empty(B, H)
+            for b in range(B):
+                o = objects[obj_ids[b]]
+                err[b] = mssd(poses_h[b * H:(b + 1) * H], gt[b].expand(H, 4, 4),
+                              o.points, o.symmetries.float())  # fmt: skip
+            pick = err.argmin(1)
+            onehot = torch.zeros(B, H)
+            onehot[torch.arange(B), pick] = 1.0
+            est["oracle_choice"] = select_hypotheses(
+                solved[0], onehot.reshape(-1) * solved[1].clamp_min(1e-6), solved[2], obs.valid, H
+            )
+            dense1 = [o.dense_points for o in select_objects(model.objects, inputs.obj_ids)]
+            oracle = solve_pose(inputs, inputs.x_1[:, n:], dense1, cfg, generator=g)
+            est["oracle_flow"] = select_hypotheses(*oracle, obs.valid, 1)
+            est["no_icp"] = select_hypotheses(
+                *solve_pose(rep, x[:, n:], dense, no_icp, generator=g), obs.valid, H
+            )
+            truth = rep.x_1[:, n:]
+            syms = [objects[o].symmetries for o in rep.obj_ids.tolist()]
+            e = _symmetric_epe(x[:, n:], truth, rep.mask[:, n:], syms, rep.scale)
+            for r, o in enumerate(rep.obj_ids.tolist()):
+                if bool(obs.valid[r // H]):
+                    epe[o].append(float(e[r]))
+            for kind in inliers:
+                feats = inputs.x_1 if kind == "ceiling" else getattr(inputs, kind)
+                res = correspondence_inliers(
+                    feats[:, :n], feats[:, n:], inputs.points[:, :n], inputs.x_1[:, n:],
+                    torch.full((B,), 2.0), args.inlier_threshold, t_mask=inputs.mask[:, n:],
+                    metric="euclidean" if kind == "ceiling" else "cosine",
+                )  # fmt: skip
+                for b, o in enumerate(obj_ids):
+                    inliers[kind][o].append(float(res.num_inliers[b]))
+        for name, e_ in est.items():
+            ok = e_.valid
+            k = int(ok.sum())
+            if k:
+                ids = [o for o, v in zip(obj_ids, ok.tolist()) if v]
+                rows[name].append(
+                    PoseResults.from_columns([s] * k, [i] * k, ids, e_.scores[ok], e_.poses[ok], -1)
+                )
+    out.mkdir(parents=True, exist_ok=True)
+    report: dict = {"dataset": root.name, "model": args.model, "hypotheses": H, "variants": {}}
+    for name in VARIANTS:
+        csv = out / f"{name}_{root.name}-test.csv"
+        write_results(csv, PoseResults.concat(rows[name]))
+        r = evaluate_bop(root, csv, targets=targets)
+        report["variants"][name] = {
+            "AR": round(r["AR"], 4),
+            "per_object": {o: round(v["AR"], 4) for o, v in r["per_object"].items()},
+        }
+    report["epe"] = {str(o): round(statistics.median(v), 4) for o, v in sorted(epe.items())}
+    report["inliers"] = {
+        k: {str(o): round(statistics.fmean(v), 2) for o, v in sorted(d.items())}
+        for k, d in inliers.items()
+    }
+    objs = sorted(report["epe"], key=int)
+    head = f"{'':<22}" + "".join(f"{o:>8}" for o in objs) + f"{'all':>8}"
+    print(head)
+    for name in VARIANTS:
+        v = report["variants"][name]
+        cells = "".join(f"{v['per_object'].get(o, 0.0):>8.3f}" for o in objs)
+        print(f"{'AR ' + name:<22}{cells}{v['AR']:>8.3f}")
+    print(f"{'EPE (x diameter)':<22}" + "".join(f"{report['epe'][o]:>8.3f}" for o in objs))
+    for k in inliers:
+        cells = "".join(f"{report['inliers'][k][o]:>8.1f}" for o in objs)
+        print(f"{'inliers ' + k:<22}{cells}")
+    return report
+
+
+if __name__ == "__main__":
+    main()
