@@ -43,7 +43,7 @@ bench-unseen: $(STAMP)
 	$(PY) benchmarks/unseen.py $(DATASET)
 
 bench-quick: $(STAMP)
-	for b in $(BENCHMARKS) unseen; do $(PY) benchmarks/$$b.py --quick || exit 1; done
+	for b in $(BENCHMARKS) unseen diagnose; do $(PY) benchmarks/$$b.py --quick || exit 1; done
 
 demo: $(STAMP)
 	$(PY) -m poseflow.cli demo
