@@ -18,7 +18,12 @@ built from poseflow's own parts, and the floor FunFlow6D has to clear:
    model-to-camera hypotheses; it runs ``restarts`` times on the same instance, batched;
 6. coarse-to-fine ICP of ``T`` onto ``Q`` (:func:`~poseflow.registration.multi_scale_icp`, the
    paper's direction) refines every hypothesis, and the one that explains most of ``T`` wins;
-   its ICP fitness is the estimate's score.
+   its ICP fitness is the estimate's score;
+7. with ``verification`` on (the default), the poses of the image are checked by rendering and
+   comparing (:class:`~poseflow.verify.PoseVerifier`): each is expanded with its object's
+   near-symmetric candidates, the best are refined by ICP of ``T``, and a candidate replaces the
+   pose only where it explains the depth, the mask and the colour image clearly better. The
+   verifier's score becomes the estimate's score.
 
 :meth:`ClassicBaseline.predict` runs it over a BOP split (ground-truth or given masks) and returns
 :class:`~poseflow.eval.results.PoseResults`, to be written with
@@ -55,6 +60,7 @@ from poseflow.geometry.se3 import inverse_transform
 from poseflow.registration.icp import multi_scale_icp
 from poseflow.registration.ransac import ransac_procrustes
 from poseflow.render.raycast import Renderer
+from poseflow.verify import PoseVerifier, VerifierConfig
 
 __all__ = ["ClassicBaseline"]
 
@@ -78,10 +84,14 @@ class ClassicBaseline:
             the diameter.
         icp_iterations: ICP iterations per scale.
         min_points: instances with fewer valid target points are reported invalid.
+        verification: check the poses by rendering and comparing (step 7); needs the colour
+            image for its appearance term (without one, depth and silhouette are compared).
+        verifier: the verifier's configuration (a mapping is read with
+            :meth:`VerifierConfig.from_dict`); default :class:`VerifierConfig()`.
         seed: seed of every random draw (estimates are reproducible).
 
-    The stages ``geometric_encoder``, ``ransac``, ``icp`` and ``other`` are charged to the active
-    :class:`~poseflow.eval.timing.StageTimer` (see :meth:`predict`), if any.
+    The stages ``geometric_encoder``, ``ransac``, ``icp``, ``verification`` and ``other`` are
+    charged to the active :class:`~poseflow.eval.timing.StageTimer` (see :meth:`predict`), if any.
 
     Example:
         >>> import open3d as o3d
@@ -95,7 +105,7 @@ class ClassicBaseline:
         >>> axis, angle = torch.tensor([1.0, 1.0, 0.2]), torch.tensor([0.8])
         >>> pose[:3, :3] = axis_angle_rotation(axis, angle)[0]
         >>> out = Renderer([mesh]).render(pose[None], K, 160, 120, rgb=False)
-        >>> baseline = ClassicBaseline({1: model}, num_views=6, restarts=4)
+        >>> baseline = ClassicBaseline({1: model}, num_views=6, restarts=4, verification=False)
         >>> est = baseline.estimate(out.depth, K, out.masks_full, [1])
         >>> bool(est.valid[0]), round(float(est.poses[0, 2, 3]), 2)
         (True, 0.4)
@@ -116,6 +126,8 @@ class ClassicBaseline:
         icp_distance_fractions: Sequence[float] = (0.2, 0.1, 0.05, 0.02),
         icp_iterations: int = 30,
         min_points: int = 30,
+        verification: bool = True,
+        verifier: VerifierConfig | Mapping[str, Any] | None = None,
         seed: int = 0,
     ) -> None:
         if not models:
@@ -130,6 +142,16 @@ class ClassicBaseline:
             raise ValueRangeError(
                 "num_views and restarts must be >= 1, max_target_points and min_points >= 3"
             )
+        if not isinstance(verification, bool):
+            raise ValueRangeError(f"verification must be True or False, got {verification!r}")
+        if verifier is None:
+            verifier = VerifierConfig()
+        elif isinstance(verifier, Mapping):
+            verifier = VerifierConfig.from_dict(verifier)
+        if not isinstance(verifier, VerifierConfig):
+            raise ValueRangeError(
+                f"verifier must be a VerifierConfig or a mapping, got {type(verifier).__name__}"
+            )
         self.models = dict(models)
         self.encoder = FPFHEncoder() if encoder is None else encoder
         self.num_views = int(num_views)
@@ -142,6 +164,8 @@ class ClassicBaseline:
         self.icp_distance_fractions = tuple(float(f) for f in icp_distance_fractions)
         self.icp_iterations = int(icp_iterations)
         self.min_points = int(min_points)
+        self.verification = verification
+        self.verifier = PoseVerifier(verifier, seed=int(seed))
         self.seed = int(seed)
         self._banks: dict[int, tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = {}
 
@@ -172,13 +196,17 @@ class ClassicBaseline:
         return t, feats
 
     def prepare(self, obj_ids: Sequence[int] | None = None) -> None:
-        """Build the descriptor banks now (else each is built on the object's first use).
+        """Build the descriptor banks now, and prepare the objects for the verifier when it is on.
+
+        Else each is done on the object's first use.
 
         Args:
             obj_ids: the objects (default: all), e.g. so that timed estimates leave the banks out.
         """
         for obj_id in sorted(self.models) if obj_ids is None else obj_ids:
             self.bank(int(obj_id))
+            if self.verification:
+                self.verifier.prepare(int(obj_id), self.models[int(obj_id)])
 
     def bank(self, obj_id: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Descriptor bank of a model, built once per object from rendered views.
@@ -225,6 +253,8 @@ class ClassicBaseline:
         K: torch.Tensor,
         masks: torch.Tensor,
         obj_ids: Sequence[int] | torch.Tensor,
+        *,
+        rgb: torch.Tensor | None = None,
     ) -> PoseEstimate:
         """Estimate the pose of every masked instance of one image.
 
@@ -233,9 +263,12 @@ class ClassicBaseline:
             K: intrinsics ``(3, 3)``.
             masks: instance masks ``(n, H, W)`` bool.
             obj_ids: object id of each instance, ``(n,)``.
+            rgb: the colour image ``(3, H, W)`` (uint8, or float in ``[0, 1]``) for the
+                verifier's appearance term; unused without verification.
 
         Returns:
-            A :class:`PoseEstimate`.
+            A :class:`PoseEstimate`; with verification, the verified poses with the verifier's
+            scores.
 
         Raises:
             ShapeError: bad shapes.
@@ -255,22 +288,55 @@ class ClassicBaseline:
         valid = torch.zeros(n, dtype=torch.bool)
         Kd = torch.as_tensor(K, dtype=torch.float64)
         d = torch.nan_to_num(depth.to(torch.float64), nan=0.0, posinf=0.0, neginf=0.0)
+        clouds = []
         for i in range(n):
-            pose, score = self._estimate_one(d, Kd, masks[i], ids[i], i)
+            pose, score, cloud = self._estimate_one(d, Kd, masks[i], ids[i], i)
+            clouds.append(cloud)
             if pose is not None:
                 poses[i], scores[i], valid[i] = pose, score, True
-        return PoseEstimate(poses, scores, valid)
+        if not self.verification or not bool(valid.any()):
+            return PoseEstimate(poses, scores, valid)
+        return self._verify(rgb, d, Kd, masks, ids, PoseEstimate(poses, scores, valid), clouds)
+
+    def _verify(
+        self,
+        rgb: torch.Tensor | None,
+        depth: torch.Tensor,
+        K: torch.Tensor,
+        masks: torch.Tensor,
+        ids: list[int],
+        estimate: PoseEstimate,
+        clouds: list[torch.Tensor],
+    ) -> PoseEstimate:
+        """Verify the estimates, ICP of the verifier registering the lifted clouds ``(M_i, 3)``."""
+        for obj_id in sorted(set(ids)):
+            self.verifier.prepare(obj_id, self.models[obj_id])
+        M = max(3, max(len(c) for c in clouds))
+        observed = torch.zeros(len(clouds), M, 3, dtype=torch.float32)
+        observed_mask = torch.zeros(len(clouds), M, dtype=torch.bool)
+        for i, c in enumerate(clouds):
+            observed[i, : len(c)], observed_mask[i, : len(c)] = c, True
+        # the verifier runs in the poses' dtype: float32 is twice as fast as float64
+        with stage("verification"):
+            out = self.verifier.verify(
+                rgb, depth.float(), K.float(), masks, ids, estimate.poses.float(), observed,
+                observed_mask, estimated=estimate.valid,
+            )  # fmt: skip
+        kept = (out.chosen == 0)[:, None, None]  # the estimate itself, at full precision
+        poses = torch.where(kept, estimate.poses, out.poses.to(estimate.poses.dtype))
+        return PoseEstimate(poses, out.scores.to(estimate.scores.dtype), estimate.valid)
 
     def _estimate_one(
         self, depth: torch.Tensor, K: torch.Tensor, mask: torch.Tensor, obj_id: int, index: int
-    ) -> tuple[torch.Tensor | None, float]:
+    ) -> tuple[torch.Tensor | None, float, torch.Tensor]:
+        """The pose, score and lifted target cloud ``(M, 3)`` (empty if too small) of one mask."""
         diam = self.models[obj_id].diameter
         bank_pts, bank_feats, model_pts = self.bank(obj_id)
         gen = torch.Generator().manual_seed(self.seed * 1_000_003 + index)
         with stage("other"):
             got = self._describe(depth, K, mask, diam, gen)
             if got is None:
-                return None, 0.0
+                return None, 0.0, depth.new_zeros(0, 3)
             t, ft = got
             mutual = mutual_nearest_neighbors(bank_feats[None], ft[None])[0]  # (M,) or -1
             has = mutual >= 0
@@ -304,13 +370,18 @@ class ClassicBaseline:
         fitness = torch.where(hyp.valid & refined.valid, refined.fitness, -1.0)
         best = int(fitness.argmax())
         if float(fitness[best]) < 0:
-            return None, 0.0
+            return None, 0.0, t
         pose = inverse_transform(refined.transformation[best : best + 1])[0]
-        return pose, float(fitness[best])
+        return pose, float(fitness[best]), t
 
     def estimator(self) -> Estimator:
-        """This baseline as an :data:`~poseflow.eval.predict.Estimator` (the colour is unused)."""
-        return lambda rgb, depth, K, masks, obj_ids: self.estimate(depth, K, masks, obj_ids)
+        """This baseline as an :data:`~poseflow.eval.predict.Estimator`.
+
+        The colour image is used by the verification only.
+        """
+        return lambda rgb, depth, K, masks, obj_ids: self.estimate(
+            depth, K, masks, obj_ids, rgb=rgb
+        )
 
     def predict(
         self,
@@ -339,6 +410,7 @@ class ClassicBaseline:
         Returns:
             :class:`~poseflow.eval.results.PoseResults` with one estimate per valid instance of
             a target object, and the wall-clock time of each image (image loading excluded).
+            The colour images are read only with verification on.
         """
         return predict_dataset(
             self.estimator(),
@@ -347,7 +419,7 @@ class ClassicBaseline:
             object_ids=sorted(self.models),
             targets=targets,
             detections=detections,
-            load_rgb=False,
+            load_rgb=self.verification,
             max_images=max_images,
             timer=timer,
             progress=progress,

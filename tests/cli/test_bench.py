@@ -40,6 +40,7 @@ def test_bench_times_every_setting_and_writes_results(model_dir, dataset, tmp_pa
     assert main(argv) == 0
     text = capsys.readouterr().out
     assert "flow_net" in text and "euler:2" in text and "heun:1" in text
+    assert "verification on" in text and "\nverification " in text  # the stage's row
     report = json.loads((out / "bench.json").read_text())
     rows = report["settings"]
     assert list(rows) == ["euler:2", "heun:1"]
@@ -77,13 +78,18 @@ def test_set_changes_inference_fields_only(model_dir, dataset, tmp_path, capsys)
     out = tmp_path / "out"
     argv = ["bench", str(dataset), "--model", str(model_dir), "--out", str(out), "--samplers",
             "euler:1", "--set", "icp_iterations=3", "--set", "num_hypotheses=2", "--no-eval",
-            "--no-progress"]  # fmt: skip
+            "--no-progress", "--no-verify"]  # fmt: skip
     assert main(argv) == 0
-    config = json.loads((out / "bench.json").read_text())["config"]
+    report = json.loads((out / "bench.json").read_text())
+    config = report["config"]
     assert config["icp_iterations"] == 3 and config["num_hypotheses"] == 2
-    assert "AR" not in json.loads((out / "bench.json").read_text())["settings"]["euler:1"]
+    assert config["verification"] is False
+    assert "verification" not in report["settings"]["euler:1"]["stages_ms"]
+    assert "AR" not in report["settings"]["euler:1"]
     assert main([*argv, "--set", "num_points=64"]) == 2
     assert "num_points" in capsys.readouterr().err
+    assert main([*argv, "--set", "verification=true"]) == 2  # it has its own flag
+    assert "verification" in capsys.readouterr().err
 
 
 def test_generated_split_is_made_once(monkeypatch, tmp_path):

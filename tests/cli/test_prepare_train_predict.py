@@ -201,7 +201,37 @@ def test_predict_options_are_checked_before_any_work(run_dir, dataset, tmp_path,
     assert "holds no FunFlow6D checkpoint" in capsys.readouterr().err
     assert main([*base, "--model", str(run_dir / "model"), "--solver", "leapfrog"]) == 2
     assert "solver must be one of euler" in capsys.readouterr().err
+    model = ["--model", str(run_dir / "model")]
+    assert main([*base, *model, "--set", 'verifier={"crop_size": 60}']) == 2
+    assert "block_size" in capsys.readouterr().err
+    assert main([*base, *model, "--set", "fusion=sum"]) == 2
+    assert "--set can change only" in capsys.readouterr().err
+    assert main([*base, *model, "--set", "verification=false"]) == 2  # it has its own flag
+    assert "--set can change only" in capsys.readouterr().err
+    baseline = [*base, "--method", "baseline"]
+    assert main([*baseline, "--set", "num_hypotheses=2"]) == 2
+    assert "only verifier with --method baseline" in capsys.readouterr().err
+    assert main([*baseline, "--set", "verifier=3"]) == 2
+    assert "JSON object of VerifierConfig fields" in capsys.readouterr().err
     assert not (tmp_path / "r.csv").exists()
+
+
+def test_predict_verifies_unless_told_not_to(run_dir, dataset, tmp_path, capsys):
+    runs = {}
+    for flags in ([], ["--no-verify"], ["--set", "verify_hypotheses=false", "--hypotheses", "2"]):
+        csv, timing = tmp_path / f"{len(flags)}.csv", tmp_path / f"{len(flags)}.json"
+        argv = ["predict", str(dataset), "--model", str(run_dir / "model"), "--out", str(csv)]
+        assert main([*argv, "--timing", str(timing), "--no-progress", *flags]) == 0
+        runs[len(flags)] = (read_results(csv), json.loads(timing.read_text()))
+    (verified, on), (plain, off) = runs[0], runs[1]
+    assert on["verification"] is True and on["config"]["verification"] is True
+    assert on["stages_ms"]["verification"] > 0
+    assert off["verification"] is False and off["config"]["verification"] is False
+    assert "verification" not in off["stages_ms"]
+    assert len(verified) == len(plain)  # svd: every instance has a pose either way
+    assert not torch.allclose(verified.scores, plain.scores)  # the verifier's scores
+    assert runs[4][1]["config"]["verify_hypotheses"] is False
+    assert "funflow6d + verification" in capsys.readouterr().out
 
 
 @pytest.mark.parametrize("command", ["prepare", "train", "predict"])
@@ -233,6 +263,7 @@ def test_baseline_predicts_without_a_model(dataset, tmp_path, capsys):
     assert len(results) >= 3 and (results.scores > 0).all()
     report = json.loads(timing.read_text())
     assert report["method"] == "baseline" and report["stages_ms"]["icp"] > 0
+    assert report["verification"] is True and report["stages_ms"]["verification"] > 0
 
 
 @pytest.mark.slow

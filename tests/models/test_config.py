@@ -8,6 +8,7 @@ from poseflow.assets import DEMO_CHECKPOINT
 from poseflow.errors import ValueRangeError
 from poseflow.flows import PRESETS
 from poseflow.models import ABLATIONS, DiTOverrides, FunFlow6DConfig, NetConfig, NetOptions
+from poseflow.verify import VerifierConfig
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -26,6 +27,32 @@ def test_json_round_trip(tmp_path):
     assert json.loads(path.read_text())["net"]["dit"] == {"hidden_dim": 96, "attention": "global"}
     net = back.net_config(geometric_dim=66, semantic_dim=64)
     assert NetConfig.from_json(json.loads(json.dumps(net.to_json()))) == net
+
+
+def test_verification_fields_round_trip_and_are_checked():
+    assert FunFlow6DConfig().verification is True  # new configurations verify
+    cfg = FunFlow6DConfig(
+        verification=False,
+        verify_hypotheses=False,
+        verifier={"crop_size": 48, "significance": 0.01, "icp_distances": [0.1, 0.02]},
+    )
+    assert cfg.verifier == VerifierConfig(
+        crop_size=48, significance=0.01, icp_distances=(0.1, 0.02)
+    )
+    data = json.loads(json.dumps(cfg.to_json()))
+    assert data["verifier"]["crop_size"] == 48 and data["verification"] is False
+    assert FunFlow6DConfig.from_json(data) == cfg
+    assert cfg.replace(verifier={"crop_size": 32}).verifier.crop_size == 32
+    with pytest.raises(ValueRangeError, match="verification must be true or false"):
+        FunFlow6DConfig(verification="yes")
+    with pytest.raises(ValueRangeError, match="verify_hypotheses must be true or false"):
+        FunFlow6DConfig(verify_hypotheses=1)
+    with pytest.raises(ValueRangeError, match="unknown VerifierConfig fields"):
+        FunFlow6DConfig.from_json({"verifier": {"crop": 48}})
+    with pytest.raises(ValueRangeError, match="block_size"):
+        FunFlow6DConfig(verifier={"crop_size": 60})
+    with pytest.raises(ValueRangeError, match="verifier must be a VerifierConfig"):
+        FunFlow6DConfig(verifier=3)
 
 
 def test_mappings_are_read_as_the_typed_parts():

@@ -1,11 +1,15 @@
+import json
+
 import pytest
 import torch
 
+from poseflow.assets import DEMO_CHECKPOINT
 from poseflow.data.objects import sample_surface
 from poseflow.errors import MissingWeightsError, ShapeError, ValueRangeError
 from poseflow.eval.timing import StageTimer
 from poseflow.geometry.se3 import rotation_angle_error, transform_points, translation_error
-from poseflow.models import FunFlow6D
+from poseflow.models import FunFlow6D, FunFlow6DConfig
+from poseflow.verify import rotation_distance
 
 
 def test_observe_lifts_valid_clouds_with_features(tiny_model, scene):
@@ -47,7 +51,7 @@ class _Oracle(torch.nn.Module):
 @pytest.mark.parametrize("solver", ["ransac", "svd"])
 def test_perfect_flow_gives_the_ground_truth_pose(tiny_model, scene, solver):
     model = FunFlow6D(tiny_model.config.replace(pose_solver=solver))
-    model.objects = tiny_model.objects
+    model.objects, model.verifier = tiny_model.objects, tiny_model.verifier
     obs = model.observe(scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 1])
     model.net.dit = _Oracle(model.flow_inputs(obs, scene["poses"]).x_1)
     est = model.estimate(scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 1])
@@ -98,6 +102,10 @@ def test_prepared_objects_are_cached(tiny_model, box, tmp_path):
     assert torch.equal(a.points, b.points) and torch.allclose(a.geometric, b.geometric)
     x = a.bank.pooled()
     assert torch.allclose(a.reducer.transform(x), b.reducer.transform(x), atol=1e-4)
+    # the verifier's preparation sits beside the object's and is read back too
+    assert (tmp_path / "obj_000001" / "verifier.json").is_file()
+    va, vb = model.verifier.objects[1], again.verifier.objects[1]
+    assert torch.equal(va.points, vb.points) and torch.equal(va.candidates, vb.candidates)
 
 
 def test_noise_conditioning_can_be_switched_off(tiny_model, scene):
@@ -123,10 +131,92 @@ def test_estimate_reports_stages_to_the_active_timer_only(tiny_model, scene):
         tiny_model.estimate(*args, generator=torch.Generator().manual_seed(0))
     expected = {
         "other", "geometric_encoder", "appearance_encoder", "reducer", "fusion", "integration",
-        "flow_net", "ransac", "icp",
+        "flow_net", "ransac", "icp", "verification",
     }  # fmt: skip
     assert set(timer.counts) == expected
     assert timer.counts["flow_net"] == tiny_model.config.steps
     before = dict(timer.counts)
     tiny_model.estimate(*args, generator=torch.Generator().manual_seed(0))
     assert timer.counts == before
+
+
+def _perfect_flow_to(model, scene, poses):
+    """Make ``model``'s velocity net carry the observed clouds to where ``poses`` put them."""
+    obs = model.observe(scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 1])
+    model.net.dit = _Oracle(model.flow_inputs(obs, poses).x_1)
+
+
+def test_verification_turns_a_flipped_pose_back_and_scores_it(tiny_model, scene):
+    """The flow's answer is the box turned end for end: depth cannot tell, the print can."""
+    model = FunFlow6D(tiny_model.config)
+    model.objects, model.verifier = tiny_model.objects, tiny_model.verifier
+    flips = model.verifier.objects[1].candidates
+    flip = flips[rotation_distance(torch.eye(3), flips[:, :3, :3]).argmax()]  # a half-turn
+    _perfect_flow_to(model, scene, scene["poses"] @ flip)
+    args = (scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 1])
+    timer = StageTimer(synchronize=False)
+    with timer.active():
+        on = model.estimate(*args)
+    assert timer.counts["verification"] == 1
+    model.config = model.config.replace(verification=False)
+    off = model.estimate(*args)
+    assert off.valid.all() and on.valid.all()
+    assert (rotation_angle_error(off.poses, scene["poses"]) > 150).all()  # the flip
+    assert (rotation_angle_error(on.poses, scene["poses"]) < 3).all()
+    assert (translation_error(on.poses, scene["poses"]) < 0.003).all()
+    # the scores are the verifier's, not RANSAC fitness times surface agreement
+    assert ((on.scores > 0) & (on.scores <= 1)).all()
+    assert (on.scores - off.scores).abs().min() > 1e-3
+
+
+def test_other_hypotheses_reach_the_verifier(tiny_model, scene):
+    """Two hypotheses per instance: the selection keeps one, the other is a candidate."""
+    model = FunFlow6D(tiny_model.config.replace(num_hypotheses=2))
+    model.objects, model.verifier = tiny_model.objects, tiny_model.verifier
+    seen = {}
+    verify = model.verifier.verify
+
+    def spy(*args, **kwargs):
+        seen.update(kwargs)
+        return verify(*args, **kwargs)
+
+    model.verifier.verify = spy
+    try:
+        model.estimate(scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 1])
+        assert seen["extra"].shape == (2, 1, 4, 4) and seen["extra_mask"].shape == (2, 1)
+        seen.clear()
+        model.config = model.config.replace(verify_hypotheses=False)
+        model.estimate(scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 1])
+        assert seen["extra"] is None
+    finally:
+        del model.verifier.verify
+
+
+def test_verification_needs_the_objects_prepared_for_it(tiny_model, box, scene):
+    args = (scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 1])
+    model = FunFlow6D(tiny_model.config.replace(verification=False))
+    model.prepare_objects({1: box}, progress=False)
+    assert model.verifier.objects == {}  # nothing prepared while verification is off
+    model.config = model.config.replace(verification=True)
+    with pytest.raises(ValueRangeError, match="not prepared for verification"):
+        model.estimate(*args)
+    model.config = model.config.replace(verifier={"crop_size": 48})
+    with pytest.raises(ValueRangeError, match="call prepare_objects again"):
+        model.estimate(*args)
+    model.verifier = tiny_model.verifier
+    model.config = model.config.replace(verifier=tiny_model.verifier.config)
+    assert model.estimate(*args).poses.shape == (2, 4, 4)
+
+
+def test_checkpoints_from_before_verification_load_without_it(tiny_model, tmp_path):
+    folder = tiny_model.save(tmp_path / "ckpt")
+    raw = json.loads((folder / "config.json").read_text())
+    assert raw["verification"] is True and raw["verifier"] == tiny_model.config.verifier.to_dict()
+    for name in ("verification", "verify_hypotheses", "verifier"):
+        del raw[name]
+    (folder / "config.json").write_text(json.dumps(raw))
+    assert FunFlow6D.load(folder).config.verification is False  # as it was saved
+    # a configuration file that is not a checkpoint takes the default of new configurations
+    assert FunFlow6DConfig.from_json(raw).verification is True
+    # the shipped demo checkpoint verifies
+    assert FunFlow6D.load(DEMO_CHECKPOINT).config.verification is True

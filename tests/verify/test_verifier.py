@@ -13,7 +13,13 @@ from poseflow.data.demo_objects import demo_mesh
 from poseflow.data.objects import ObjectModel
 from poseflow.errors import ShapeError, ValueRangeError
 from poseflow.render import Light, Renderer
-from poseflow.verify import PoseVerifier, VerifierConfig, axis_angle_matrix, rotation_distance
+from poseflow.verify import (
+    PoseVerifier,
+    PreparedObject,
+    VerifierConfig,
+    axis_angle_matrix,
+    rotation_distance,
+)
 
 K = torch.tensor([[320.0, 0.0, 79.5], [0.0, 320.0, 59.5], [0.0, 0.0, 1.0]])
 W, H = 160, 120
@@ -254,3 +260,67 @@ def test_object_without_near_symmetries_is_scored_alone() -> None:
     assert int(result.chosen[0]) == 0 and bool(result.valid[0])
     # not 1: the splats also cover the edge pixels whose centre lies just outside the object
     assert float(result.score.depth[0, 0]) > 0.8 and float(result.score.silhouette[0, 0]) > 0.8
+
+
+def test_extra_hypotheses_compete_with_the_near_symmetric_candidates(
+    verifier: PoseVerifier, scene: dict[str, torch.Tensor]
+) -> None:
+    true = box_pose()
+    off = true.clone()
+    off[:3, 3] += torch.tensor([0.03, 0.0, 0.0])  # 3 cm off: no near-symmetry turns it right
+    args = (scene["rgb"], scene["depth"], K, scene["masks"], [1], off[None])
+
+    def is_true(pose: torch.Tensor) -> bool:
+        angle = float(rotation_distance(pose[:3, :3], true[:3, :3]))
+        return angle < 3.0 and float((pose[:3, 3] - true[:3, 3]).norm()) < 0.003
+
+    assert not is_true(verifier.verify(*args).poses[0])
+    out = verifier.verify(*args, extra=true[None, None], extra_mask=torch.ones(1, 1, dtype=bool))
+    assert int(out.chosen[0]) != 0 and is_true(out.poses[0])
+    padded = verifier.verify(
+        *args, extra=true[None, None], extra_mask=torch.zeros(1, 1, dtype=bool)
+    )
+    assert not is_true(padded.poses[0])  # a masked-out extra hypothesis is never chosen
+    with pytest.raises(ShapeError):
+        verifier.verify(*args, extra=true[None])
+
+
+def test_instances_without_an_estimate_come_back_unverified(
+    verifier: PoseVerifier, scene: dict[str, torch.Tensor]
+) -> None:
+    flipped = box_pose() @ half_turn([1.0, 0, 0])
+    poses = torch.stack((flipped, flipped))
+    masks = scene["masks"].repeat(2, 1, 1)
+    args = (scene["rgb"], scene["depth"], K, masks, [1, 1], poses)
+    out = verifier.verify(*args, estimated=torch.tensor([False, True]))
+    alone = verifier.verify(scene["rgb"], scene["depth"], K, masks[1:], [1], poses[1:])
+    assert out.valid.tolist() == [False, True] and float(out.scores[0]) == 0.0
+    assert int(out.chosen[0]) == 0 and int(out.chosen[1]) == int(alone.chosen[0]) != 0
+    assert torch.equal(out.poses[0], poses[0])
+    torch.testing.assert_close(out.poses[1], alone.poses[0])
+    torch.testing.assert_close(out.scores[1], alone.scores[0])
+    torch.testing.assert_close(out.score.total[1], alone.score.total[0])
+    none = verifier.verify(*args, estimated=torch.zeros(2, dtype=torch.bool))
+    assert not none.valid.any() and (none.scores == 0).all() and torch.equal(none.poses, poses)
+    assert none.hypotheses.shape == (2, 1, 4, 4) and none.score.evidence.shape[:2] == (2, 1)
+
+
+def test_prepared_objects_are_cached_on_disk(box: ObjectModel, tmp_path: Path) -> None:
+    cfg = VerifierConfig(num_points=256, turn_steps=4, max_candidates=4)
+    first = PoseVerifier(cfg).prepare(1, box, folder=tmp_path)
+    assert (tmp_path / "verifier.json").is_file()
+    again = PoseVerifier(cfg).prepare(1, box, folder=tmp_path)
+    for name in ("points", "normals", "colors", "albedo", "centroid", "candidates", "overlap"):
+        assert torch.equal(getattr(first, name), getattr(again, name)), name
+    assert again.diameter == first.diameter
+    # another configuration does not read it, and replaces it
+    other = PoseVerifier(VerifierConfig(**{**cfg.to_dict(), "num_points": 128}))
+    assert len(other.prepare(1, box, folder=tmp_path).points) == 128
+    assert PreparedObject.load(tmp_path, fingerprint=PoseVerifier(cfg).fingerprint()) is None
+    # a folder that cannot be written: a warning, and the object is kept in memory
+    blocked = tmp_path / "a_file"
+    blocked.write_text("")
+    verifier = PoseVerifier(cfg)
+    with pytest.warns(UserWarning, match="not cached"):
+        kept = verifier.prepare(1, box, folder=blocked / "obj")
+    assert verifier.objects[1] is kept

@@ -5,7 +5,8 @@ Every image's instances go through one batched :meth:`FunFlow6D.estimate
 generated split with ``--instances 8`` gives batches of 8, as in the paper's LM-O timing). For
 each ``SOLVER:STEPS`` setting the first ``--warmup`` images run once untimed (kernel compilation,
 lazy initialisation), then every image is timed with :class:`~poseflow.eval.timing.StageTimer`
-(the paper's stages; on CUDA the timer synchronises at each stage boundary, so a second pass
+(the paper's stages, and ``verification``, the render-and-compare check of the poses, which
+``--no-verify`` turns off; on CUDA the timer synchronises at each stage boundary, so a second pass
 without stage timing gives the end-to-end latency). The estimates are written as BOP results
 CSVs and scored with the BOP 2019 AR when the split has test targets and Open3D can render VSD
 (elsewhere ``poseflow eval DATASET OUT/results_SETTING.csv`` scores them later). The fastest
@@ -84,7 +85,14 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         default=[],
         metavar="KEY=VALUE",
         help="change an inference-time config field (num_hypotheses, dense_points, pose_solver, "
-        "ransac_*, icp_*; the sampler comes from --samplers); VALUE read as JSON, repeatable",
+        "ransac_*, icp_*, verify_hypotheses, verifier; the sampler comes from --samplers); "
+        "VALUE read as JSON, repeatable",
+    )
+    parser.add_argument(
+        "--verify",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="check every pose by rendering and comparing (default: on)",
     )
     parser.add_argument("--warmup", type=int, default=1, help="untimed images per setting")
     parser.add_argument(
@@ -282,13 +290,13 @@ def run(args: argparse.Namespace) -> int:
     for text in args.samplers:
         parse_setting(text)  # fail before any work
     changes = parse_set(args.set_fields)
+    allowed = tuple(f for f in INFERENCE_FIELDS if f != "verification")  # it has its own flag
+    other = sorted(set(changes) - set(allowed))
+    if other:
+        raise ValueRangeError(f"--set can change only {', '.join(allowed)}; got {', '.join(other)}")
     if args.hypotheses is not None:
         changes["num_hypotheses"] = args.hypotheses
-    other = sorted(set(changes) - set(INFERENCE_FIELDS))
-    if other:
-        raise ValueRangeError(
-            f"--set can change only {', '.join(INFERENCE_FIELDS)}; got {', '.join(other)}"
-        )
+    changes["verification"] = args.verify
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     out = Path(args.out)
@@ -328,7 +336,7 @@ def run(args: argparse.Namespace) -> int:
     print(
         f"\nFunFlow6D on {where}: {first['num_images']} images, "
         f"{first['instances_per_image']:.1f} instances per image, hypotheses "
-        f"{model.config.num_hypotheses}"
+        f"{model.config.num_hypotheses}, verification {'on' if args.verify else 'off'}"
     )
     print(f"{'setting':<10} {'ms/image':>9} {'AR':>6} {'AR_VSD':>7} {'AR_MSSD':>8} {'AR_MSPD':>8}")
     for name, row in rows.items():

@@ -11,12 +11,18 @@ challenge counts it). ``--method baseline`` runs the
 classic FPFH/RANSAC/ICP baseline (:class:`poseflow.baselines.ClassicBaseline`) instead and needs
 no model. ``--timing`` writes the per-stage breakdown of :class:`poseflow.eval.timing.StageTimer`.
 
+Both estimators verify their poses by rendering and comparing (:mod:`poseflow.verify`) unless
+``--no-verify`` is given, whatever the model's configuration says (the verifier is training-free,
+so it applies to checkpoints saved before it existed too); the CSV's scores are then the
+verifier's.
+
 Example::
 
     poseflow predict data/synth --model runs/small/model --out results/ff_synth-test.csv
     poseflow predict data/lmo --model runs/small/model --detections cnos_lmo.json \
         --out results/ff_lmo-test.csv --device cuda --timing results/ff_lmo_timing.json
     poseflow predict data/synth --method baseline --out results/base_synth-test.csv
+    poseflow predict data/synth --method baseline --no-verify --out results/base_nv-test.csv
     poseflow eval data/synth results/ff_synth-test.csv
 """
 
@@ -94,6 +100,22 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     )
     parser.add_argument(
         "--solver", default=None, help="ODE solver: euler, midpoint, heun, rk4 (model's)"
+    )
+    parser.add_argument(
+        "--verify",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="check every pose by rendering and comparing, and score it so (default: on)",
+    )
+    parser.add_argument(
+        "--set",
+        dest="set_fields",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="change an inference-time config field of the model (num_hypotheses, pose_solver, "
+        "ransac_*, icp_*, verify_hypotheses, verifier, ...; with --method baseline: verifier "
+        "only); VALUE read as JSON, repeatable",
     )
     parser.add_argument(
         "--max-images", type=int, default=None, metavar="N", help="stop after N images"
@@ -199,7 +221,40 @@ def _targets_option(args: argparse.Namespace, root: Path) -> str | bool | None:
     return True if found and args.split.startswith("test") else None
 
 
-def _load_model(args: argparse.Namespace, device: Any) -> Any:
+def _config_changes(args: argparse.Namespace) -> dict[str, Any]:
+    """The configuration fields the options change, checked against what each method allows."""
+    from poseflow.cli.common import parse_set
+    from poseflow.errors import ValueRangeError
+    from poseflow.models import INFERENCE_FIELDS
+    from poseflow.verify import VerifierConfig
+
+    changes = parse_set(args.set_fields)
+    if args.method == "funflow6d":  # verification has its own flag
+        allowed = tuple(f for f in INFERENCE_FIELDS if f != "verification")
+    else:
+        allowed = ("verifier",)
+    other = sorted(set(changes) - set(allowed))
+    if other:
+        raise ValueRangeError(
+            f"--set can change only {', '.join(allowed)} with --method {args.method}; "
+            f"got {', '.join(other)}"
+        )
+    if args.method == "baseline" and "verifier" in changes:
+        if not isinstance(changes["verifier"], dict):
+            raise ValueRangeError("--set verifier=... takes a JSON object of VerifierConfig fields")
+        changes["verifier"] = VerifierConfig.from_dict(changes["verifier"])
+    for name, value in (
+        ("num_hypotheses", args.hypotheses),
+        ("steps", args.steps),
+        ("solver", args.solver),
+    ):
+        if value is not None:
+            changes[name] = value
+    changes["verification"] = args.verify
+    return changes
+
+
+def _load_model(args: argparse.Namespace, device: Any, changes: dict[str, Any]) -> Any:
     from poseflow.errors import ValueRangeError
     from poseflow.models import FunFlow6D
 
@@ -209,17 +264,10 @@ def _load_model(args: argparse.Namespace, device: Any) -> Any:
             "`poseflow train`), or use --method baseline"
         )
     model = FunFlow6D.load(args.model, device=device)
-    changes = {
-        k: v
-        for k, v in (
-            ("num_hypotheses", args.hypotheses),
-            ("steps", args.steps),
-            ("solver", args.solver),
-        )
-        if v is not None
-    }
-    if changes:  # validated here, before the first image
+    try:  # validated here, before the first image
         model.config = model.config.replace(**changes)
+    except TypeError as exc:  # a value of the wrong kind reaching the dataclass
+        raise ValueRangeError(f"invalid --set: {exc}") from None
     return model
 
 
@@ -249,7 +297,8 @@ def run(args: argparse.Namespace) -> int:
     root = check_dataset(args.dataset, args.split)
     device = resolve_device(args.device)
     show = not args.no_progress
-    model = _load_model(args, device) if args.method == "funflow6d" else None
+    changes = _config_changes(args)
+    model = _load_model(args, device, changes) if args.method == "funflow6d" else None
     ds = BOPDataset(root, args.split)
     wanted = _targets_option(args, root)
     detections = _detections(args, ds, wanted) if args.detections is not None else None
@@ -272,8 +321,10 @@ def run(args: argparse.Namespace) -> int:
         from poseflow.baselines import ClassicBaseline
 
         if objects:  # without any, no image reaches the estimator
-            baseline = ClassicBaseline(objects, seed=args.seed)
-            baseline.prepare()  # the descriptor banks now, so that no image's time includes them
+            baseline = ClassicBaseline(
+                objects, verification=args.verify, verifier=changes.get("verifier"), seed=args.seed
+            )
+            baseline.prepare()  # banks and verifier now, so that no image's time includes them
             estimator = baseline.estimator()
 
     instances = 0
@@ -291,7 +342,7 @@ def run(args: argparse.Namespace) -> int:
         object_ids=sorted(objects),
         targets=targets,
         detections=detections,
-        load_rgb=model is not None,
+        load_rgb=model is not None or args.verify,
         max_images=args.max_images,
         timer=timer,
         progress=show,
@@ -302,14 +353,20 @@ def run(args: argparse.Namespace) -> int:
     out.parent.mkdir(parents=True, exist_ok=True)
     write_results(out, results)
     print(
-        f"{args.method}: {timer.num_images} images, {instances} instances, {len(results)} poses "
-        f"({instances - len(results)} invalid) written to {out}"
+        f"{args.method}{' + verification' if args.verify else ''}: {timer.num_images} images, "
+        f"{instances} instances, {len(results)} poses ({instances - len(results)} invalid) "
+        f"written to {out}"
     )
     mean = results.average_time()
     if mean >= 0:
         print(f"mean time per image: {1000 * mean:.1f} ms on {device}")
     if args.timing is not None:
-        report = {"method": args.method, "device": str(device), **timer.breakdown()}
+        report = {
+            "method": args.method,
+            "verification": args.verify,
+            "device": str(device),
+            **timer.breakdown(),
+        }
         if model is not None:
             report["config"] = model.config.to_json()
         Path(args.timing).parent.mkdir(parents=True, exist_ok=True)

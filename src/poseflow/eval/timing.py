@@ -34,7 +34,8 @@ from poseflow.errors import MissingDependencyError, ValueRangeError
 
 __all__ = ["EXCLUDED_STAGES", "STAGES", "StageTimer", "active_timer", "stage", "timed"]
 
-#: The paper's stages in display order (segmentation first, then the pipeline, then the rest).
+#: The paper's stages in display order (segmentation first, then the pipeline, then the rest),
+#: with ``verification`` (render-and-compare checking of the chosen poses) after ICP.
 STAGES: tuple[str, ...] = (
     "segmentation",
     "appearance_encoder",
@@ -45,6 +46,7 @@ STAGES: tuple[str, ...] = (
     "integration",
     "ransac",
     "icp",
+    "verification",
     "other",
 )
 

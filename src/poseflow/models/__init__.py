@@ -6,6 +6,7 @@
 - :mod:`~poseflow.models.config`: :class:`FunFlow6DConfig` and its typed parts;
 - :mod:`~poseflow.models.network`: :class:`FunFlow6DNet`, fusion + positional encoder + DiT;
 - :mod:`~poseflow.models.pose`: :func:`solve_pose` and :func:`agreement_score`;
+- :mod:`~poseflow.models.verification`: :func:`verify_estimate`, render-and-compare checking;
 - :mod:`~poseflow.models.funflow6d`: :class:`FunFlow6D`, which composes them.
 """
 
@@ -24,6 +25,7 @@ from poseflow.models.objects import PreparedObject, object_fingerprint, prepare_
 from poseflow.models.observe import Observation, observe
 from poseflow.models.pose import agreement_score, solve_pose
 from poseflow.models.training import FlowTrainingSet, augment, build_training_set, train
+from poseflow.models.verification import other_hypotheses, prepare_verification, verify_estimate
 
 __all__ = [
     "ABLATIONS",
@@ -45,8 +47,11 @@ __all__ = [
     "build_training_set",
     "object_fingerprint",
     "observe",
+    "other_hypotheses",
     "prepare_objects",
+    "prepare_verification",
     "reduce_appearance",
     "solve_pose",
     "train",
+    "verify_estimate",
 ]

@@ -1,23 +1,38 @@
 """FunFlow6D checkpoints: ``config.json`` plus ``model.safetensors`` (trainable weights only).
 
 No pickle is ever read: the weights are safetensors and the configuration is JSON, read by
-:meth:`~poseflow.models.FunFlow6DConfig.from_json` (which also reads older files).
+:meth:`~poseflow.models.FunFlow6DConfig.from_json` (which also reads older files). A checkpoint's
+``config.json`` is written whole, so a field it lacks was added to the configuration after the
+checkpoint was saved; such a field is read as :data:`CHECKPOINT_FIELDS_ADDED` says, the value that
+keeps the checkpoint's behaviour, rather than as the default of new configurations.
 """
 
 from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import torch
 
-from poseflow.errors import MissingWeightsError
+from poseflow.errors import MissingWeightsError, ValueRangeError
 from poseflow.models.config import FunFlow6DConfig
 
-__all__ = ["CHECKPOINT_FORMAT", "is_checkpoint", "read_checkpoint", "write_checkpoint"]
+__all__ = [
+    "CHECKPOINT_FIELDS_ADDED",
+    "CHECKPOINT_FORMAT",
+    "is_checkpoint",
+    "read_checkpoint",
+    "write_checkpoint",
+]
 
 #: The ``format`` metadata of the weights file.
 CHECKPOINT_FORMAT = "poseflow.FunFlow6D/1"
+
+#: Configuration fields added after checkpoints were first written, with the value a checkpoint
+#: whose ``config.json`` lacks them is read with: what it did before the field existed (no
+#: render-and-compare verification). New configurations take the fields' defaults instead.
+CHECKPOINT_FIELDS_ADDED: dict[str, Any] = {"verification": False}
 
 
 def is_checkpoint(folder: str | Path) -> bool:
@@ -49,8 +64,12 @@ def write_checkpoint(
 def read_checkpoint(folder: str | Path) -> tuple[FunFlow6DConfig, dict[str, torch.Tensor]]:
     """The configuration and the network's ``state_dict`` written by :func:`write_checkpoint`.
 
+    Fields the ``config.json`` lacks take the values of :data:`CHECKPOINT_FIELDS_ADDED`, then the
+    configuration's defaults.
+
     Raises:
         MissingWeightsError: ``folder`` holds no checkpoint.
+        ValueRangeError: its ``config.json`` is not a valid configuration.
     """
     from safetensors.torch import load_file
 
@@ -60,5 +79,8 @@ def read_checkpoint(folder: str | Path) -> tuple[FunFlow6DConfig, dict[str, torc
             f"{folder} holds no FunFlow6D checkpoint (config.json + model.safetensors); "
             "train one with `poseflow train`"
         )
-    config = FunFlow6DConfig.from_json(folder / "config.json")
+    data = json.loads((folder / "config.json").read_text())
+    if not isinstance(data, dict):
+        raise ValueRangeError(f"{folder / 'config.json'} must hold a JSON object of config fields")
+    config = FunFlow6DConfig.from_json({**CHECKPOINT_FIELDS_ADDED, **data})
     return config, load_file(str(folder / "model.safetensors"))

@@ -35,6 +35,7 @@ from poseflow.models.components import (
     REDUCERS,
     check_name,
 )
+from poseflow.verify import VerifierConfig
 
 __all__ = [
     "ABLATIONS",
@@ -238,6 +239,17 @@ class FunFlow6DConfig:
         ransac_threshold: RANSAC inlier distance, fraction of the diameter.
         icp_thresholds: coarse-to-fine ICP distances, fractions of the diameter; empty: no ICP.
         icp_iterations: ICP iterations per threshold.
+        verification: check each chosen pose by rendering and comparing
+            (:class:`~poseflow.verify.PoseVerifier`): its near-symmetric candidates (and, with
+            ``verify_hypotheses``, the other hypotheses) replace it only where they clearly
+            explain the image better, and the verifier's score becomes the estimate's score.
+            Training-free, so it applies to any checkpoint; a checkpoint whose ``config.json``
+            predates the field loads with False (see
+            :data:`~poseflow.models.checkpoint.CHECKPOINT_FIELDS_ADDED`).
+        verify_hypotheses: give the verifier all ``num_hypotheses`` solved hypotheses of an
+            instance as candidates, not only the best-scoring one.
+        verifier: the verifier's configuration (a mapping is read with
+            :meth:`VerifierConfig.from_dict`).
         net: the free sizes of the trainable network (a mapping is read with
             :meth:`NetOptions.from_json`).
 
@@ -267,6 +279,9 @@ class FunFlow6DConfig:
     ransac_threshold: float = 0.05
     icp_thresholds: tuple[float, ...] = (0.08, 0.04, 0.02)
     icp_iterations: int = 30
+    verification: bool = True
+    verify_hypotheses: bool = True
+    verifier: VerifierConfig = field(default_factory=VerifierConfig)
     net: NetOptions = field(default_factory=NetOptions)
 
     def __post_init__(self) -> None:
@@ -277,6 +292,15 @@ class FunFlow6DConfig:
             self.net = NetOptions.from_json(self.net)
         if not isinstance(self.net, NetOptions):
             raise ValueRangeError(f"net must be a NetOptions, got {type(self.net).__name__}")
+        if isinstance(self.verifier, Mapping):
+            self.verifier = VerifierConfig.from_dict(self.verifier)
+        if not isinstance(self.verifier, VerifierConfig):
+            raise ValueRangeError(
+                f"verifier must be a VerifierConfig, got {type(self.verifier).__name__}"
+            )
+        for name in ("verification", "verify_hypotheses"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueRangeError(f"{name} must be true or false, got {getattr(self, name)!r}")
         for name, allowed, takes_argument in (
             ("geometric_encoder", GEOMETRIC_ENCODERS, True),
             ("appearance_encoder", APPEARANCE_ENCODERS, True),
@@ -336,6 +360,7 @@ class FunFlow6DConfig:
         out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
         out["geometric_radii"] = list(self.geometric_radii)
         out["icp_thresholds"] = list(self.icp_thresholds)
+        out["verifier"] = self.verifier.to_dict()
         out["net"] = self.net.to_json()
         return out
 
@@ -362,8 +387,8 @@ class FunFlow6DConfig:
         return _from_mapping(cls, data, "FunFlow6D config")
 
 
-#: Fields a trained model may change at inference: the sampler, the hypotheses, the pose solver
-#: and the dense-cloud cap (the network and its feature sizes stay valid).
+#: Fields a trained model may change at inference: the sampler, the hypotheses, the pose solver,
+#: the verification and the dense-cloud cap (the network and its feature sizes stay valid).
 INFERENCE_FIELDS: tuple[str, ...] = (
     "solver",
     "steps",
@@ -374,6 +399,9 @@ INFERENCE_FIELDS: tuple[str, ...] = (
     "ransac_threshold",
     "icp_thresholds",
     "icp_iterations",
+    "verification",
+    "verify_hypotheses",
+    "verifier",
 )
 
 

@@ -4,8 +4,9 @@ Each job has its module: :mod:`~poseflow.models.objects` prepares and caches the
 :mod:`~poseflow.models.observe` lifts an RGBD image to target clouds with their frozen features,
 :mod:`~poseflow.models.inputs` pairs them with the query clouds as :class:`FlowInputs`, the
 trainable :class:`~poseflow.models.network.FunFlow6DNet` and a sampler of
-:mod:`poseflow.flows` carry the targets to the canonical frame, and :mod:`~poseflow.models.pose`
-turns the result into poses. Time is reported to the caller's active
+:mod:`poseflow.flows` carry the targets to the canonical frame, :mod:`~poseflow.models.pose`
+turns the result into poses and :mod:`~poseflow.models.verification` checks them by rendering and
+comparing (:class:`~poseflow.verify.PoseVerifier`). Time is reported to the caller's active
 :class:`~poseflow.eval.timing.StageTimer` (see :func:`~poseflow.eval.timing.stage`).
 
 Shape letters: ``B`` instances, ``N`` points per cloud, ``H`` hypotheses per instance.
@@ -22,6 +23,7 @@ import torch
 from torch import nn
 
 from poseflow.data.objects import ObjectModel
+from poseflow.errors import ValueRangeError
 from poseflow.eval.predict import Estimator, PoseEstimate, on_device, predict_dataset
 from poseflow.eval.results import PoseResults
 from poseflow.eval.timing import StageTimer
@@ -34,6 +36,8 @@ from poseflow.models.network import FunFlow6DNet, NetInputs
 from poseflow.models.objects import PreparedObject, prepare_objects, select_objects
 from poseflow.models.observe import Observation, observe
 from poseflow.models.pose import select_hypotheses, solve_pose
+from poseflow.models.verification import other_hypotheses, prepare_verification, verify_estimate
+from poseflow.verify import PoseVerifier
 
 __all__ = ["FunFlow6D"]
 
@@ -43,7 +47,13 @@ class FunFlow6D(nn.Module):
 
     Args:
         config: the configuration (default: the offline defaults, FPFH + dense SIFT + PCA,
-            gated fusion, ``small`` DiT).
+            gated fusion, ``small`` DiT, render-and-compare verification).
+
+    Attributes:
+        objects: the prepared objects, ``{obj_id: PreparedObject}``.
+        verifier: the :class:`~poseflow.verify.PoseVerifier` of ``config.verifier``, with the
+            objects prepared for it (when ``config.verification`` was on at
+            :meth:`prepare_objects`).
 
     Example:
         >>> model = FunFlow6D(FunFlow6DConfig(num_points=32, dit_preset="tiny", crop_size=48))
@@ -67,6 +77,7 @@ class FunFlow6D(nn.Module):
         geometric_dim = getattr(self.geometric_encoder, "dim", None)
         self.net = FunFlow6DNet(cfg.net_config(geometric_dim, semantic_dim))
         self.objects: dict[int, PreparedObject] = {}
+        self.verifier = PoseVerifier(cfg.verifier)
 
     def prepare_objects(
         self,
@@ -76,6 +87,10 @@ class FunFlow6D(nn.Module):
         progress: bool = True,
     ) -> None:
         """Prepare every object (:func:`~poseflow.models.objects.prepare_objects`) for inference.
+
+        With ``config.verification`` on, the objects are prepared for the verifier too
+        (:func:`~poseflow.models.verification.prepare_verification`, cached in the same
+        folders); a verifier of another configuration than ``config.verifier`` is replaced.
 
         Args:
             models: ``{obj_id: ObjectModel}`` (metres, textured meshes for appearance).
@@ -93,6 +108,10 @@ class FunFlow6D(nn.Module):
                 progress=progress,
             )
         )
+        if self.config.verification:
+            if self.verifier.config != self.config.verifier:
+                self.verifier = PoseVerifier(self.config.verifier)
+            prepare_verification(self.verifier, models, cache_dir=cache_dir, progress=progress)
 
     @torch.no_grad()
     def observe(
@@ -151,7 +170,10 @@ class FunFlow6D(nn.Module):
     ) -> PoseEstimate:
         """Estimate the pose of every masked instance of one RGBD image, in one batch.
 
-        Stages are charged to the active :class:`~poseflow.eval.timing.StageTimer`, if any.
+        With ``config.verification`` on, the selected poses are verified
+        (:func:`~poseflow.models.verification.verify_estimate`) and the scores are the
+        verifier's. Stages are charged to the active :class:`~poseflow.eval.timing.StageTimer`,
+        if any.
 
         Args:
             rgb: the image ``(3, H, W)``, uint8 or float in ``[0, 1]``.
@@ -163,8 +185,17 @@ class FunFlow6D(nn.Module):
 
         Returns:
             A :class:`PoseEstimate`.
+
+        Raises:
+            ValueRangeError: an object id that is not prepared (for verification too, when on),
+                or a verifier prepared for another ``config.verifier``.
         """
         cfg = self.config
+        if cfg.verification and self.verifier.config != cfg.verifier:
+            raise ValueRangeError(
+                "config.verifier changed after the objects were prepared for verification; "
+                "call prepare_objects again"
+            )
         was_training = self.training
         self.eval()
         try:
@@ -180,7 +211,16 @@ class FunFlow6D(nn.Module):
             dense = [o.dense_points for o in select_objects(self.objects, rep.obj_ids)]
             n = rep.points.shape[1] // 2
             solved = solve_pose(rep, x_1[:, n:], dense, cfg, generator=generator)
-            return select_hypotheses(*solved, obs.valid, cfg.num_hypotheses)
+            est = select_hypotheses(*solved, obs.valid, cfg.num_hypotheses)
+            if not cfg.verification:
+                return est
+            extra = extra_mask = None
+            if cfg.verify_hypotheses and cfg.num_hypotheses > 1:
+                extra, extra_mask = other_hypotheses(*solved, cfg.num_hypotheses)
+            return verify_estimate(
+                self.verifier, est, rgb, depth, K, masks, obs.obj_ids, obs.points, obs.mask,
+                extra=extra, extra_mask=extra_mask,
+            )  # fmt: skip
         finally:
             self.train(was_training)
 

@@ -6,9 +6,13 @@ points, Hi x Wi the image.
 
 from __future__ import annotations
 
+import json
 import math
-from collections.abc import Sequence
-from dataclasses import dataclass
+import warnings
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Any
 
 import torch
 
@@ -27,7 +31,24 @@ from poseflow.verify.render import crop_intrinsics, crop_observation, render_poi
 from poseflow.verify.score import VerifierScore, score_renderings, select_hypotheses
 from poseflow.verify.symmetry import near_symmetries
 
-__all__ = ["Hypotheses", "PoseVerifier", "PreparedObject", "Verification"]
+__all__ = ["PREPARED_FORMAT", "Hypotheses", "PoseVerifier", "PreparedObject", "Verification"]
+
+#: Version of what :meth:`PoseVerifier.prepare` computes; part of the on-disk cache's key, so that
+#: a change of the near-symmetry search invalidates older caches.
+PREPARED_FORMAT = 1
+
+#: :class:`VerifierConfig` fields that a prepared object depends on.
+_PREPARE_FIELDS = (
+    "num_points",
+    "max_candidates",
+    "min_self_overlap",
+    "self_overlap_distance",
+    "min_candidate_angle",
+    "turn_steps",
+    "icp_distances",
+    "icp_iterations",
+    "icp_relative_rmse",
+)
 
 
 @dataclass
@@ -55,6 +76,48 @@ class PreparedObject:
     diameter: float
     candidates: torch.Tensor
     overlap: torch.Tensor
+
+    def save(self, folder: str | Path, *, fingerprint: Mapping[str, Any]) -> Path:
+        """Write the object to ``folder`` (``verifier.safetensors`` + ``verifier.json``).
+
+        Args:
+            folder: the folder (created).
+            fingerprint: what the object was prepared with (see :meth:`PoseVerifier.fingerprint`);
+                :meth:`load` returns the object only for an equal fingerprint.
+
+        Returns:
+            The folder.
+        """
+        from safetensors.torch import save_file
+
+        folder = Path(folder)
+        folder.mkdir(parents=True, exist_ok=True)
+        tensors = {
+            f.name: getattr(self, f.name).contiguous()
+            for f in fields(self)
+            if isinstance(getattr(self, f.name), torch.Tensor)
+        }
+        tmp = folder / "verifier.safetensors.tmp"
+        save_file(tensors, str(tmp))
+        tmp.replace(folder / "verifier.safetensors")
+        meta = {"diameter": self.diameter, "config": dict(fingerprint)}
+        (folder / "verifier.json").write_text(json.dumps(meta, indent=1))
+        return folder
+
+    @classmethod
+    def load(cls, folder: str | Path, *, fingerprint: Mapping[str, Any]) -> PreparedObject | None:
+        """Read an object written by :meth:`save`; None when absent or of another fingerprint."""
+        from safetensors.torch import load_file
+
+        folder = Path(folder)
+        meta_path, data_path = folder / "verifier.json", folder / "verifier.safetensors"
+        if not (meta_path.is_file() and data_path.is_file()):
+            return None
+        meta = json.loads(meta_path.read_text())
+        if meta.get("config") != json.loads(json.dumps(dict(fingerprint))):
+            return None
+        tensors = load_file(str(data_path))
+        return cls(diameter=float(meta["diameter"]), **tensors)
 
 
 @dataclass
@@ -146,13 +209,31 @@ class PoseVerifier:
     # --------------------------------------------------------------------------------------
     # Per object
 
-    def prepare(self, obj_id: int, model: ObjectModel) -> PreparedObject:
+    def fingerprint(self) -> dict[str, Any]:
+        """What a prepared object depends on: the key of the on-disk cache of :meth:`prepare`.
+
+        Example:
+            >>> PoseVerifier().fingerprint()["num_points"]
+            4096
+        """
+        out: dict[str, Any] = {"format": PREPARED_FORMAT, "seed": self.seed}
+        for name in _PREPARE_FIELDS:
+            value = getattr(self.config, name)
+            out[name] = list(value) if isinstance(value, tuple) else value
+        return out
+
+    def prepare(
+        self, obj_id: int, model: ObjectModel, *, folder: str | Path | None = None
+    ) -> PreparedObject:
         """Sample the object's surface and find its near-symmetries (once per object id).
 
         Args:
             obj_id: the id the object is known by in later calls.
             model: its :class:`~poseflow.data.objects.ObjectModel` (metres); its declared
                 symmetries are not returned as candidates.
+            folder: an on-disk cache of this object: read when it holds an object prepared
+                with the same :meth:`fingerprint`, else written after preparing (a folder that
+                cannot be written gives a warning, and the object is kept in memory only).
 
         Returns:
             The cached :class:`PreparedObject`.
@@ -163,6 +244,25 @@ class PoseVerifier:
         obj_id = int(obj_id)
         if obj_id in self.objects:
             return self.objects[obj_id]
+        if folder is not None:
+            cached = PreparedObject.load(folder, fingerprint=self.fingerprint())
+            if cached is not None:
+                self.objects[obj_id] = cached
+                return cached
+        prepared = self._prepare(model)
+        self.objects[obj_id] = prepared
+        if folder is not None:
+            try:
+                prepared.save(folder, fingerprint=self.fingerprint())
+            except OSError as exc:
+                warnings.warn(
+                    f"object {obj_id}: the verifier's preparation is not cached ({exc})",
+                    stacklevel=2,
+                )
+        return prepared
+
+    def _prepare(self, model: ObjectModel) -> PreparedObject:
+        """Surface samples, albedo and near-symmetries of one object."""
         cfg = self.config
         g = torch.Generator().manual_seed(self.seed)
         pts, nrm, col = sample_surface(model.mesh, 4 * cfg.num_points, generator=g)
@@ -192,7 +292,7 @@ class PoseVerifier:
             icp_iterations=2 * cfg.icp_iterations,
             icp_relative_rmse=cfg.icp_relative_rmse,
         )
-        prepared = PreparedObject(
+        return PreparedObject(
             points=points.float(),
             normals=normals.float(),
             colors=colors.float(),
@@ -202,8 +302,6 @@ class PoseVerifier:
             candidates=found.transforms.float(),
             overlap=found.overlap.float(),
         )
-        self.objects[obj_id] = prepared
-        return prepared
 
     def _objects(self, obj_ids: Sequence[int] | torch.Tensor, B: int) -> list[PreparedObject]:
         ids = [int(o) for o in torch.as_tensor(obj_ids).reshape(-1).tolist()]
@@ -503,6 +601,10 @@ class PoseVerifier:
         poses: torch.Tensor,
         observed: torch.Tensor | None = None,
         observed_mask: torch.Tensor | None = None,
+        *,
+        extra: torch.Tensor | None = None,
+        extra_mask: torch.Tensor | None = None,
+        estimated: torch.Tensor | None = None,
     ) -> Verification:
         """Check each estimate against its near-symmetric candidates and keep the best.
 
@@ -516,6 +618,12 @@ class PoseVerifier:
             observed: the observed clouds ``(B, M, 3)`` (camera frame) that ICP registers;
                 lifted from ``depth`` and ``masks`` when None.
             observed_mask: ``(B, M)`` bool for ``observed``.
+            extra: more hypotheses of each instance ``(B, E, 4, 4)`` (e.g. the estimator's
+                other solutions), candidates like the near-symmetric ones: scored, the best
+                refined, and chosen only where they beat the estimate.
+            extra_mask: ``(B, E)`` bool, False for padding of ``extra``.
+            estimated: ``(B,)`` bool, False for instances the estimator found no pose for: they
+                are not verified and come back unchanged, with score 0 and ``valid`` False.
 
         Returns:
             A :class:`Verification`.
@@ -527,8 +635,25 @@ class PoseVerifier:
         sizes = check_tensor(poses, "poses", ("B", 4, 4), finite=True)
         B = sizes["B"]
         check_mask(masks, "masks", ("B", None, None), sizes)
+        if extra is not None:
+            check_tensor(extra, "extra", ("B", "E", 4, 4), sizes=sizes, finite=True)
+            check_same(("poses", poses), ("extra", extra))
+            if extra_mask is not None:
+                check_mask(extra_mask, "extra_mask", ("B", "E"), sizes)
+        if estimated is not None:
+            check_mask(estimated, "estimated", ("B",), sizes)
+            if not bool(estimated.all()):
+                return self._verify_subset(
+                    estimated, rgb, depth, K, masks, obj_ids, poses, observed, observed_mask,
+                    extra, extra_mask,
+                )  # fmt: skip
         Kd = K.to(poses.dtype)
         hyp = self.expand(poses, obj_ids)
+        if extra is not None and extra.shape[1]:
+            more = extra_mask if extra_mask is not None else torch.ones_like(extra[..., 0, 0])
+            hyp = Hypotheses(
+                torch.cat((hyp.poses, extra), dim=1), torch.cat((hyp.mask, more.bool()), dim=1)
+            )
         boxes = self.crop_boxes(poses, obj_ids, Kd, masks)
         first = self.score(
             rgb, depth, Kd, masks, obj_ids, hyp.poses, hyp.mask, boxes=boxes,
@@ -565,4 +690,65 @@ class PoseVerifier:
             hypotheses=poses_k,
             score=final,
             statistic=stat,
+        )
+
+    def _verify_subset(
+        self,
+        estimated: torch.Tensor,
+        rgb: torch.Tensor | None,
+        depth: torch.Tensor,
+        K: torch.Tensor,
+        masks: torch.Tensor,
+        obj_ids: Sequence[int] | torch.Tensor,
+        poses: torch.Tensor,
+        observed: torch.Tensor | None,
+        observed_mask: torch.Tensor | None,
+        extra: torch.Tensor | None,
+        extra_mask: torch.Tensor | None,
+    ) -> Verification:
+        """:meth:`verify` of the ``estimated`` instances; the others come back unverified."""
+        B = poses.shape[0]
+        idx = estimated.nonzero()[:, 0]
+        if not len(idx):  # one hypothesis each, the estimate, unscored
+            g = (self.config.crop_size // self.config.block_size) ** 2
+            zeros = poses.new_zeros(B, 1)
+            flags = torch.zeros(B, 1, dtype=torch.bool, device=poses.device)
+            return Verification(
+                poses=poses.clone(),
+                scores=poses.new_zeros(B),
+                valid=flags[:, 0].clone(),
+                chosen=torch.zeros(B, dtype=torch.long, device=poses.device),
+                hypotheses=poses[:, None].clone(),
+                score=VerifierScore(
+                    zeros,
+                    zeros,
+                    zeros,
+                    zeros,
+                    flags,
+                    poses.new_zeros(B, 1, g),
+                    flags[..., None].expand(B, 1, g),
+                ),
+                statistic=zeros,
+            )
+        ids = torch.as_tensor(obj_ids).reshape(-1)[idx.cpu()]
+        take = lambda t: None if t is None else t[idx]  # noqa: E731
+        sub = self.verify(
+            rgb, depth, K, masks[idx], ids, poses[idx], take(observed), take(observed_mask),
+            extra=take(extra), extra_mask=take(extra_mask),
+        )  # fmt: skip
+
+        def spread(t: torch.Tensor, fill: torch.Tensor | None = None) -> torch.Tensor:
+            out = t.new_zeros(B, *t.shape[1:]) if fill is None else fill.clone()
+            out[idx] = t
+            return out
+
+        H = sub.hypotheses.shape[1]
+        return Verification(
+            poses=spread(sub.poses, poses),
+            scores=spread(sub.scores),
+            valid=spread(sub.valid),
+            chosen=spread(sub.chosen),
+            hypotheses=spread(sub.hypotheses, poses[:, None].expand(B, H, 4, 4)),
+            score=VerifierScore(*(spread(getattr(sub.score, f.name)) for f in fields(sub.score))),
+            statistic=spread(sub.statistic),
         )

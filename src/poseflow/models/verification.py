@@ -1,0 +1,143 @@
+"""Render-and-compare verification of FunFlow6D's poses, prepared per object and run per image.
+
+The :class:`~poseflow.verify.PoseVerifier` is training-free: :func:`prepare_verification` gives
+it every object (surface samples with colour and the near-symmetries, cached on disk beside the
+object's other prepared data), and :func:`verify_estimate` checks the poses of one image after
+the best hypothesis of each instance was selected: each pose is expanded with its object's
+near-symmetric candidates (and, optionally, the instance's other hypotheses,
+:func:`other_hypotheses`), the best candidates are refined by ICP of the observed cloud, all are
+rendered and compared with the image, and a candidate replaces the pose only where it explains
+the image clearly better. The verifier's score becomes the estimate's score. The stage is
+reported to the active timer as ``verification``.
+
+Shape letters: ``B`` instances, ``H`` hypotheses per instance, ``N`` observed points.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import torch
+
+from poseflow.data.objects import ObjectModel
+from poseflow.errors import ValueRangeError
+from poseflow.eval.predict import PoseEstimate
+from poseflow.eval.timing import stage
+from poseflow.geometry.se3 import inverse_transform
+from poseflow.verify import PoseVerifier
+
+__all__ = ["other_hypotheses", "prepare_verification", "verify_estimate"]
+
+
+def prepare_verification(
+    verifier: PoseVerifier,
+    models: Mapping[int, ObjectModel],
+    *,
+    cache_dir: str | Path | None = None,
+    progress: bool = True,
+) -> None:
+    """Prepare every object for ``verifier``, through the on-disk cache.
+
+    Args:
+        verifier: the verifier.
+        models: ``{obj_id: ObjectModel}`` (metres, with colours).
+        cache_dir: the prepared objects' folder (``obj_XXXXXX`` subfolders, shared with
+            :func:`~poseflow.models.objects.prepare_objects`); None keeps them in memory only.
+        progress: show a progress bar.
+    """
+    from tqdm.auto import tqdm
+
+    for obj_id, model in tqdm(
+        sorted(models.items()), desc="prepare verifier", disable=not progress
+    ):
+        folder = None if cache_dir is None else Path(cache_dir) / f"obj_{obj_id:06d}"
+        verifier.prepare(int(obj_id), model, folder=folder)
+
+
+def other_hypotheses(
+    transform: torch.Tensor, score: torch.Tensor, valid: torch.Tensor, num_hypotheses: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The hypotheses of each instance that the selection did not keep, as verifier candidates.
+
+    Args:
+        transform: camera-to-canonical transforms ``(B·H, 4, 4)`` of
+            :func:`~poseflow.models.pose.solve_pose`, an instance's ``H`` rows consecutive.
+        score: their scores ``(B·H,)``; the best of each instance is the one left out.
+        valid: their validity ``(B·H,)``.
+        num_hypotheses: ``H``.
+
+    Returns:
+        ``(poses (B, H-1, 4, 4), mask (B, H-1))``: model-to-camera poses, mask False where a
+        hypothesis is invalid (its pose is then the identity).
+
+    Example:
+        >>> T = torch.eye(4).repeat(4, 1, 1); T[:, 0, 3] = torch.arange(1.0, 5.0)  # x = 1..4
+        >>> poses, mask = other_hypotheses(T, torch.tensor([0.1, 0.9, 0.5, 0.2]),
+        ...                                torch.tensor([True, True, True, False]), 2)
+        >>> (-poses[:, 0, 0, 3]).tolist(), mask[:, 0].tolist()  # rows 0 and 3 (invalid: identity)
+        ([1.0, 0.0], [True, False])
+    """
+    H = num_hypotheses
+    B = len(transform) // H
+    dev = transform.device
+    best = score.reshape(B, H).argmax(dim=1)
+    column = torch.arange(H, device=dev).expand(B, H)
+    others = column[column != best[:, None]].reshape(B, H - 1)
+    rows = others + torch.arange(B, device=dev)[:, None] * H
+    ok = valid[rows] & torch.isfinite(transform[rows]).flatten(-2).all(-1)
+    eye = torch.eye(4, dtype=transform.dtype, device=dev)
+    poses = inverse_transform(torch.where(ok[..., None, None], transform[rows], eye))
+    return poses, ok
+
+
+def verify_estimate(
+    verifier: PoseVerifier,
+    estimate: PoseEstimate,
+    rgb: torch.Tensor,
+    depth: torch.Tensor,
+    K: torch.Tensor,
+    masks: torch.Tensor,
+    obj_ids: torch.Tensor | Sequence[int],
+    observed: torch.Tensor,
+    observed_mask: torch.Tensor,
+    *,
+    extra: torch.Tensor | None = None,
+    extra_mask: torch.Tensor | None = None,
+) -> PoseEstimate:
+    """Verify the poses of one image's instances; the verifier's score becomes their score.
+
+    Args:
+        verifier: a verifier with every object of ``obj_ids`` prepared.
+        estimate: the selected poses ``(B, 4, 4)``, scores and validity of the instances.
+        rgb: the image ``(3, Hi, Wi)``, uint8 or float in ``[0, 1]``.
+        depth: depth ``(Hi, Wi)`` in metres.
+        K: intrinsics ``(3, 3)``.
+        masks: instance masks ``(B, Hi, Wi)`` bool.
+        obj_ids: object id of each instance ``(B,)``.
+        observed: the observed clouds ``(B, N, 3)``, camera frame, metres (ICP's source).
+        observed_mask: ``(B, N)`` bool, their valid points.
+        extra: more candidates per instance ``(B, E, 4, 4)`` (e.g. :func:`other_hypotheses`).
+        extra_mask: ``(B, E)`` bool for ``extra``.
+
+    Returns:
+        A :class:`~poseflow.eval.predict.PoseEstimate`: the verified poses, the verifier's
+        scores in ``[0, 1]`` (0 where it could not score the pose) and the estimate's validity
+        (instances without a pose are not verified).
+
+    Raises:
+        ValueRangeError: an object the verifier has not prepared.
+    """
+    ids = [int(o) for o in torch.as_tensor(obj_ids).reshape(-1).tolist()]
+    missing = sorted(set(ids) - set(verifier.objects))
+    if missing:
+        raise ValueRangeError(
+            f"objects {missing} are not prepared for verification; call prepare_objects with "
+            "verification on (or turn verification off)"
+        )
+    with stage("verification"):
+        out = verifier.verify(
+            rgb, depth, K, masks, ids, estimate.poses, observed, observed_mask,
+            extra=extra, extra_mask=extra_mask, estimated=estimate.valid,
+        )  # fmt: skip
+    return PoseEstimate(out.poses, out.scores.to(estimate.scores.dtype), estimate.valid)
