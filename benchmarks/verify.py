@@ -1,15 +1,15 @@
 """Render-and-compare verification of an estimator's results, and the renderer it uses.
 
-Re-scores the estimates of a BOP results CSV (e.g. ``poseflow predict DATASET --method baseline``)
-with :class:`poseflow.verify.PoseVerifier`: for every image, each estimate is expanded with its
-object's near-symmetric candidates, the best are refined by ICP of the observed cloud (the masked
-depth, lifted and thinned as the classic baseline does) onto the model, all are scored against the
-RGB-D image, and a candidate replaces the estimate only where it clearly beats it. Writes the
-verified CSV (score = the verifier's, time = the estimator's plus the verification's) for
-``poseflow eval DATASET CSV``, and prints one JSON line: the time the verification added per image
-(wall and CPU time of the process, the fastest of ``--repeats`` runs per image; one thread unless
-``OMP_NUM_THREADS`` says otherwise), how many estimates it replaced per object, and the time to
-prepare each object.
+Re-scores the estimates of a BOP results CSV made without verification (e.g. ``poseflow predict
+DATASET --method baseline --no-verify``) with :class:`poseflow.verify.PoseVerifier`: for every
+image, each estimate is expanded with its object's near-symmetric candidates, the best are refined
+by ICP of the observed cloud (the masked depth, lifted and thinned as the classic baseline does)
+onto the model, all are scored against the RGB-D image, and a candidate replaces the estimate only
+where it clearly beats it. Writes the verified CSV (score = the verifier's, time = the estimator's
+plus the verification's) for ``poseflow eval DATASET CSV``, and prints one JSON line: the time the
+verification added per image (wall and CPU time of the process, the fastest of ``--repeats`` runs
+per image; one thread unless ``OMP_NUM_THREADS`` says otherwise), how many estimates it replaced
+per object, and the time to prepare each object.
 
 ``--renderers`` also measures the z-buffered point renderer the verifier uses against the
 library's Open3D ray caster (one thread) on the same hypotheses (each rendered on the verifier's

@@ -48,3 +48,14 @@ def test_gated_fusion_learns_the_lookup_a_pointwise_sum_cannot(capsys):
         assert 0.0 < gate < 1.0 and gate != pytest.approx(0.5, abs=1e-4)  # the gates learnt
     out = capsys.readouterr().out
     assert "gated fusion" in out and "sum fusion" in out
+
+
+def test_verifier_on_its_own_ranks_the_truth_first_and_turns_flips_back(capsys):
+    result = _example("verify_your_poses").main(["--quick"])
+    assert result["best"] == [0, 0]  # the true pose outscores the flip and the shifted pose
+    assert all(c != 0 for c in result["chosen"])  # a candidate replaced each flipped estimate
+    assert all(before > 150 for before in result["error_before_deg"])
+    # Measured on the quick run: 0.6 and 0.3 degrees.
+    assert all(after < 3.0 for after in result["error_after_deg"])
+    assert all(0.5 < s <= 1.0 for s in result["scores"])
+    assert "end for end" in capsys.readouterr().out
