@@ -19,6 +19,12 @@ def test_observe_lifts_valid_clouds_with_features(tiny_model, scene):
     assert obs.geometric.shape == (2, n, tiny_model.geometric_encoder.dim)
     assert obs.appearance.shape[:2] == (2, n)
     assert torch.allclose(obs.normals[obs.mask].norm(dim=-1), torch.ones(1), atol=1e-4)
+    # the cleaned cloud the N points were sampled from travels along, for the verifier's ICP
+    assert obs.cloud.shape[0] == 2 and (obs.cloud_mask.sum(1) >= obs.mask.sum(1)).all()
+    for b in range(2):
+        a, c = obs.points[b][obs.mask[b]], obs.cloud[b][obs.cloud_mask[b]]
+        d = torch.cdist(a, c, compute_mode="donot_use_mm_for_euclid_dist")
+        assert d.min(dim=1).values.max() == 0  # every sampled point is one of the cloud's
 
 
 def test_flow_target_is_the_observed_cloud_in_the_canonical_frame(tiny_model, scene, box):

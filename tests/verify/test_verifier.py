@@ -92,16 +92,35 @@ def test_exact_flip_is_told_apart_by_appearance_not_depth(
     depth_only = PoseVerifier(VerifierConfig(**{**CONFIG.to_dict(), "appearance_weight": 0.0}))
     depth_only.objects = verifier.objects
     kept = depth_only.verify(scene["rgb"], scene["depth"], K, scene["masks"], [1], flipped)
-    assert int(kept.chosen[0]) == 0
-    torch.testing.assert_close(kept.poses, flipped)
+    assert int(kept.chosen[0]) == 0  # the flip stays (refined by ICP, so not bit-equal)
+    assert float(rotation_distance(kept.poses[0, :3, :3], flipped[0, :3, :3])) < 1.0
 
 
 def test_right_estimate_is_kept(verifier: PoseVerifier, scene: dict[str, torch.Tensor]) -> None:
     true = box_pose()[None]
-    out = verifier.verify(scene["rgb"], scene["depth"], K, scene["masks"], [1], true)
+    args = (scene["rgb"], scene["depth"], K, scene["masks"], [1], true)
+    out = verifier.verify(*args)
     assert int(out.chosen[0]) == 0 and bool(out.valid[0])
-    assert torch.equal(out.poses, true)
+    # refined with the candidates by the same ICP: it stays where it was, within the sampling
+    assert float(rotation_distance(out.poses[0, :3, :3], true[0, :3, :3])) < 1.0
+    assert float((out.poses[0, :3, 3] - true[0, :3, 3]).norm()) < 0.0035
     assert 0.5 < float(out.scores[0]) <= 1.0
+    as_given = PoseVerifier(VerifierConfig(**{**CONFIG.to_dict(), "refine_estimate": False}))
+    as_given.objects = verifier.objects
+    kept = as_given.verify(*args)
+    assert int(kept.chosen[0]) == 0 and torch.equal(kept.poses, true)
+
+
+def test_an_estimate_off_by_millimetres_is_refined(
+    verifier: PoseVerifier, scene: dict[str, torch.Tensor]
+) -> None:
+    true = box_pose()
+    nudged = true.clone()
+    nudged[:3, 3] += torch.tensor([0.004, -0.003, 0.005])
+    out = verifier.verify(scene["rgb"], scene["depth"], K, scene["masks"], [1], nudged[None])
+    assert int(out.chosen[0]) == 0
+    assert float((out.poses[0, :3, 3] - true[:3, 3]).norm()) < 0.0035
+    torch.testing.assert_close(out.hypotheses[0, 0], out.poses[0])
 
 
 def test_global_brightness_and_colour_change_changes_nothing(
@@ -212,6 +231,7 @@ def test_errors(verifier: PoseVerifier, scene: dict[str, torch.Tensor]) -> None:
         {"coarse_crop_size": 128},
         {"depth_weight": 0.0, "silhouette_weight": 0.0, "appearance_weight": 0.0},
         {"num_points": True},
+        {"refine_estimate": 1},
     ],
 )
 def test_config_rejects_bad_values(field: dict[str, object]) -> None:

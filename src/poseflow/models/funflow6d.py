@@ -171,9 +171,9 @@ class FunFlow6D(nn.Module):
         """Estimate the pose of every masked instance of one RGBD image, in one batch.
 
         With ``config.verification`` on, the selected poses are verified
-        (:func:`~poseflow.models.verification.verify_estimate`) and the scores are the
-        verifier's. Stages are charged to the active :class:`~poseflow.eval.timing.StageTimer`,
-        if any.
+        (:func:`~poseflow.models.verification.verify_estimate`, its ICP registering the
+        observation's cleaned cloud) and the scores are the verifier's. Stages are charged to
+        the active :class:`~poseflow.eval.timing.StageTimer`, if any.
 
         Args:
             rgb: the image ``(3, H, W)``, uint8 or float in ``[0, 1]``.
@@ -218,7 +218,7 @@ class FunFlow6D(nn.Module):
             if cfg.verify_hypotheses and cfg.num_hypotheses > 1:
                 extra, extra_mask = other_hypotheses(*solved, cfg.num_hypotheses)
             return verify_estimate(
-                self.verifier, est, rgb, depth, K, masks, obs.obj_ids, obs.points, obs.mask,
+                self.verifier, est, rgb, depth, K, masks, obs.obj_ids, obs.cloud, obs.cloud_mask,
                 extra=extra, extra_mask=extra_mask,
             )  # fmt: skip
         finally:

@@ -46,6 +46,10 @@ class Observation:
         valid: instances with enough points ``(B,)``; the others are padding only.
         geometric: ``Φ(T)`` ``(B, N, Dg)`` or None.
         appearance: raw lifted appearance features ``(B, N, G)`` or None.
+        cloud: the denser cloud ``T`` was sampled from ``(B, P, 3)``, camera frame, metres: the
+            masked depth after the ``dense_points`` cap and outlier removal (for refinements
+            that want more points than ``N``), or None.
+        cloud_mask: its valid points ``(B, P)``, or None.
     """
 
     obj_ids: torch.Tensor
@@ -55,6 +59,8 @@ class Observation:
     valid: torch.Tensor
     geometric: torch.Tensor | None
     appearance: torch.Tensor | None
+    cloud: torch.Tensor | None = None
+    cloud_mask: torch.Tensor | None = None
 
 
 @torch.no_grad()
@@ -149,7 +155,9 @@ def observe(
                     jitter=crop_jitter,
                     generator=generator if crop_jitter > 0 else None,
                 )
-    return Observation(obj_ids, points, normals, valid_pts, valid, geometric, appearance)
+    return Observation(
+        obj_ids, points, normals, valid_pts, valid, geometric, appearance, cloud_points, keep
+    )
 
 
 def _random_subset(

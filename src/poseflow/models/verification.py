@@ -99,8 +99,8 @@ def verify_estimate(
     K: torch.Tensor,
     masks: torch.Tensor,
     obj_ids: torch.Tensor | Sequence[int],
-    observed: torch.Tensor,
-    observed_mask: torch.Tensor,
+    observed: torch.Tensor | None,
+    observed_mask: torch.Tensor | None,
     *,
     extra: torch.Tensor | None = None,
     extra_mask: torch.Tensor | None = None,
@@ -115,7 +115,8 @@ def verify_estimate(
         K: intrinsics ``(3, 3)``.
         masks: instance masks ``(B, Hi, Wi)`` bool.
         obj_ids: object id of each instance ``(B,)``.
-        observed: the observed clouds ``(B, N, 3)``, camera frame, metres (ICP's source).
+        observed: the observed clouds ``(B, N, 3)``, camera frame, metres (ICP's source; the
+            verifier thins them to ``max_observed_points``); None lifts them from ``depth``.
         observed_mask: ``(B, N)`` bool, their valid points.
         extra: more candidates per instance ``(B, E, 4, 4)`` (e.g. :func:`other_hypotheses`).
         extra_mask: ``(B, E)`` bool for ``extra``.

@@ -57,6 +57,9 @@ class VerifierConfig:
             axis are tried every ``360 / turn_steps`` degrees too.
         refine_top_k: candidates (besides the estimate) refined by ICP and scored again, the best
             of the first, unrefined scoring.
+        refine_estimate: refine the estimate by the same ICP as the candidates before they are
+            compared, so that they compete on equal terms (an estimator's own refinement may
+            have used fewer points); the estimate is then returned refined where it is kept.
         icp_distances: ICP correspondence distances of the refinement, coarse to fine.
         icp_iterations: ICP iterations per scale, at most.
         icp_relative_rmse: a scale of ICP stops once its inlier RMSE changes by less than this
@@ -84,6 +87,7 @@ class VerifierConfig:
     min_candidate_angle: float = 15.0
     turn_steps: int = 12
     refine_top_k: int = 2
+    refine_estimate: bool = True
     icp_distances: tuple[float, ...] = (0.1, 0.05, 0.02)
     icp_iterations: int = 10
     icp_relative_rmse: float = 1e-4
@@ -105,6 +109,8 @@ class VerifierConfig:
         for name, (value, low) in ints.items():
             if isinstance(value, bool) or not isinstance(value, int) or value < low:
                 raise ValueRangeError(f"{name} must be an int >= {low}, got {value!r}")
+        if not isinstance(self.refine_estimate, bool):
+            raise ValueRangeError(f"refine_estimate must be a bool, got {self.refine_estimate!r}")
         if self.appearance_window % 2 == 0:
             raise ValueRangeError(f"appearance_window must be odd, got {self.appearance_window}")
         if self.crop_size % self.block_size or self.coarse_crop_size % self.block_size:

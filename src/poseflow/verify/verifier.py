@@ -138,15 +138,15 @@ class Verification:
     """The outcome of :meth:`PoseVerifier.verify` for ``B`` instances.
 
     Attributes:
-        poses: the chosen poses ``(B, 4, 4)``: the estimate itself where it was kept, else the
-            ICP-refined candidate that beat it.
+        poses: the chosen poses ``(B, 4, 4)``: the estimate where it was kept (ICP-refined with
+            ``refine_estimate``, else unchanged), else the ICP-refined candidate that beat it.
         scores: the chosen hypothesis's total score clipped to ``[0, 1]`` ``(B,)`` (0 where
             invalid), for ranking estimates.
         valid: ``(B,)`` bool, whether the chosen hypothesis could be scored.
         chosen: ``(B,)`` int64, the index of the chosen hypothesis in ``hypotheses`` (0: the
             estimate was kept).
-        hypotheses: the finally scored hypotheses ``(B, H, 4, 4)``: the estimate, then the
-            refined candidates.
+        hypotheses: the finally scored hypotheses ``(B, H, 4, 4)``: the estimate (refined with
+            ``refine_estimate``), then the refined candidates.
         score: their scores.
         statistic: each candidate's test statistic against the estimate ``(B, H)``.
     """
@@ -166,10 +166,10 @@ class PoseVerifier:
     Built once; :meth:`prepare` caches what each object needs (surface points with normals and
     albedo, its near-symmetries). For the instances of one image, :meth:`verify` runs the whole
     stage: :meth:`expand` each estimate with its near-symmetric candidates, :meth:`score` them
-    all on a coarse grid, :meth:`refine` the best ``refine_top_k`` candidates by ICP of the
-    observed cloud onto the model (the estimate is taken as its estimator's ICP left it), score
-    the estimate and those again and keep the estimate unless a candidate beats it by more than
-    the score's own spread (:func:`~poseflow.verify.select_hypotheses`).
+    all on a coarse grid, :meth:`refine` the best ``refine_top_k`` candidates (and, with
+    ``refine_estimate``, the estimate) by ICP of the observed cloud onto the model, score the
+    estimate and those again and keep the estimate unless a candidate beats it by more than the
+    score's own spread (:func:`~poseflow.verify.select_hypotheses`).
     Each step is public, so the verifier also scores hypotheses from anywhere.
 
     Args:
@@ -668,18 +668,19 @@ class PoseVerifier:
         poses_k = hyp.poses.gather(1, keep[..., None, None].expand(-1, -1, 4, 4))
         mask_k = hyp.mask.gather(1, keep)
         mask_k[:, 1:] &= first.valid.gather(1, keep[:, 1:])
-        if k:
+        first_refined = 0 if self.config.refine_estimate else 1  # the estimate is column 0
+        if k or self.config.refine_estimate:
             if observed is None:
                 observed, observed_mask = self.observed_cloud(depth, Kd, masks)
             if observed.shape[1] >= 3:
                 refined = self.refine(
-                    poses_k[:, 1:], obj_ids, observed.to(poses.dtype), observed_mask
+                    poses_k[:, first_refined:], obj_ids, observed.to(poses.dtype), observed_mask
                 )
-                poses_k = torch.cat((poses_k[:, :1], refined), dim=1)
+                poses_k = torch.cat((poses_k[:, :first_refined], refined), dim=1)
         final = self.score(rgb, depth, Kd, masks, obj_ids, poses_k, mask_k, boxes=boxes)
         index, stat = select_hypotheses(final, significance=self.config.significance)
         rows = torch.arange(B, device=poses.device)
-        chosen_pose = torch.where((index == 0)[:, None, None], poses, poses_k[rows, index])
+        chosen_pose = poses_k[rows, index]
         total = final.total[rows, index]
         valid = final.valid[rows, index]
         return Verification(
