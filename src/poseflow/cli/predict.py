@@ -115,7 +115,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         metavar="KEY=VALUE",
         help="change an inference-time config field of the model (num_hypotheses, pose_solver, "
         "ransac_*, icp_*, verify_hypotheses, verifier, ...; with --method baseline: verifier "
-        "only); VALUE read as JSON, repeatable",
+        "only, its fields changing the baseline's defaults); VALUE read as JSON, repeatable",
     )
     parser.add_argument(
         "--max-images", type=int, default=None, metavar="N", help="stop after N images"
@@ -223,6 +223,7 @@ def _targets_option(args: argparse.Namespace, root: Path) -> str | bool | None:
 
 def _config_changes(args: argparse.Namespace) -> dict[str, Any]:
     """The configuration fields the options change, checked against what each method allows."""
+    from poseflow.baselines import BASELINE_VERIFIER
     from poseflow.cli.common import parse_set
     from poseflow.errors import ValueRangeError
     from poseflow.models import INFERENCE_FIELDS
@@ -242,7 +243,8 @@ def _config_changes(args: argparse.Namespace) -> dict[str, Any]:
     if args.method == "baseline" and "verifier" in changes:
         if not isinstance(changes["verifier"], dict):
             raise ValueRangeError("--set verifier=... takes a JSON object of VerifierConfig fields")
-        changes["verifier"] = VerifierConfig.from_dict(changes["verifier"])
+        defaults = BASELINE_VERIFIER.to_dict()
+        changes["verifier"] = VerifierConfig.from_dict({**defaults, **changes["verifier"]})
     for name, value in (
         ("num_hypotheses", args.hypotheses),
         ("steps", args.steps),
