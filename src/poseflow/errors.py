@@ -12,9 +12,13 @@ __all__ = [
     "MeshFormatError",
     "MissingDependencyError",
     "MissingFileError",
+    "MissingSystemLibraryError",
     "MissingWeightsError",
+    "OutputExistsError",
     "PoseflowError",
     "ShapeError",
+    "UnitsError",
+    "UsageError",
     "ValueRangeError",
 ]
 
@@ -36,12 +40,32 @@ class DegenerateInputError(PoseflowError, ValueError):
 
 
 class MissingDependencyError(PoseflowError, ImportError):
-    """An optional dependency is not installed; the message names the extra that installs it."""
+    """A dependency is not installed; the message names the extra (or command) that installs it."""
 
-    def __init__(self, package: str, extra: str, purpose: str = "") -> None:
+    def __init__(
+        self, package: str, extra: str | None, purpose: str = "", *, install: str | None = None
+    ) -> None:
         why = f" for {purpose}" if purpose else ""
+        fix = install if install is not None else f"pip install 'poseflow[{extra}]'"
+        super().__init__(f"{package} is needed{why} but is not installed: {fix}")
+
+
+class MissingSystemLibraryError(PoseflowError, ImportError):
+    """A system library that a dependency loads is missing; the message names the apt package.
+
+    Args:
+        package: the Python package that failed to import (``open3d``).
+        library: the shared library it could not load (``libGL.so.1``), or ``""`` when unknown.
+        apt_packages: the Debian/Ubuntu packages that provide it.
+        purpose: what the package is needed for.
+    """
+
+    def __init__(self, package: str, library: str, apt_packages: str, purpose: str = "") -> None:
+        why = f" (needed for {purpose})" if purpose else ""
+        what = f"the system library {library}" if library else "a system library"
         super().__init__(
-            f"{package} is needed{why} but is not installed: pip install 'poseflow[{extra}]'"
+            f"{package} cannot be imported{why}: {what} is missing; install it with "
+            f"`sudo apt-get install {apt_packages}` (or your system's equivalent)"
         )
 
 
@@ -51,6 +75,21 @@ class MissingWeightsError(PoseflowError, FileNotFoundError):
 
 class MissingFileError(PoseflowError, FileNotFoundError):
     """A file or folder that a dataset or model format requires is missing."""
+
+
+class UnitsError(ValueRangeError):
+    """Values whose magnitude shows a unit mix-up (millimetres read as metres, or the reverse).
+
+    The message says which option or argument sets the scale.
+    """
+
+
+class UsageError(PoseflowError, ValueError):
+    """A command-line option is invalid, missing or conflicts with another (exit code 2)."""
+
+
+class OutputExistsError(PoseflowError, FileExistsError):
+    """An output file or folder exists and overwriting it was not asked for."""
 
 
 class BOPFormatError(PoseflowError, ValueError):
