@@ -8,12 +8,14 @@ from __future__ import annotations
 
 __all__ = [
     "BOPFormatError",
+    "CheckpointError",
     "DegenerateInputError",
     "MeshFormatError",
     "MissingDependencyError",
     "MissingFileError",
     "MissingSystemLibraryError",
     "MissingWeightsError",
+    "NotWritableError",
     "OutputExistsError",
     "PoseflowError",
     "ShapeError",
@@ -75,6 +77,14 @@ class MissingWeightsError(PoseflowError, FileNotFoundError):
 
 class MissingFileError(PoseflowError, FileNotFoundError):
     """A file or folder that a dataset or model format requires is missing."""
+
+
+class CheckpointError(PoseflowError, ValueError):
+    """A checkpoint, cache or configuration file is truncated, corrupt or of the wrong type."""
+
+
+class NotWritableError(PoseflowError, PermissionError):
+    """An output path cannot be written (checked before any work is done)."""
 
 
 class UnitsError(ValueRangeError):
