@@ -18,6 +18,7 @@ __all__ = [
     "NotWritableError",
     "OutputExistsError",
     "PoseflowError",
+    "ResultsFormatError",
     "ShapeError",
     "UnitsError",
     "UsageError",
@@ -94,7 +95,7 @@ class UnitsError(ValueRangeError):
     """
 
 
-class UsageError(PoseflowError, ValueError):
+class UsageError(ValueRangeError):
     """A command-line option is invalid, missing or conflicts with another (exit code 2)."""
 
 
@@ -104,6 +105,10 @@ class OutputExistsError(PoseflowError, FileExistsError):
 
 class BOPFormatError(PoseflowError, ValueError):
     """A BOP file is malformed: a missing key, a wrong type or shape, or implausible units."""
+
+
+class ResultsFormatError(BOPFormatError, ValueRangeError):
+    """A BOP results file is malformed: a bad header, field, number or rotation (file and line)."""
 
 
 class MeshFormatError(DegenerateInputError):

@@ -195,13 +195,27 @@ def test_predict_from_detections_with_sampler_options(run_dir, dataset, tmp_path
 
 def test_predict_options_are_checked_before_any_work(run_dir, dataset, tmp_path, capsys):
     base = ["predict", str(dataset), "--out", str(tmp_path / "r.csv"), "--no-progress"]
-    assert main(base) == 2
-    assert "--model MODEL_DIR is needed" in capsys.readouterr().err
-    assert main([*base, "--model", str(tmp_path / "nothing")]) == 2
+    assert main([*base, "--model", str(tmp_path / "nothing")]) == 1  # a failed run
     assert "holds no FunFlow6D checkpoint" in capsys.readouterr().err
-    assert main([*base, "--model", str(run_dir / "model"), "--solver", "leapfrog"]) == 2
-    assert "solver must be one of euler" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exc:  # a usage error, from the option's type
+        main([*base, "--model", str(run_dir / "model"), "--solver", "leapfrog"])
+    assert exc.value.code == 2
+    assert "'leapfrog' is not one of euler" in capsys.readouterr().err
     assert not (tmp_path / "r.csv").exists()
+
+
+def test_predict_checks_that_out_is_writable_before_any_work(
+    dataset, tmp_path, capsys, monkeypatch
+):
+    def never(*args, **kwargs):
+        raise AssertionError("predict_dataset ran although --out cannot be written")
+
+    monkeypatch.setattr("poseflow.eval.predict.predict_dataset", never)
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    argv = ["predict", str(dataset), "--method", "baseline", "--out", str(blocker / "r.csv")]
+    assert main([*argv, "--no-progress"]) == 1
+    assert "cannot write in" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("command", ["prepare", "train", "predict"])
@@ -210,17 +224,18 @@ def test_missing_dataset_is_a_clear_error(command, tmp_path, capsys):
     argv = [command, str(missing), "--out", str(tmp_path / "o")]
     if command == "predict":
         argv += ["--method", "baseline"]
-    assert main(argv) == 2
+    assert main(argv) == 1  # a failed run, not a usage error
     err = capsys.readouterr().err
     assert f"poseflow {command}: error: dataset folder {missing} does not exist" in err
 
 
 def test_missing_split_and_models_are_clear_errors(dataset, tmp_path, capsys):
-    assert main(["train", str(dataset), "--out", str(tmp_path), "--split", "train_pbr"]) == 2
+    assert main(["train", str(dataset), "--out", str(tmp_path), "--split", "train_pbr"]) == 1
     assert "has no split 'train_pbr'" in capsys.readouterr().err
     empty = tmp_path / "empty"
     (empty / "test").mkdir(parents=True)
-    assert main(["predict", str(empty), "--method", "baseline", "--out", "x.csv"]) == 2
+    out = str(tmp_path / "x.csv")
+    assert main(["predict", str(empty), "--method", "baseline", "--out", out]) == 1
     assert "models_info.json is missing" in capsys.readouterr().err
 
 

@@ -6,8 +6,8 @@ imported only when listed here, and its heavy imports happen inside its ``run`` 
 
 Exit codes: 0 on success, 1 when the run fails (a :class:`~poseflow.errors.PoseflowError`: a
 missing or malformed file, implausible units, a failed write), 2 for usage errors (argparse's, a
-:class:`~poseflow.errors.UsageError`, or a ``ValueRangeError`` raised by the command line's own
-checks of its options) and when no subcommand is given. Status lines and warnings go through
+:class:`~poseflow.errors.UsageError`, or a plain ``ValueRangeError``: an argument's value out of
+its range) and when no subcommand is given. Status lines and warnings go through
 :mod:`logging` to stderr, written around the progress bars; results go to stdout.
 """
 
@@ -52,8 +52,9 @@ def build_parser() -> argparse.ArgumentParser:
 def is_usage_error(exc: BaseException) -> bool:
     """Whether ``exc`` is a usage error (exit code 2).
 
-    A :class:`UsageError`, or a ``ValueRangeError`` raised by the command line's own code (its
-    checks of option values), not by the library below it.
+    A :class:`UsageError`, or a plain ``ValueRangeError`` (an argument outside its range, such
+    as an unknown solver name); its subclasses that describe data (``UnitsError``,
+    ``ResultsFormatError``) and every other error are failed runs.
 
     Example:
         >>> is_usage_error(UsageError("--images must be at least 1"))
@@ -61,18 +62,7 @@ def is_usage_error(exc: BaseException) -> bool:
         >>> is_usage_error(PoseflowError("the file is truncated"))
         False
     """
-    if isinstance(exc, UsageError):
-        return True
-    if type(exc) is not ValueRangeError:
-        return False
-    tb = exc.__traceback__
-    module = None
-    while tb is not None:
-        name = tb.tb_frame.f_globals.get("__name__", "")
-        if name.startswith("poseflow."):
-            module = name
-        tb = tb.tb_next
-    return module is not None and module.startswith("poseflow.cli.")
+    return isinstance(exc, UsageError) or type(exc) is ValueRangeError
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -129,11 +129,12 @@ class _Formatter(logging.Formatter):
 
 @contextlib.contextmanager
 def command_output(args: argparse.Namespace) -> Iterator[None]:
-    """Route the status lines of ``poseflow``'s loggers and Python warnings to stderr for a run.
+    """Route the status lines of ``poseflow``'s loggers to stderr for a run; format warnings.
 
-    Status lines (level INFO of the ``poseflow`` loggers) and warnings (``warnings.warn`` and
-    level WARNING) are written as one line each, through ``tqdm.write`` so that they do not break
-    a progress bar; ``--quiet`` keeps the warnings only. Everything is restored on exit.
+    Status lines (level INFO of the ``poseflow`` loggers) and logged warnings are written as one
+    line each, through ``tqdm.write`` so that they do not break a progress bar; ``--quiet``
+    keeps the warnings only. Python warnings are printed as one ``warning: ...`` line rather
+    than with the file and source line of their origin. Everything is restored on exit.
 
     Args:
         args: the parsed arguments (``quiet`` is read).
@@ -141,22 +142,22 @@ def command_output(args: argparse.Namespace) -> Iterator[None]:
     logger = logging.getLogger("poseflow")
     handler = _BarSafeHandler()
     handler.setFormatter(_Formatter())
-    saved = (logger.level, logger.propagate, warnings.showwarning)
+    saved = (logger.level, logger.propagate, warnings.formatwarning)
     logger.addHandler(handler)
     logger.setLevel(logging.WARNING if getattr(args, "quiet", False) else logging.INFO)
     logger.propagate = False
 
-    def show(message: Any, category: Any, filename: str, lineno: int, *_: Any) -> None:
-        logger.warning("%s", message)
+    def one_line(message: Any, category: Any, filename: str, lineno: int, line: Any = None) -> str:
+        return f"warning: {message}\n"
 
-    warnings.showwarning = show
+    warnings.formatwarning = one_line
     try:
         yield
     finally:
         logger.removeHandler(handler)
         logger.setLevel(saved[0])
         logger.propagate = saved[1]
-        warnings.showwarning = saved[2]
+        warnings.formatwarning = saved[2]
 
 
 def check_writable(path: str | Path, *, flag: str = "--out", folder: bool = False) -> Path:

@@ -18,7 +18,7 @@ from typing import Any
 import torch
 
 from poseflow._checks import check_tensor
-from poseflow.errors import MissingFileError, ShapeError, ValueRangeError
+from poseflow.errors import MissingFileError, ResultsFormatError, ShapeError, ValueRangeError
 
 __all__ = ["HEADER", "ROTATION_TOLERANCE", "PoseResults", "read_results", "write_results"]
 
@@ -188,7 +188,7 @@ def read_results(path: str | os.PathLike[str]) -> PoseResults:
 
     Raises:
         MissingFileError: the file does not exist.
-        ValueRangeError: wrong header, a line without 7 fields, a field that is not a number,
+        ResultsFormatError: wrong header, a line without 7 fields, a field that is not a number,
             R without 9 or t without 3 numbers, a non-finite number, an R that is not a rotation
             (the message names the file and line), or different times for one image.
     """
@@ -201,10 +201,10 @@ def read_results(path: str | os.PathLike[str]) -> PoseResults:
         with open(path, encoding="utf-8-sig") as f:
             lines = [ln.strip() for ln in f]
     except UnicodeDecodeError as exc:
-        raise ValueRangeError(f"{path} is not a text (UTF-8/ASCII) CSV file: {exc}") from None
+        raise ResultsFormatError(f"{path} is not a text (UTF-8/ASCII) CSV file: {exc}") from None
     if not lines or lines[0] != HEADER:
         got = lines[0] if lines else "an empty file"
-        raise ValueRangeError(f"{path}: the header must be exactly {HEADER!r}, got {got!r}")
+        raise ResultsFormatError(f"{path}: the header must be exactly {HEADER!r}, got {got!r}")
     ints: list[tuple[int, int, int]] = []
     scores, times, mats = [], [], []
     for n, line in enumerate(lines[1:], 2):
@@ -212,7 +212,7 @@ def read_results(path: str | os.PathLike[str]) -> PoseResults:
             continue
         fields = line.split(",")
         if len(fields) != 7:
-            raise ValueRangeError(
+            raise ResultsFormatError(
                 f"{path}:{n}: expected 7 comma-separated fields, got {len(fields)}"
             )
         where = f"{path}:{n}"
@@ -228,9 +228,11 @@ def read_results(path: str | os.PathLike[str]) -> PoseResults:
         t = [_parse(float, x, where, "t") for x in fields[5].split()]
         time = _parse(float, fields[6], where, "time")
         if len(R) != 9 or len(t) != 3:
-            raise ValueRangeError(f"{where}: R needs 9 numbers and t 3, got {len(R)} and {len(t)}")
+            raise ResultsFormatError(
+                f"{where}: R needs 9 numbers and t 3, got {len(R)} and {len(t)}"
+            )
         if not all(math.isfinite(x) for x in (score, time, *R, *t)):
-            raise ValueRangeError(f"{where}: non-finite number")
+            raise ResultsFormatError(f"{where}: non-finite number")
         _check_rotation(R, where)
         scores.append(score)
         times.append(time)
@@ -248,7 +250,10 @@ def read_results(path: str | os.PathLike[str]) -> PoseResults:
         poses,
         torch.tensor(times, dtype=torch.float64),
     )
-    out.image_times()
+    try:
+        out.image_times()
+    except ValueRangeError as exc:
+        raise ResultsFormatError(f"{path}: {exc}") from None
     return out
 
 
@@ -258,7 +263,7 @@ def _parse(kind: type, text: str, where: str, field: str) -> Any:
         return kind(text)
     except ValueError:
         what = "an integer" if kind is int else "a number"
-        raise ValueRangeError(f"{where}: {field} {text.strip()!r} is not {what}") from None
+        raise ResultsFormatError(f"{where}: {field} {text.strip()!r} is not {what}") from None
 
 
 def _check_rotation(R: Sequence[float], where: str) -> None:
@@ -268,7 +273,7 @@ def _check_rotation(R: Sequence[float], where: str) -> None:
     det = float(torch.linalg.det(m))
     if ortho > ROTATION_TOLERANCE or abs(det - 1.0) > ROTATION_TOLERANCE:
         kind = "a reflection (det -1)" if abs(det + 1.0) <= ROTATION_TOLERANCE else "not a rotation"
-        raise ValueRangeError(
+        raise ResultsFormatError(
             f"{where}: R is {kind} (|R Rᵀ - I| = {ortho:.3g}, det R = {det:.3g}); a BOP results "
             "file holds rotation matrices, row-major"
         )
