@@ -98,7 +98,7 @@ def check_depth_units(
     median = float(valid.float().median())
     low, high = DEPTH_RANGE
     if not low <= median <= high:
-        guess = "millimetres read as metres? " if median > high else "metres read as mm? "
+        guess = "millimetres read as metres? " if median > high else "metres read as millimetres? "
         raise UnitsError(
             f"{where} has a median depth of {median:g} m, outside the plausible {low:g}-{high:g} "
             f"m: {guess}{_fix(scale_name, scale, _suggest(median, low, high, scale), api_name)}"
