@@ -38,12 +38,17 @@ DEPTH_RANGE: tuple[float, float] = (0.1, 10.0)
 DIAMETER_RANGE: tuple[float, float] = (0.005, 5.0)
 
 
-def _suggest(value: float, low: float, high: float, scale: float) -> float | None:
-    """The scale (a power of ten times ``scale``) that brings ``value`` into ``[low, high]``."""
-    for factor in (1e-3, 1e3, 1e-2, 1e2, 1e-1, 10.0):
-        if low <= value * factor <= high:
-            return scale * factor
-    return None
+def _suggest(value: float, low: float, high: float, scale: float, typical: float) -> float | None:
+    """The scale (a power of ten times ``scale``) that brings ``value`` into ``[low, high]``.
+
+    Of several, the one that brings it nearest ``typical`` (the usual magnitude), so that depth
+    in units of 0.1 mm is not taken for millimetres of a scene 8 m away.
+    """
+    factors = [10.0**k for k in range(-6, 7) if k != 0 and low <= value * 10.0**k <= high]
+    if not factors or not value > 0:
+        return None
+    best = min(factors, key=lambda f: abs(math.log10(value * f / typical)))
+    return scale * best
 
 
 def _fix(name: str, scale: float, suggested: float | None, api_name: str | None = None) -> str:
@@ -99,9 +104,10 @@ def check_depth_units(
     low, high = DEPTH_RANGE
     if not low <= median <= high:
         guess = "millimetres read as metres? " if median > high else "metres read as millimetres? "
+        suggested = _suggest(median, low, high, scale, 1.0)
         raise UnitsError(
             f"{where} has a median depth of {median:g} m, outside the plausible {low:g}-{high:g} "
-            f"m: {guess}{_fix(scale_name, scale, _suggest(median, low, high, scale), api_name)}"
+            f"m: {guess}{_fix(scale_name, scale, suggested, api_name)}"
         )
     return median
 
@@ -142,9 +148,10 @@ def check_diameter_units(
     low, high = DIAMETER_RANGE
     if not (math.isfinite(diameter) and low <= diameter <= high):
         guess = "is the mesh in millimetres? " if diameter > high else ""
+        suggested = _suggest(diameter, low, high, scale, 0.1)
         raise UnitsError(
             f"{where} has a diameter of {diameter:g} m, outside the plausible {low:g}-{high:g} "
-            f"m: {guess}{_fix(scale_name, scale, _suggest(diameter, low, high, scale), api_name)}"
+            f"m: {guess}{_fix(scale_name, scale, suggested, api_name)}"
         )
     return diameter
 

@@ -312,7 +312,7 @@ def test_from_file_refuses_an_implausible_scale(tmp_path: Path) -> None:
     write_bop_model(tmp_path / "box.ply", TexturedMesh.from_open3d(box))  # written in mm
     with pytest.raises(UnitsError, match=r"box\.ply has a diameter of 118\.7.* set scale=0\.001"):
         ObjectModel.from_file(tmp_path / "box.ply", num_points=32)
-    with pytest.raises(UnitsError, match="--mesh-scale 0.001"):
+    with pytest.raises(UnitsError, match=r"--mesh-scale 0\.001"):
         ObjectModel.from_file(tmp_path / "box.ply", num_points=32, scale_name="--mesh-scale")
     model = ObjectModel.from_file(tmp_path / "box.ply", scale=0.001, num_points=32)
     assert model.diameter == pytest.approx(math.sqrt(0.1**2 + 0.05**2 + 0.04**2), rel=1e-6)

@@ -318,9 +318,8 @@ def test_objects_from_a_bop_models_folder(noisy, tmp_path):
 
 
 def test_meshes_in_millimetres_without_mesh_scale_are_refused(tmp_path, objects):
-    from poseflow.errors import UnitsError
-
     from poseflow.data.objects import write_bop_model
+    from poseflow.errors import UnitsError
 
     write_bop_model(tmp_path / "meshes" / "m0.ply", objects[0].mesh)  # in mm
     with pytest.raises(UnitsError, match=r"m0\.ply has a diameter of .* set --mesh-scale 0\.001"):
