@@ -11,6 +11,7 @@ import socket
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 import torch
 
@@ -375,3 +376,69 @@ def test_select_targets_from_the_file_the_ground_truth_or_the_detections(dataset
     )
     dets = [Detection(0, 0, 2, 0.9, (0, 0, 1, 1)), Detection(0, 0, 2, 0.8, (0, 0, 1, 1))]
     assert [(t.obj_id, t.inst_count) for t in select_targets(test, detections=dets)] == [(2, 2)]
+
+
+# ------------------------------------------------------------------------------ caches and resume
+
+
+def test_the_training_set_cache_follows_the_images(run_dir, dataset, tmp_path, capsys):
+    from PIL import Image
+
+    copy = tmp_path / "copy"
+    shutil.copytree(dataset, copy)  # the same content in another place
+    out = tmp_path / "run"
+    out.mkdir()
+    for name in ("train_set.safetensors", "train_set.json"):
+        shutil.copy(run_dir / name, out / name)
+    base = ["train", str(copy), "--out", str(out), *TINY, "--no-progress", "--data-only"]
+    capsys.readouterr()
+    assert main(base) == 0
+    assert "training set built" in capsys.readouterr().out  # another dataset path
+    assert main(base) == 0
+    assert "training set reused" in capsys.readouterr().out
+    image = copy / "train" / "000000" / "rgb" / "000000.png"
+    with Image.open(image) as im:
+        pixels = np.asarray(im).copy()
+    Image.fromarray(255 - pixels).save(image)  # other images, same annotations
+    assert main(base) == 0
+    assert "training set built" in capsys.readouterr().out
+
+
+def test_a_corrupt_training_set_cache_is_rebuilt_with_a_warning(run_dir, dataset, tmp_path, capsys):
+    out = tmp_path / "run"
+    out.mkdir()
+    for name in ("train_set.safetensors", "train_set.json"):
+        shutil.copy(run_dir / name, out / name)
+    base = ["train", str(dataset), "--out", str(out), *TINY, "--no-progress", "--data-only"]
+    (out / "train_set.json").write_text('{"dataset": "ab')  # cut short
+    capsys.readouterr()
+    with pytest.warns(UserWarning, match=r"train_set\.json is corrupt"):
+        assert main(base) == 0
+    assert "training set built" in capsys.readouterr().out
+    assert json.loads((out / "train_set.json").read_text())["split"] == "train"  # whole again
+    data = out / "train_set.safetensors"
+    data.write_bytes(data.read_bytes()[:-100])
+    with pytest.warns(UserWarning, match=r"train_set\.safetensors is truncated or corrupt"):
+        assert main(base) == 0
+    assert "training set built" in capsys.readouterr().out
+    assert not list(out.glob("*.tmp")) and not list(out.glob(".*.tmp"))
+
+
+def test_resume_with_other_settings_warns_and_keeps_the_original_record(run_dir, dataset, tmp_path):
+    out = tmp_path / "run"
+    shutil.copytree(run_dir, out)
+    original = json.loads((out / "run.json").read_text())
+    argv = ["train", str(dataset), "--out", str(out), "--steps", "4", "--batch-size", "2"]
+    with pytest.warns(UserWarning, match=r"steps 4 \(was 3\), batch_size 2 \(was 4\)"):
+        assert main([*argv, "--resume", "--no-progress"]) == 0
+    record = json.loads((out / "run.json").read_text())
+    assert record["train"] == original["train"] and record["config"] == original["config"]
+    assert [r["train"]["batch_size"] for r in record["resumed"]] == [2]
+
+
+def test_predict_defaults_to_the_demo_model_with_a_note(dataset, tmp_path, capsys):
+    csv = tmp_path / "r.csv"
+    argv = ["predict", str(dataset), "--out", str(csv), "--max-images", "1", "--no-progress"]
+    assert main(argv) == 0
+    assert "note: no --model given: using the demo model" in capsys.readouterr().err
+    assert len(read_results(csv)) >= 1
