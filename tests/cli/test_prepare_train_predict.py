@@ -442,3 +442,11 @@ def test_predict_defaults_to_the_demo_model_with_a_note(dataset, tmp_path, capsy
     assert main(argv) == 0
     assert "note: no --model given: using the demo model" in capsys.readouterr().err
     assert len(read_results(csv)) >= 1
+
+
+@pytest.mark.parametrize("command", ["prepare", "train"])
+def test_an_unwritable_out_fails_before_any_work(command, dataset, tmp_path, capsys):
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    assert main([command, str(dataset), "--out", str(blocker / "run"), *TINY, "-q"]) == 1
+    assert "cannot write in" in capsys.readouterr().err

@@ -58,6 +58,7 @@ def run(args: argparse.Namespace) -> int:
     from poseflow.cli.common import (
         build_config,
         check_dataset,
+        check_writable,
         config_requested,
         load_object_models,
         object_cache_dir,
@@ -69,6 +70,7 @@ def run(args: argparse.Namespace) -> int:
 
     start = time.perf_counter()
     root = check_dataset(args.dataset)
+    check_writable(args.out, folder=True)
     if is_checkpoint(args.out):
         if config_requested(args):
             raise UsageError(

@@ -270,6 +270,7 @@ def run(args: argparse.Namespace) -> int:
 
     from poseflow.cli.common import (
         check_dataset,
+        check_writable,
         load_object_models,
         object_cache_dir,
         resolve_device,
@@ -288,7 +289,7 @@ def run(args: argparse.Namespace) -> int:
 
     start = time.perf_counter()
     root = check_dataset(args.dataset, args.split)
-    out = Path(args.out)
+    out = check_writable(args.out, folder=True)
     if args.copies < 1 or args.steps < 1:
         raise UsageError("--copies and --steps must be at least 1")
     warmup = min(500, args.steps // 10) if args.warmup_steps is None else args.warmup_steps
