@@ -117,7 +117,8 @@ def test_resume_reuses_the_training_set_and_continues(run_dir, dataset, tmp_path
     data_stamp = (out / "train_set.safetensors").stat().st_mtime_ns
     capsys.readouterr()
     argv = ["train", str(dataset), "--out", str(out), "--steps", "4", "--batch-size", "4"]
-    assert main([*argv, "--resume", "--no-progress"]) == 0  # config from run.json
+    with pytest.warns(UserWarning, match=r"steps 4 \(was 3\)"):  # more steps: told, allowed
+        assert main([*argv, "--resume", "--no-progress"]) == 0  # config from run.json
     text = capsys.readouterr().out
     assert "training set reused: " in text and "trained 4 steps" in text
     assert (out / "train_set.safetensors").stat().st_mtime_ns == data_stamp
