@@ -154,3 +154,13 @@ def test_no_detection_for_the_image_writes_empty_poses(frame, tmp_path, capsys):
     assert main([*argv, "--im-id", "0"]) == 0
     assert json.loads((tmp_path / "out" / "poses.json").read_text())["poses"] == []
     assert "warning: no instance to estimate" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_estimate_with_the_demo_model_caches_the_prepared_mesh(frame, tmp_path, capsys):
+    argv = [*_argv(frame, tmp_path / "out"), "--model", "demo", "--cache", str(tmp_path / "c")]
+    assert main([*argv, "--no-progress"]) == 0
+    (pose,) = json.loads((tmp_path / "out" / "poses.json").read_text())["poses"]
+    assert pose["valid"] and pose["t_m"][2] > 0
+    assert len(list((tmp_path / "c" / "objects").glob("*/obj_000001/object.json"))) == 1
+    assert "FunFlow6D" in capsys.readouterr().out
