@@ -5,7 +5,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 export OMP_NUM_THREADS ?= 2
 
-.PHONY: demo test test-slow lint bench bench-unseen bench-quick venv sysdeps clean
+.PHONY: demo test test-slow lint bench bench-unseen bench-quick venv sysdeps clean wheel-check
 
 sysdeps:
 	@$(PYTHON) -c "import ctypes.util,sys; sys.exit(0 if all(ctypes.util.find_library(l) for l in ('usb-1.0','GL','EGL')) else 1)" \
@@ -47,6 +47,31 @@ bench-quick: $(STAMP)
 
 demo: $(STAMP)
 	$(PY) -m poseflow.cli demo
+
+# A user's first run from the built wheel alone: a fresh venv with torch and the wheel (its
+# dependencies from the registry, no extras), then the demo and `poseflow estimate` on a
+# generated frame, run outside the source tree (in build/wheel-check).
+WHEEL_DIR := build/wheel-check
+FRAME := frame/test/000000
+
+wheel-check:
+	$(MAKE) sysdeps
+	rm -rf dist $(WHEEL_DIR)
+	$(PYTHON) -m pip wheel -q --no-deps -w dist .
+	$(PYTHON) -m venv $(WHEEL_DIR)/venv
+	$(WHEEL_DIR)/venv/bin/python -m pip install -q torch==2.13.0
+	$(WHEEL_DIR)/venv/bin/python -m pip install -q dist/poseflow-*.whl
+	cd $(WHEEL_DIR) && venv/bin/poseflow demo --images 2 --out demo --no-progress
+	cd $(WHEEL_DIR) && venv/bin/poseflow synth frame --train 0 --test 1 --objects-per-image 1 \
+	  --width 320 --height 240 --no-progress
+	cd $(WHEEL_DIR) && venv/bin/poseflow estimate --rgb $(FRAME)/rgb/000000.png \
+	  --depth $(FRAME)/depth/000000.png --K $(FRAME)/scene_camera.json \
+	  --mask $(FRAME)/mask_visib/000000_000000.png --mesh frame/models \
+	  --obj-id $$(venv/bin/python -c "import json; print(json.load(open('$(FRAME)/scene_gt.json'))['0'][0]['obj_id'])") \
+	  --out estimate --no-progress
+	cd $(WHEEL_DIR) && venv/bin/python -c "import json, sys; \
+	  p = json.load(open('estimate/poses.json'))['poses']; \
+	  sys.exit(0 if len(p) == 1 and p[0]['valid'] else 'poseflow estimate: no valid pose')"
 
 clean:
 	rm -rf $(VENV) build dist src/*.egg-info

@@ -8,13 +8,20 @@ from __future__ import annotations
 
 __all__ = [
     "BOPFormatError",
+    "CheckpointError",
     "DegenerateInputError",
     "MeshFormatError",
     "MissingDependencyError",
     "MissingFileError",
+    "MissingSystemLibraryError",
     "MissingWeightsError",
+    "NotWritableError",
+    "OutputExistsError",
     "PoseflowError",
+    "ResultsFormatError",
     "ShapeError",
+    "UnitsError",
+    "UsageError",
     "ValueRangeError",
 ]
 
@@ -36,12 +43,32 @@ class DegenerateInputError(PoseflowError, ValueError):
 
 
 class MissingDependencyError(PoseflowError, ImportError):
-    """An optional dependency is not installed; the message names the extra that installs it."""
+    """A dependency is not installed; the message names the extra (or command) that installs it."""
 
-    def __init__(self, package: str, extra: str, purpose: str = "") -> None:
+    def __init__(
+        self, package: str, extra: str | None, purpose: str = "", *, install: str | None = None
+    ) -> None:
         why = f" for {purpose}" if purpose else ""
+        fix = install if install is not None else f"pip install 'poseflow[{extra}]'"
+        super().__init__(f"{package} is needed{why} but is not installed: {fix}")
+
+
+class MissingSystemLibraryError(PoseflowError, ImportError):
+    """A system library that a dependency loads is missing; the message names the apt package.
+
+    Args:
+        package: the Python package that failed to import (``open3d``).
+        library: the shared library it could not load (``libGL.so.1``), or ``""`` when unknown.
+        apt_packages: the Debian/Ubuntu packages that provide it.
+        purpose: what the package is needed for.
+    """
+
+    def __init__(self, package: str, library: str, apt_packages: str, purpose: str = "") -> None:
+        why = f" (needed for {purpose})" if purpose else ""
+        what = f"the system library {library}" if library else "a system library"
         super().__init__(
-            f"{package} is needed{why} but is not installed: pip install 'poseflow[{extra}]'"
+            f"{package} cannot be imported{why}: {what} is missing; install it with "
+            f"`sudo apt-get install {apt_packages}` (or your system's equivalent)"
         )
 
 
@@ -53,8 +80,35 @@ class MissingFileError(PoseflowError, FileNotFoundError):
     """A file or folder that a dataset or model format requires is missing."""
 
 
+class CheckpointError(PoseflowError, ValueError):
+    """A checkpoint, cache or configuration file is truncated, corrupt or of the wrong type."""
+
+
+class NotWritableError(PoseflowError, PermissionError):
+    """An output path cannot be written (checked before any work is done)."""
+
+
+class UnitsError(ValueRangeError):
+    """Values whose magnitude shows a unit mix-up (millimetres read as metres, or the reverse).
+
+    The message says which option or argument sets the scale.
+    """
+
+
+class UsageError(ValueRangeError):
+    """A command-line option is invalid, missing or conflicts with another (exit code 2)."""
+
+
+class OutputExistsError(PoseflowError, FileExistsError):
+    """An output file or folder exists and overwriting it was not asked for."""
+
+
 class BOPFormatError(PoseflowError, ValueError):
     """A BOP file is malformed: a missing key, a wrong type or shape, or implausible units."""
+
+
+class ResultsFormatError(BOPFormatError, ValueRangeError):
+    """A BOP results file is malformed: a bad header, field, number or rotation (file and line)."""
 
 
 class MeshFormatError(DegenerateInputError):

@@ -36,5 +36,33 @@ def test_pose_demo_writes_results_timing_and_overlays(tmp_path, capsys):
 def test_missing_model_is_a_clear_error(tmp_path, capsys):
     code = main(["demo", "--model", str(tmp_path / "none"), "--images", "1", "--out",
                  str(tmp_path / "o")])  # fmt: skip
-    assert code == 2
+    assert code == 1  # a failed run: exit code 2 is for usage errors
     assert "poseflow train" in capsys.readouterr().err
+
+
+def test_the_timing_chart_is_optional(tmp_path, monkeypatch, capsys):
+    import argparse
+
+    from poseflow.cli.common import command_output
+    from poseflow.cli.demo import write_timing_chart
+    from poseflow.eval import StageTimer
+
+    ticks = iter(range(100))
+    timer = StageTimer(clock=lambda: float(next(ticks)))
+    with timer.image(), timer.stage("flow_net"):
+        pass
+    for name in ("matplotlib", "matplotlib.figure"):
+        monkeypatch.setitem(__import__("sys").modules, name, None)  # as on a plain install
+    with command_output(argparse.Namespace(quiet=False)):
+        assert write_timing_chart(timer, tmp_path / "timing.png") is False
+    assert not (tmp_path / "timing.png").exists()
+    err = capsys.readouterr().err
+    assert "timing.png skipped" in err and "pip install 'poseflow[viz]'" in err
+    assert len(err.strip().splitlines()) == 1
+
+
+def test_model_demo_and_images_are_checked_as_usage(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["demo", "--images", "0", "--out", str(tmp_path / "o")])
+    assert exc.value.code == 2
+    assert "must be at least 1" in capsys.readouterr().err

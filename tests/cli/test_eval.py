@@ -59,3 +59,58 @@ def test_eval_metric_subset_and_json_path(dataset, tmp_path, capsys):
     args.run(args)
     assert capsys.readouterr().out.splitlines()[0].split() == ["object", "targets", "AR_MSSD", "AR"]
     assert json.loads(out_json.read_text())["metrics"] == ["mssd"]
+
+
+def test_a_missing_results_file_is_a_failed_run(dataset, tmp_path, capsys):
+    from poseflow.cli import main
+
+    assert main(["eval", str(dataset), str(tmp_path / "none.csv")]) == 1
+    err = capsys.readouterr().err
+    assert "none.csv does not exist" in err and "--run-baseline" in err
+
+
+def test_bad_rows_name_file_and_line_and_a_bom_is_read(dataset, tmp_path, capsys):
+    from poseflow.cli import main
+
+    csv = tmp_path / "r.csv"
+    write_results(csv, gt_results(dataset))
+    lines = csv.read_text().splitlines()
+    csv.write_bytes(("\ufeff" + "\r\n".join(lines) + "\r\n").encode("utf-8"))  # a spreadsheet's
+    assert main(["eval", str(dataset), str(csv), "--metrics", "mssd", "-q"]) == 0
+    assert "report written to" in capsys.readouterr().out
+    fields = lines[1].split(",")
+    fields[4] = "0 0 0 0 0 0 0 0 0"
+    csv.write_text("\n".join([lines[0], ",".join(fields), *lines[2:]]) + "\n")
+    assert main(["eval", str(dataset), str(csv), "--metrics", "mssd", "-q"]) == 1
+    assert f"{csv}:2: R is not a rotation" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["eval", str(dataset), str(csv), "--progress"])  # the flag is --no-progress now
+    assert main(["eval", str(dataset), str(csv), "--metrics", "add"]) == 2
+
+
+def test_run_baseline_does_not_overwrite_without_asking(dataset, tmp_path, capsys):
+    from poseflow.cli import main
+
+    csv = tmp_path / "mine.csv"
+    csv.write_text("my own results\n")
+    assert main(["eval", str(dataset), str(csv), "--run-baseline", "--no-progress"]) == 1
+    assert "pass --overwrite" in capsys.readouterr().err
+    assert csv.read_text() == "my own results\n"
+
+
+def test_warnings_print_as_one_line(dataset, tmp_path):
+    import subprocess
+    import sys
+
+    res = gt_results(dataset)
+    res.obj_ids[:] = 9  # no model
+    csv = tmp_path / "r.csv"
+    write_results(csv, res)
+    proc = subprocess.run(
+        [sys.executable, "-m", "poseflow.cli", "eval", str(dataset), str(csv), "--metrics",
+         "mssd", "--quiet"],
+        capture_output=True, text=True, check=False,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    warning = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    assert len(warning) == 1 and warning[0].startswith("warning: 2 results rows name objects")

@@ -11,6 +11,7 @@ import socket
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 import torch
 
@@ -116,7 +117,8 @@ def test_resume_reuses_the_training_set_and_continues(run_dir, dataset, tmp_path
     data_stamp = (out / "train_set.safetensors").stat().st_mtime_ns
     capsys.readouterr()
     argv = ["train", str(dataset), "--out", str(out), "--steps", "4", "--batch-size", "4"]
-    assert main([*argv, "--resume", "--no-progress"]) == 0  # config from run.json
+    with pytest.warns(UserWarning, match=r"steps 4 \(was 3\)"):  # more steps: told, allowed
+        assert main([*argv, "--resume", "--no-progress"]) == 0  # config from run.json
     text = capsys.readouterr().out
     assert "training set reused: " in text and "trained 4 steps" in text
     assert (out / "train_set.safetensors").stat().st_mtime_ns == data_stamp
@@ -195,12 +197,12 @@ def test_predict_from_detections_with_sampler_options(run_dir, dataset, tmp_path
 
 def test_predict_options_are_checked_before_any_work(run_dir, dataset, tmp_path, capsys):
     base = ["predict", str(dataset), "--out", str(tmp_path / "r.csv"), "--no-progress"]
-    assert main(base) == 2
-    assert "--model MODEL_DIR is needed" in capsys.readouterr().err
-    assert main([*base, "--model", str(tmp_path / "nothing")]) == 2
+    assert main([*base, "--model", str(tmp_path / "nothing")]) == 1  # a failed run
     assert "holds no FunFlow6D checkpoint" in capsys.readouterr().err
-    assert main([*base, "--model", str(run_dir / "model"), "--solver", "leapfrog"]) == 2
-    assert "solver must be one of euler" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exc:  # a usage error, from the option's type
+        main([*base, "--model", str(run_dir / "model"), "--solver", "leapfrog"])
+    assert exc.value.code == 2
+    assert "'leapfrog' is not one of euler" in capsys.readouterr().err
     model = ["--model", str(run_dir / "model")]
     assert main([*base, *model, "--set", 'verifier={"crop_size": 60}']) == 2
     assert "block_size" in capsys.readouterr().err
@@ -234,23 +236,38 @@ def test_predict_verifies_unless_told_not_to(run_dir, dataset, tmp_path, capsys)
     assert "funflow6d + verification" in capsys.readouterr().out
 
 
+def test_predict_checks_that_out_is_writable_before_any_work(
+    dataset, tmp_path, capsys, monkeypatch
+):
+    def never(*args, **kwargs):
+        raise AssertionError("predict_dataset ran although --out cannot be written")
+
+    monkeypatch.setattr("poseflow.eval.predict.predict_dataset", never)
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    argv = ["predict", str(dataset), "--method", "baseline", "--out", str(blocker / "r.csv")]
+    assert main([*argv, "--no-progress"]) == 1
+    assert "cannot write in" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("command", ["prepare", "train", "predict"])
 def test_missing_dataset_is_a_clear_error(command, tmp_path, capsys):
     missing = tmp_path / "no_such_dataset"
     argv = [command, str(missing), "--out", str(tmp_path / "o")]
     if command == "predict":
         argv += ["--method", "baseline"]
-    assert main(argv) == 2
+    assert main(argv) == 1  # a failed run, not a usage error
     err = capsys.readouterr().err
     assert f"poseflow {command}: error: dataset folder {missing} does not exist" in err
 
 
 def test_missing_split_and_models_are_clear_errors(dataset, tmp_path, capsys):
-    assert main(["train", str(dataset), "--out", str(tmp_path), "--split", "train_pbr"]) == 2
+    assert main(["train", str(dataset), "--out", str(tmp_path), "--split", "train_pbr"]) == 1
     assert "has no split 'train_pbr'" in capsys.readouterr().err
     empty = tmp_path / "empty"
     (empty / "test").mkdir(parents=True)
-    assert main(["predict", str(empty), "--method", "baseline", "--out", "x.csv"]) == 2
+    out = str(tmp_path / "x.csv")
+    assert main(["predict", str(empty), "--method", "baseline", "--out", out]) == 1
     assert "models_info.json is missing" in capsys.readouterr().err
 
 
@@ -391,3 +408,77 @@ def test_select_targets_from_the_file_the_ground_truth_or_the_detections(dataset
     )
     dets = [Detection(0, 0, 2, 0.9, (0, 0, 1, 1)), Detection(0, 0, 2, 0.8, (0, 0, 1, 1))]
     assert [(t.obj_id, t.inst_count) for t in select_targets(test, detections=dets)] == [(2, 2)]
+
+
+# ------------------------------------------------------------------------------ caches and resume
+
+
+def test_the_training_set_cache_follows_the_images(run_dir, dataset, tmp_path, capsys):
+    from PIL import Image
+
+    copy = tmp_path / "copy"
+    shutil.copytree(dataset, copy)  # the same content in another place
+    out = tmp_path / "run"
+    out.mkdir()
+    for name in ("train_set.safetensors", "train_set.json"):
+        shutil.copy(run_dir / name, out / name)
+    base = ["train", str(copy), "--out", str(out), *TINY, "--no-progress", "--data-only"]
+    capsys.readouterr()
+    assert main(base) == 0
+    assert "training set built" in capsys.readouterr().out  # another dataset path
+    assert main(base) == 0
+    assert "training set reused" in capsys.readouterr().out
+    image = copy / "train" / "000000" / "rgb" / "000000.png"
+    with Image.open(image) as im:
+        pixels = np.asarray(im).copy()
+    Image.fromarray(255 - pixels).save(image)  # other images, same annotations
+    assert main(base) == 0
+    assert "training set built" in capsys.readouterr().out
+
+
+def test_a_corrupt_training_set_cache_is_rebuilt_with_a_warning(run_dir, dataset, tmp_path, capsys):
+    out = tmp_path / "run"
+    out.mkdir()
+    for name in ("train_set.safetensors", "train_set.json"):
+        shutil.copy(run_dir / name, out / name)
+    base = ["train", str(dataset), "--out", str(out), *TINY, "--no-progress", "--data-only"]
+    (out / "train_set.json").write_text('{"dataset": "ab')  # cut short
+    capsys.readouterr()
+    with pytest.warns(UserWarning, match=r"train_set\.json is corrupt"):
+        assert main(base) == 0
+    assert "training set built" in capsys.readouterr().out
+    assert json.loads((out / "train_set.json").read_text())["split"] == "train"  # whole again
+    data = out / "train_set.safetensors"
+    data.write_bytes(data.read_bytes()[:-100])
+    with pytest.warns(UserWarning, match=r"train_set\.safetensors is truncated or corrupt"):
+        assert main(base) == 0
+    assert "training set built" in capsys.readouterr().out
+    assert not list(out.glob("*.tmp")) and not list(out.glob(".*.tmp"))
+
+
+def test_resume_with_other_settings_warns_and_keeps_the_original_record(run_dir, dataset, tmp_path):
+    out = tmp_path / "run"
+    shutil.copytree(run_dir, out)
+    original = json.loads((out / "run.json").read_text())
+    argv = ["train", str(dataset), "--out", str(out), "--steps", "4", "--batch-size", "2"]
+    with pytest.warns(UserWarning, match=r"steps 4 \(was 3\), batch_size 2 \(was 4\)"):
+        assert main([*argv, "--resume", "--no-progress"]) == 0
+    record = json.loads((out / "run.json").read_text())
+    assert record["train"] == original["train"] and record["config"] == original["config"]
+    assert [r["train"]["batch_size"] for r in record["resumed"]] == [2]
+
+
+def test_predict_defaults_to_the_demo_model_with_a_note(dataset, tmp_path, capsys):
+    csv = tmp_path / "r.csv"
+    argv = ["predict", str(dataset), "--out", str(csv), "--max-images", "1", "--no-progress"]
+    assert main(argv) == 0
+    assert "note: no --model given: using the demo model" in capsys.readouterr().err
+    assert len(read_results(csv)) >= 1
+
+
+@pytest.mark.parametrize("command", ["prepare", "train"])
+def test_an_unwritable_out_fails_before_any_work(command, dataset, tmp_path, capsys):
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    assert main([command, str(dataset), "--out", str(blocker / "run"), *TINY, "-q"]) == 1
+    assert "cannot write in" in capsys.readouterr().err

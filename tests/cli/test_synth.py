@@ -66,3 +66,28 @@ def test_registered_in_main(tmp_path, mesh_folder, capsys):
     code = main([*argv, *"--train 0 --test 1 --width 48 --height 40 --no-progress".split()])
     assert code == 2  # a PoseflowError (missing folder) becomes exit code 2 with a message
     assert "synth: error" in capsys.readouterr().err
+
+
+def test_a_non_empty_folder_needs_overwrite(tmp_path, capsys, monkeypatch):
+    out = tmp_path / "ds"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    calls = []
+    monkeypatch.setattr(
+        "poseflow.data.synthetic.generate_dataset", lambda root, *a, **k: calls.append(root) or root
+    )
+    argv = ["synth", str(out), "--train", "0", "--test", "1", "--no-progress"]
+    assert main(argv) == 1
+    err = capsys.readouterr().err
+    assert "is not empty" in err and "--overwrite" in err
+    assert calls == []
+    assert main([*argv, "--overwrite"]) == 0
+    assert len(calls) == 1
+    assert main(["synth", str(tmp_path / "new"), "--train", "0", "--test", "1", "-q"]) == 0
+
+
+def test_meshes_in_millimetres_need_mesh_scale(tmp_path, mesh_folder, capsys):
+    argv = ["synth", str(tmp_path / "ds"), "--objects", str(mesh_folder), "--train", "0"]
+    assert main([*argv, "--test", "1", "--no-progress"]) == 1
+    err = capsys.readouterr().err
+    assert "a.ply has a diameter of" in err and "set --mesh-scale 0.001" in err

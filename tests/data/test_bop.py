@@ -391,3 +391,14 @@ def test_loader_with_worker_processes(dataset):
     root, _ = dataset
     loader = DataLoader(BOPInstanceDataset(root, "test"), batch_size=2, num_workers=2)
     assert sum(len(b["obj_id"]) for b in loader) == 6
+
+
+@pytest.mark.parametrize(
+    ("key", "value"), [("score", "high"), ("score", None), ("category_id", 1.5), ("time", "x")]
+)
+def test_detection_numbers_must_be_numbers(tmp_path, key, value):
+    entry = {"scene_id": 1, "image_id": 0, "category_id": 1, "score": 0.9, "time": 0.1}
+    entry[key] = value
+    (tmp_path / "d.json").write_text(json.dumps([entry]))
+    with pytest.raises(BOPFormatError, match=rf"entry 0, scene 1, image 0\): '{key}' must be"):
+        read_detections(tmp_path / "d.json")

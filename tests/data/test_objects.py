@@ -303,3 +303,32 @@ def test_object_model_from_file_and_bop_folder(tmp_path: Path) -> None:
     again = ObjectModel.from_file(paths[7], scale=0.001, info=infos[7], num_points=64)
     assert torch.allclose(again.symmetries, loaded.symmetries)
     assert "obj_000007" in repr(loaded)
+
+
+def test_from_file_refuses_an_implausible_scale(tmp_path: Path) -> None:
+    from poseflow.errors import UnitsError
+
+    box = o3d.geometry.TriangleMesh.create_box(0.1, 0.05, 0.04)
+    write_bop_model(tmp_path / "box.ply", TexturedMesh.from_open3d(box))  # written in mm
+    with pytest.raises(UnitsError, match=r"box\.ply has a diameter of 118\.7.* set scale=0\.001"):
+        ObjectModel.from_file(tmp_path / "box.ply", num_points=32)
+    with pytest.raises(UnitsError, match=r"--mesh-scale 0\.001"):
+        ObjectModel.from_file(tmp_path / "box.ply", num_points=32, scale_name="--mesh-scale")
+    model = ObjectModel.from_file(tmp_path / "box.ply", scale=0.001, num_points=32)
+    assert model.diameter == pytest.approx(math.sqrt(0.1**2 + 0.05**2 + 0.04**2), rel=1e-6)
+
+
+def test_content_key_follows_the_mesh_and_its_scale(tmp_path: Path) -> None:
+    box = o3d.geometry.TriangleMesh.create_box(0.1, 0.05, 0.04)
+    write_bop_model(tmp_path / "box.ply", TexturedMesh.from_open3d(box))
+    a = ObjectModel.from_file(tmp_path / "box.ply", scale=0.001, num_points=32)
+    same = ObjectModel.from_file(tmp_path / "box.ply", scale=0.001, num_points=32)
+    bigger = ObjectModel.from_file(tmp_path / "box.ply", scale=0.002, num_points=32)
+    other = ObjectModel.from_mesh(
+        o3d.geometry.TriangleMesh.create_box(0.1, 0.05, 0.05), num_points=32
+    )
+    denser = ObjectModel.from_file(tmp_path / "box.ply", scale=0.001, num_points=64)
+    assert a.content_key() == same.content_key()
+    assert (
+        len({a.content_key(), bigger.content_key(), other.content_key(), denser.content_key()}) == 4
+    )

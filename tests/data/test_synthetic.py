@@ -315,3 +315,16 @@ def test_objects_from_a_bop_models_folder(noisy, tmp_path):
     assert sorted(info) == [1, 2, 3]
     assert len(info[2].symmetries_continuous) == 1
     assert info[3].diameter == pytest.approx(before[3].diameter)
+
+
+def test_meshes_in_millimetres_without_mesh_scale_are_refused(tmp_path, objects):
+    from poseflow.data.objects import write_bop_model
+    from poseflow.errors import UnitsError
+
+    write_bop_model(tmp_path / "meshes" / "m0.ply", objects[0].mesh)  # in mm
+    with pytest.raises(UnitsError, match=r"m0\.ply has a diameter of .* set --mesh-scale 0\.001"):
+        _generate(tmp_path / "out", tmp_path / "meshes", num_train_images=0, num_test_images=1)
+    assert not (tmp_path / "out").exists()  # refused before anything is written
+    huge = objects[0].mesh.scaled(1000.0)  # a mesh in memory, in mm
+    with pytest.raises(UnitsError, match="scale it to metres"):
+        _generate(tmp_path / "out", [huge], num_train_images=0, num_test_images=1)

@@ -9,7 +9,7 @@ import open3d as o3d
 import pytest
 import torch
 
-from poseflow.data.bop import BOPDataset
+from poseflow.data.bop import BOPDataset, BOPDataWarning
 from poseflow.data.objects import ObjectModel
 from poseflow.data.synthetic import generate_dataset
 from poseflow.errors import ValueRangeError
@@ -121,7 +121,8 @@ def test_missing_estimates_and_non_target_images(dataset):
     extra = PoseResults.from_columns(
         [99, 0], [0, 77], [BOX, BOX], [1.0, 1.0], torch.eye(4).repeat(2, 1, 1)
     )
-    report = evaluate_bop(dataset, PoseResults.concat([half, extra]), metrics=("mssd", "mspd"))
+    with pytest.warns(BOPDataWarning, match=r"2 results rows name images .*scene 0 image 77"):
+        report = evaluate_bop(dataset, PoseResults.concat([half, extra]), metrics=("mssd", "mspd"))
     full = evaluate_bop(dataset, res, metrics=("mssd",))
     n = full["num_targets"]
     found = int(keep.sum())  # the GT results hold exactly one estimate per target instance here
@@ -158,3 +159,31 @@ def test_csv_path_and_derived_targets(dataset, tmp_path):
 def test_unknown_metric_raises(dataset):
     with pytest.raises(ValueRangeError):
         evaluate_bop(dataset, gt_results(dataset), metrics=("add",))
+
+
+def test_gt_results_raise_no_warning(dataset):
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert evaluate_bop(dataset, gt_results(dataset), metrics=("mssd",))["AR"] == 1.0
+
+
+def test_rows_of_unknown_objects_are_counted_in_a_warning(dataset):
+    res = gt_results(dataset)
+    stray = PoseResults.from_columns(
+        [0, 0, 0], [0, 0, 0], [7, 7, 9], [1.0] * 3, torch.eye(4).repeat(3, 1, 1)
+    )
+    with pytest.warns(BOPDataWarning, match=r"3 results rows name objects .* \(7, 9\)"):
+        report = evaluate_bop(dataset, PoseResults.concat([res, stray]), metrics=("mssd",))
+    assert report["AR"] == 1.0
+
+
+def test_translations_in_metres_are_reported(dataset, tmp_path):
+    res = gt_results(dataset)
+    poses = res.poses.clone()
+    poses[:, :3, 3] /= 1000.0  # t written in metres where the file holds millimetres
+    write_results(tmp_path / "m.csv", _with_poses(res, poses))
+    with pytest.warns(BOPDataWarning, match="was t written in metres"):
+        report = evaluate_bop(dataset, tmp_path / "m.csv", metrics=("mssd",))
+    assert report["AR"] == 0.0

@@ -83,3 +83,19 @@ def test_the_timer_is_active_while_each_image_is_estimated(dataset):
     assert timer.num_images == 2 and timer.counts == {"ransac": 2}
     predict_dataset(estimate, dataset, max_images=1)  # no timer: nothing recorded
     assert timer.counts == {"ransac": 2} and active_timer() is None
+
+
+def test_a_pose_behind_the_camera_never_becomes_a_row(dataset):
+    oracle = _oracle(dataset)
+
+    def mirrored(rgb, depth, K, masks, obj_ids):
+        est = oracle(rgb, depth, K, masks, obj_ids)
+        poses = est.poses.clone()
+        poses[0, :3, 3] *= -1  # e.g. depth divided by 1000 on its way in: flagged valid
+        return PoseEstimate(poses, est.scores, est.valid)
+
+    full = predict_dataset(oracle, dataset)
+    kept = predict_dataset(mirrored, dataset)
+    images = len({(s, i) for s, i in zip(full.scene_ids.tolist(), full.im_ids.tolist())})
+    assert len(kept) == len(full) - images
+    assert bool((kept.poses[:, 2, 3] > 0).all())

@@ -100,3 +100,47 @@ def test_columns_must_agree():
         PoseResults.from_columns([1, 2], [0], [1], [1.0], torch.eye(4)[None])
     with pytest.raises(ValueRangeError):
         PoseResults.from_columns([1], [0], [1], [float("nan")], torch.eye(4)[None])
+
+
+def test_a_byte_order_mark_and_windows_line_ends_are_accepted(tmp_path):
+    path = tmp_path / "bom.csv"
+    row = "1,0,5,0.5,1 0 0 0 1 0 0 0 1,10 20 500,0.25"
+    path.write_bytes(("\ufeff" + HEADER + "\r\n" + row + "\r\n").encode("utf-8"))
+    back = read_results(path)
+    assert back.obj_ids.tolist() == [5] and back.poses[0, 2, 3].item() == pytest.approx(0.5)
+
+
+@pytest.mark.parametrize(
+    ("line", "match"),
+    [
+        ("1,0,5,high,1 0 0 0 1 0 0 0 1,0 0 500,1", r"r\.csv:3: score 'high' is not a number"),
+        ("1,0,x,0.5,1 0 0 0 1 0 0 0 1,0 0 500,1", r"r\.csv:3: obj_id 'x' is not an integer"),
+        ("1,0,5,0.5,0 0 0 0 0 0 0 0 0,0 0 500,1", r"r\.csv:3: R is not a rotation"),
+        ("1,0,5,0.5,2 0 0 0 2 0 0 0 2,0 0 500,1", r"r\.csv:3: R is not a rotation"),
+        ("1,0,5,0.5,1 0 0 0 1 0 0 0 -1,0 0 500,1", r"r\.csv:3: R is a reflection \(det -1\)"),
+    ],
+)
+def test_bad_lines_are_named_by_file_and_line(tmp_path, line, match):
+    from poseflow.errors import ResultsFormatError
+
+    path = tmp_path / "r.csv"
+    path.write_text(HEADER + "\n1,0,4,0.5,1 0 0 0 1 0 0 0 1,0 0 500,1\n" + line + "\n")
+    with pytest.raises(ResultsFormatError, match=match):
+        read_results(path)
+
+
+def test_rotations_written_with_four_decimals_are_accepted(tmp_path):
+    from poseflow.geometry.se3 import random_transform
+
+    R = random_transform(1, generator=torch.Generator().manual_seed(3), dtype=torch.float64)[0]
+    text = " ".join(f"{x:.4f}" for x in R[:3, :3].reshape(-1).tolist())
+    path = tmp_path / "r.csv"
+    path.write_text(HEADER + f"\n1,0,4,0.5,{text},0 0 500,1\n")
+    assert len(read_results(path)) == 1
+
+
+def test_a_missing_file_says_how_to_make_one(tmp_path):
+    from poseflow.errors import MissingFileError
+
+    with pytest.raises(MissingFileError, match="poseflow predict"):
+        read_results(tmp_path / "none.csv")

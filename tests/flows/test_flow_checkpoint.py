@@ -99,3 +99,27 @@ def test_errors(tmp_path: Path) -> None:
     path.with_suffix(".safetensors").unlink()
     with pytest.raises(MissingWeightsError):
         load_checkpoint(path)
+
+
+def test_a_truncated_latest_checkpoint_falls_back_to_the_previous_one(tmp_path):
+    import warnings
+
+    from poseflow.errors import CheckpointError
+    from poseflow.flows.checkpoint import load_checkpoint, save_checkpoint
+
+    for step in (1, 2, 3):
+        save_checkpoint(tmp_path, step, {"w": torch.full((64,), float(step))}, {"note": step})
+    tensors = tmp_path / "step-00000003.safetensors"
+    tensors.write_bytes(tensors.read_bytes()[:-40])  # a copy cut short
+    with pytest.warns(UserWarning, match=r"skipped 1 unreadable checkpoint.*resuming from step 2"):
+        t, meta = load_checkpoint(tmp_path)
+    assert meta["step"] == 2 and t["w"][0].item() == 2.0
+    (tmp_path / "step-00000002.json").write_text('{"step": 2, "tens')  # a truncated JSON
+    with pytest.warns(UserWarning, match="skipped 2 unreadable"):
+        assert load_checkpoint(tmp_path)[1]["step"] == 1
+    with pytest.raises(CheckpointError, match="truncated or corrupt"):
+        load_checkpoint(tmp_path / "step-00000003.json")  # asked for by name: no fallback
+    (tmp_path / "step-00000001.safetensors").write_bytes(b"\x01")
+    with pytest.raises(CheckpointError, match="no readable checkpoint"), warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        load_checkpoint(tmp_path)

@@ -3,6 +3,12 @@
 Each subcommand lives in its own module that exposes ``add_parser(subparsers)``; the module is
 imported only when listed here, and its heavy imports happen inside its ``run`` function so that
 ``poseflow --help`` stays fast.
+
+Exit codes: 0 on success, 1 when the run fails (a :class:`~poseflow.errors.PoseflowError`: a
+missing or malformed file, implausible units, a failed write), 2 for usage errors (argparse's, a
+:class:`~poseflow.errors.UsageError`, or a plain ``ValueRangeError``: an argument's value out of
+its range) and when no subcommand is given. Status lines and warnings go through
+:mod:`logging` to stderr, written around the progress bars; results go to stdout.
 """
 
 from __future__ import annotations
@@ -13,12 +19,18 @@ import sys
 from collections.abc import Sequence
 
 from poseflow import __version__
-from poseflow.errors import PoseflowError
+from poseflow.errors import PoseflowError, UsageError, ValueRangeError
 
-__all__ = ["build_parser", "main"]
+__all__ = ["EXIT_FAILED", "EXIT_USAGE", "build_parser", "is_usage_error", "main"]
 
 #: Subcommand modules under ``poseflow.cli``, in the order ``--help`` lists them.
-SUBCOMMANDS = ("demo", "synth", "prepare", "train", "predict", "eval", "bench")
+SUBCOMMANDS = ("demo", "estimate", "synth", "prepare", "train", "predict", "eval", "bench")
+
+#: Exit code of a run that failed.
+EXIT_FAILED = 1
+
+#: Exit code of a usage error (as argparse's own).
+EXIT_USAGE = 2
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -26,26 +38,54 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="poseflow",
         description="6D object pose estimation from RGBD images (FunFlow6D) and its parts.",
+        epilog="Run `poseflow COMMAND --help` for the options of a command.",
     )
     parser.add_argument("--version", action="version", version=f"poseflow {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in SUBCOMMANDS:
         importlib.import_module(f"poseflow.cli.{name}").add_parser(sub)
+    for command in sub.choices.values():  # for the usage line of a usage error
+        command.set_defaults(parser=command)
     return parser
 
 
+def is_usage_error(exc: BaseException) -> bool:
+    """Whether ``exc`` is a usage error (exit code 2).
+
+    A :class:`UsageError`, or a plain ``ValueRangeError`` (an argument outside its range, such
+    as an unknown solver name); its subclasses that describe data (``UnitsError``,
+    ``ResultsFormatError``) and every other error are failed runs.
+
+    Example:
+        >>> is_usage_error(UsageError("--images must be at least 1"))
+        True
+        >>> is_usage_error(PoseflowError("the file is truncated"))
+        False
+    """
+    return isinstance(exc, UsageError) or type(exc) is ValueRangeError
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run the command line; returns the process exit code."""
+    """Run the command line; returns the process exit code (see the module's docstring)."""
+    from poseflow.cli.common import command_output
+
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.command is None:
-        parser.print_help()
-        return 0
-    try:
-        return int(args.run(args) or 0)
-    except PoseflowError as exc:
-        print(f"poseflow {args.command}: error: {exc}", file=sys.stderr)
-        return 2
+        parser.print_help(sys.stderr)
+        return EXIT_USAGE
+    with command_output(args):
+        try:
+            return int(args.run(args) or 0)
+        except (PoseflowError, OSError) as exc:
+            usage = is_usage_error(exc)
+            if usage:
+                args.parser.print_usage(sys.stderr)
+            print(f"poseflow {args.command}: error: {exc}", file=sys.stderr)
+            return EXIT_USAGE if usage else EXIT_FAILED
+        except KeyboardInterrupt:
+            print(f"poseflow {args.command}: interrupted", file=sys.stderr)
+            return 130
 
 
 if __name__ == "__main__":

@@ -1,5 +1,11 @@
-"""Helpers shared by ``poseflow prepare``, ``train`` and ``predict``.
+"""Helpers shared by the subcommands.
 
+- output: :func:`add_output_arguments` (``--no-progress``, ``--quiet``), :func:`show_progress`,
+  :func:`command_output` (status lines and warnings through :mod:`logging`, written around the
+  progress bars), :func:`check_writable` (an output path is checked before any work);
+- option types: :func:`positive_int`, :func:`nonnegative_int`, :func:`solver_name`;
+- models: :func:`resolve_model` (``--model``: a folder, ``demo``, or by default the shipped demo
+  model) and :func:`load_model` (a clear error for a truncated or malformed checkpoint);
 - ``--device``: :func:`add_device_argument` and :func:`resolve_device`;
 - the model configuration: :func:`add_config_arguments` registers ``--config`` (a JSON file of
   :class:`~poseflow.models.FunFlow6DConfig` fields), ``--preset`` and a few common fields as
@@ -16,27 +22,45 @@ subcommands stays cheap.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import hashlib
 import json
+import logging
 import os
-from collections.abc import Iterable
+import sys
+import tempfile
+import warnings
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
 __all__ = [
     "CONFIG_FLAGS",
+    "LOG",
     "add_config_arguments",
     "add_device_argument",
+    "add_output_arguments",
     "build_config",
     "check_dataset",
+    "check_writable",
+    "command_output",
     "config_requested",
     "dataset_fingerprint",
+    "load_model",
     "load_object_models",
     "models_fingerprint",
+    "nonnegative_int",
     "object_cache_dir",
     "parse_set",
+    "positive_int",
     "resolve_device",
+    "resolve_model",
+    "show_progress",
+    "solver_name",
 ]
+
+#: The logger of the command line's status lines (stderr; silenced by ``--quiet``).
+LOG = logging.getLogger("poseflow.cli")
 
 #: ``--flag`` name -> :class:`~poseflow.models.FunFlow6DConfig` field set by it.
 CONFIG_FLAGS: dict[str, str] = {
@@ -49,6 +73,256 @@ CONFIG_FLAGS: dict[str, str] = {
     "crop_size": "crop_size",
     "query_views": "query_views",
 }
+
+
+# ------------------------------------------------------------------------------ output
+
+
+def add_output_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add ``--no-progress`` and ``-q/--quiet`` to ``parser`` (every subcommand has both)."""
+    group = parser.add_argument_group("output")
+    group.add_argument(
+        "--no-progress",
+        action="store_true",
+        help="hide the progress bars (they are shown only when stderr is a terminal)",
+    )
+    group.add_argument(
+        "-q",
+        "--quiet",
+        action="store_true",
+        help="print only warnings, errors and the results (implies --no-progress)",
+    )
+
+
+def show_progress(args: argparse.Namespace) -> bool:
+    """Whether to draw progress bars: not asked away and stderr is a terminal.
+
+    Redirected to a file or a CI log, a bar is a stream of carriage returns; the status lines of
+    :data:`LOG` say how far a run got instead.
+    """
+    if getattr(args, "no_progress", False) or getattr(args, "quiet", False):
+        return False
+    return sys.stderr.isatty()
+
+
+class _BarSafeHandler(logging.Handler):
+    """Writes records to stderr through ``tqdm.write``, so that open progress bars stay intact."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        from tqdm.auto import tqdm
+
+        try:
+            tqdm.write(self.format(record), file=sys.stderr)
+        except Exception:
+            self.handleError(record)
+
+
+class _Formatter(logging.Formatter):
+    def format(self, record: logging.LogRecord) -> str:
+        text = record.getMessage()
+        if record.levelno >= logging.ERROR:
+            return f"error: {text}"
+        if record.levelno >= logging.WARNING:
+            return f"warning: {text}"
+        return text
+
+
+@contextlib.contextmanager
+def command_output(args: argparse.Namespace) -> Iterator[None]:
+    """Route the status lines of ``poseflow``'s loggers to stderr for a run; format warnings.
+
+    Status lines (level INFO of the ``poseflow`` loggers) and logged warnings are written as one
+    line each, through ``tqdm.write`` so that they do not break a progress bar; ``--quiet``
+    keeps the warnings only. Python warnings are printed as one ``warning: ...`` line rather
+    than with the file and source line of their origin. Everything is restored on exit.
+
+    Args:
+        args: the parsed arguments (``quiet`` is read).
+    """
+    logger = logging.getLogger("poseflow")
+    handler = _BarSafeHandler()
+    handler.setFormatter(_Formatter())
+    saved = (logger.level, logger.propagate, warnings.formatwarning)
+    logger.addHandler(handler)
+    logger.setLevel(logging.WARNING if getattr(args, "quiet", False) else logging.INFO)
+    logger.propagate = False
+
+    def one_line(message: Any, category: Any, filename: str, lineno: int, line: Any = None) -> str:
+        return f"warning: {message}\n"
+
+    warnings.formatwarning = one_line
+    try:
+        yield
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(saved[0])
+        logger.propagate = saved[1]
+        warnings.formatwarning = saved[2]
+
+
+def check_writable(path: str | Path, *, flag: str = "--out", folder: bool = False) -> Path:
+    """Check, before any work, that an output file (or folder) can be written.
+
+    The parent folders are created; a file is created and removed in the folder that will hold
+    the output, so a read-only place, a path under a file or a full disk fail now rather than
+    after hours of work.
+
+    Args:
+        path: the output file, or folder when ``folder``.
+        flag: the option that named it, for the message.
+        folder: ``path`` is a folder to write into.
+
+    Returns:
+        ``path`` as a :class:`~pathlib.Path`.
+
+    Raises:
+        NotWritableError: the path cannot be written.
+
+    Example:
+        >>> d = Path(tempfile.mkdtemp())
+        >>> check_writable(d / "sub" / "r.csv").parent.is_dir()
+        True
+    """
+    from poseflow.errors import NotWritableError
+
+    path = Path(path)
+    if not folder and path.is_dir():
+        raise NotWritableError(f"{flag} {path} is a folder; give the path of a file")
+    where = path if folder else path.parent
+    try:
+        where.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=where, prefix=".poseflow-write-check-"):
+            pass
+    except OSError as exc:
+        reason = exc.strerror or str(exc)
+        raise NotWritableError(f"{flag} {path}: cannot write in {where} ({reason})") from None
+    if not folder and path.exists() and not os.access(path, os.W_OK):
+        raise NotWritableError(f"{flag} {path}: the file exists and is read-only")
+    return path
+
+
+# ------------------------------------------------------------------------------ option types
+
+
+def positive_int(text: str) -> int:
+    """An ``argparse`` type: an integer of at least 1.
+
+    Example:
+        >>> positive_int("3")
+        3
+    """
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
+def nonnegative_int(text: str) -> int:
+    """An ``argparse`` type: an integer of at least 0.
+
+    Example:
+        >>> nonnegative_int("0")
+        0
+    """
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be at least 0, got {value}")
+    return value
+
+
+def solver_name(text: str) -> str:
+    """An ``argparse`` type: the name of an ODE solver of :data:`poseflow.flows.SAMPLERS`.
+
+    Example:
+        >>> solver_name("heun")
+        'heun'
+    """
+    from poseflow.flows import SAMPLERS
+
+    if text not in SAMPLERS:
+        raise argparse.ArgumentTypeError(f"{text!r} is not one of {', '.join(SAMPLERS)}")
+    return text
+
+
+# ------------------------------------------------------------------------------ models
+
+
+def resolve_model(value: str | None) -> Path:
+    """The model folder that ``--model VALUE`` names.
+
+    ``demo`` and a missing option name the demo model shipped with poseflow (trained on its
+    three demo objects only); without the option a note says so.
+
+    Args:
+        value: the option's value, or None when it was not given.
+
+    Returns:
+        The folder.
+
+    Example:
+        >>> resolve_model("demo").name
+        'demo_model'
+        >>> resolve_model("runs/x/model")
+        PosixPath('runs/x/model')
+    """
+    from poseflow.assets import DEMO_CHECKPOINT
+
+    if value is None:
+        LOG.info(
+            "note: no --model given: using the demo model shipped with poseflow (trained on its "
+            "three demo objects only); pass --model MODEL_DIR for a model of your objects"
+        )
+        return Path(DEMO_CHECKPOINT)
+    if value == "demo":
+        return Path(DEMO_CHECKPOINT)
+    return Path(value)
+
+
+def load_model(folder: str | Path, *, device: Any = "cpu") -> Any:
+    """Load a FunFlow6D model folder, with errors that say what is wrong and what to do.
+
+    Args:
+        folder: the model folder (``config.json`` + ``model.safetensors``).
+        device: where to put the model.
+
+    Returns:
+        The :class:`~poseflow.models.FunFlow6D`.
+
+    Raises:
+        MissingWeightsError: the folder holds no checkpoint.
+        CheckpointError: ``config.json`` is not valid JSON or holds a value of the wrong type,
+            or ``model.safetensors`` is truncated or corrupt.
+    """
+    from poseflow.errors import CheckpointError, MissingWeightsError, PoseflowError
+    from poseflow.flows.checkpoint import check_safetensors
+    from poseflow.models import FunFlow6D, FunFlow6DConfig
+    from poseflow.models.checkpoint import is_checkpoint
+
+    folder = Path(folder)
+    if not is_checkpoint(folder):
+        raise MissingWeightsError(
+            f"{folder} holds no FunFlow6D checkpoint (config.json + model.safetensors); train "
+            "one with `poseflow train`, or pass --model demo for the shipped demo model"
+        )
+    config_path = folder / "config.json"
+    try:
+        FunFlow6DConfig.from_json(json.loads(config_path.read_text()))
+    except json.JSONDecodeError as exc:
+        raise CheckpointError(f"{config_path} is not valid JSON ({exc}); restore it") from None
+    except (TypeError, KeyError, AttributeError) as exc:
+        raise CheckpointError(
+            f"{config_path} holds a value of the wrong type ({exc}); restore it or train again"
+        ) from None
+    except PoseflowError as exc:
+        raise CheckpointError(f"{config_path}: {exc}") from None
+    check_safetensors(folder / "model.safetensors")
+    return FunFlow6D.load(folder, device=device)
 
 
 # ------------------------------------------------------------------------------ device
@@ -77,7 +351,7 @@ def resolve_device(name: str) -> Any:
         The ``torch.device``.
 
     Raises:
-        ValueRangeError: a malformed name, or a GPU asked for where CUDA is not available.
+        UsageError: a malformed name, or a GPU asked for where CUDA is not available.
 
     Example:
         >>> resolve_device("cpu")
@@ -85,7 +359,7 @@ def resolve_device(name: str) -> Any:
     """
     import torch
 
-    from poseflow.errors import ValueRangeError
+    from poseflow.errors import UsageError
 
     local = int(os.environ.get("LOCAL_RANK", "0") or 0)
     if name == "auto":
@@ -93,16 +367,16 @@ def resolve_device(name: str) -> Any:
     try:
         device = torch.device(name)
     except (RuntimeError, ValueError) as exc:
-        raise ValueRangeError(f"--device {name!r} is not a torch device ({exc})") from None
+        raise UsageError(f"--device {name!r} is not a torch device ({exc})") from None
     if device.type == "cuda":
         if not torch.cuda.is_available():
-            raise ValueRangeError(
+            raise UsageError(
                 f"--device {name}: CUDA is not available here; use --device cpu (or auto)"
             )
         if device.index is None:
             device = torch.device(f"cuda:{local}")
         if device.index >= torch.cuda.device_count():
-            raise ValueRangeError(
+            raise UsageError(
                 f"--device {device}: only {torch.cuda.device_count()} CUDA device(s) here"
             )
     return device
@@ -153,20 +427,20 @@ def parse_set(items: Iterable[str]) -> dict[str, Any]:
     """Parse ``--set KEY=VALUE`` items; a VALUE that is valid JSON is decoded, else kept a string.
 
     Raises:
-        ValueRangeError: an item without ``=`` or with an empty key.
+        UsageError: an item without ``=`` or with an empty key.
 
     Example:
         >>> parse_set(["steps=10", "fusion=sum", 'net={"fusion_heads": 2}'])
         {'steps': 10, 'fusion': 'sum', 'net': {'fusion_heads': 2}}
     """
-    from poseflow.errors import ValueRangeError
+    from poseflow.errors import UsageError
 
     out: dict[str, Any] = {}
     for item in items:
         key, sep, raw = item.partition("=")
         key = key.strip()
         if not sep or not key:
-            raise ValueRangeError(f"--set takes KEY=VALUE, got {item!r}")
+            raise UsageError(f"--set takes KEY=VALUE, got {item!r}")
         try:
             out[key] = json.loads(raw)
         except json.JSONDecodeError:
@@ -191,9 +465,9 @@ def build_config(args: argparse.Namespace) -> Any:
 
     Raises:
         MissingFileError: ``--config`` names no file.
-        ValueRangeError: the file is not valid JSON, or a field name or value is invalid.
+        UsageError: the file is not valid JSON, or a field name or value is invalid.
     """
-    from poseflow.errors import MissingFileError, ValueRangeError
+    from poseflow.errors import MissingFileError, UsageError, ValueRangeError
     from poseflow.models import FunFlow6DConfig
 
     data: dict[str, Any] = {}
@@ -204,9 +478,9 @@ def build_config(args: argparse.Namespace) -> Any:
         try:
             data = json.loads(path.read_text())
         except json.JSONDecodeError as exc:
-            raise ValueRangeError(f"--config {path} is not valid JSON: {exc}") from None
+            raise UsageError(f"--config {path} is not valid JSON: {exc}") from None
         if not isinstance(data, dict):
-            raise ValueRangeError(f"--config {path} must hold a JSON object of config fields")
+            raise UsageError(f"--config {path} must hold a JSON object of config fields")
     for flag, field_name in CONFIG_FLAGS.items():
         value = getattr(args, flag, None)
         if value is not None:
@@ -214,8 +488,8 @@ def build_config(args: argparse.Namespace) -> Any:
     data.update(parse_set(args.set_fields))
     try:
         return FunFlow6DConfig.from_json(data)
-    except TypeError as exc:  # a value of the wrong kind reaching the dataclass
-        raise ValueRangeError(f"invalid FunFlow6D configuration: {exc}") from None
+    except (TypeError, ValueRangeError) as exc:  # TypeError: a value of the wrong kind
+        raise UsageError(f"invalid FunFlow6D configuration: {exc}") from None
 
 
 # ------------------------------------------------------------------------------ datasets

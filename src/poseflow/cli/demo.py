@@ -17,10 +17,24 @@ import time
 from pathlib import Path
 from typing import Any
 
-from poseflow.assets import DEMO_CHECKPOINT
-from poseflow.cli.common import add_device_argument
+from poseflow.cli.common import add_device_argument, add_output_arguments, positive_int
 
-__all__ = ["add_parser", "run"]
+__all__ = ["DESCRIPTION", "add_parser", "run", "write_timing_chart"]
+
+#: What ``poseflow demo --help`` says (plain text: the module docstring is reStructuredText).
+DESCRIPTION = """\
+Estimate object poses on freshly generated scenes and compare with the classic baseline:
+
+  1. load the small FunFlow6D model shipped with poseflow (its prepared objects included);
+  2. render a few cluttered test images of the three demo objects (a BOP dataset);
+  3. estimate every target instance, all instances of an image in one batch, timed per stage;
+  4. run the classic baseline (FPFH + RANSAC + ICP) on the same images and masks;
+  5. score both with the BOP 2019 Average Recall; write the results, the timing and overlays.
+
+The timing chart (timing.png) needs matplotlib (pip install 'poseflow[viz]'); without it the
+demo skips the chart and says so.
+
+`poseflow demo registration` runs the registration stage alone against Open3D."""
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -28,16 +42,22 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     parser = subparsers.add_parser(
         "demo",
         help="estimate poses on generated scenes and compare with the classic baseline",
-        description=__doc__.split("\n\n", 1)[1] if __doc__ else None,
+        description=DESCRIPTION,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--out", default="demo_output", help="folder for everything written")
-    parser.add_argument("--images", type=int, default=6, help="test images to generate")
+    parser.add_argument("--images", type=positive_int, default=6, help="test images to generate")
     parser.add_argument("--seed", type=int, default=2026, help="seed of the scenes and the model")
-    parser.add_argument("--model", default=str(DEMO_CHECKPOINT), help="FunFlow6D checkpoint folder")
+    parser.add_argument(
+        "--model",
+        default="demo",
+        metavar="MODEL_DIR",
+        help="FunFlow6D model folder, or demo for the one shipped with poseflow (default)",
+    )
     add_device_argument(parser)
     parser.add_argument("--no-baseline", action="store_true", help="skip the classic baseline")
     parser.add_argument("--no-overlays", action="store_true", help="write no overlay pictures")
+    add_output_arguments(parser)
     parser.set_defaults(run=run)
     _add_registration_parser(parser.add_subparsers(dest="demo", metavar="{registration}"))
     return parser
@@ -74,63 +94,93 @@ def _run_registration(args: argparse.Namespace) -> int:
     return run_registration(args)
 
 
+def write_timing_chart(timer: Any, path: Path) -> bool:
+    """Draw the timer's stage breakdown to ``path``; without matplotlib, say so and skip it.
+
+    Returns:
+        Whether the chart was written.
+    """
+    from poseflow.cli.common import LOG
+    from poseflow.errors import MissingDependencyError
+
+    try:
+        timer.plot(path)
+    except MissingDependencyError:
+        LOG.info(
+            f"note: {path.name} skipped: the chart needs matplotlib (pip install 'poseflow[viz]')"
+        )
+        return False
+    return True
+
+
 def run(args: argparse.Namespace) -> int:
     """Run the pose demo; prints the AR table and the timing breakdown."""
     import torch
 
     from poseflow.baselines import ClassicBaseline
-    from poseflow.cli.common import object_cache_dir, resolve_device
+    from poseflow.cli.common import (
+        LOG,
+        check_writable,
+        load_model,
+        object_cache_dir,
+        resolve_device,
+        resolve_model,
+        show_progress,
+    )
     from poseflow.cli.eval import format_table
     from poseflow.data.bop import BOPDataset
     from poseflow.data.demo_objects import demo_objects
     from poseflow.data.synthetic import generate_dataset
-    from poseflow.errors import ValueRangeError
     from poseflow.eval import StageTimer, evaluate_bop, write_results
     from poseflow.features import FPFHEncoder
-    from poseflow.models import FunFlow6D
 
-    if args.images < 1:
-        raise ValueRangeError(f"--images must be at least 1, got {args.images}")
     start = time.perf_counter()
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = check_writable(args.out, folder=True)
+    progress = show_progress(args)
     torch.manual_seed(args.seed)
 
-    print(f"[1/5] loading FunFlow6D from {args.model}")
-    model = FunFlow6D.load(args.model, device=resolve_device(args.device))
+    model_dir = resolve_model(args.model)
+    device = resolve_device(args.device)
+    LOG.info(f"[1/5] loading FunFlow6D from {model_dir}")
+    model = load_model(model_dir, device=device)
 
-    print(f"[2/5] rendering {args.images} test images of the demo objects")
+    LOG.info(f"[2/5] rendering {args.images} test images of the demo objects")
     root = generate_dataset(
         out / "dataset",
         num_train_images=0,
         num_test_images=args.images,
         seed=args.seed,
-        progress=True,
+        progress=progress,
     )
     models = dict(enumerate(demo_objects(), start=1))
-    shipped = object_cache_dir(args.model, root)
-    model.prepare_objects(models, cache_dir=shipped if shipped.is_dir() else out / "objects")
+    shipped = object_cache_dir(model_dir, root)
+    cache = shipped if shipped.is_dir() else out / "objects"
+    model.prepare_objects(models, cache_dir=cache, progress=progress)
 
-    print("[3/5] FunFlow6D: estimating every target instance")
+    LOG.info("[3/5] FunFlow6D: estimating every target instance")
     timer = StageTimer()
-    funflow = model.predict(root, seed=args.seed, timer=timer, progress=True)
+    funflow = model.predict(root, seed=args.seed, timer=timer, progress=progress)
     write_results(out / "funflow6d.csv", funflow)
     timer.to_json(out / "timing.json")
-    timer.plot(out / "timing.png")
+    written = ["funflow6d.csv", "timing.json"]
+    if write_timing_chart(timer, out / "timing.png"):
+        written.append("timing.png")
 
     reports = {"FunFlow6D": evaluate_bop(root, funflow)}
     times = {"FunFlow6D": funflow.average_time()}
     if not args.no_baseline:
-        print("[4/5] classic baseline: FPFH + RANSAC + ICP on the same masks")
+        LOG.info("[4/5] classic baseline: FPFH + RANSAC + ICP on the same masks")
         baseline = ClassicBaseline(models, encoder=FPFHEncoder(), seed=args.seed)
-        base = baseline.predict(root, progress=True)
+        base = baseline.predict(root, progress=progress)
         write_results(out / "baseline.csv", base)
+        written.append("baseline.csv")
         reports["baseline"] = evaluate_bop(root, base)
         times["baseline"] = base.average_time()
     else:
-        print("[4/5] classic baseline skipped")
+        LOG.info("[4/5] classic baseline skipped")
 
-    print("[5/5] BOP 2019 Average Recall (GT visible masks)\n")
+    LOG.info("[5/5] scoring")
+    print("BOP 2019 Average Recall (GT visible masks)\n")
     print(
         f"{'method':<10}  {'AR':>6}  {'AR_VSD':>6}  {'AR_MSSD':>7}  {'AR_MSPD':>7}  {'s/image':>7}"
     )
@@ -149,11 +199,8 @@ def run(args: argparse.Namespace) -> int:
 
     if not args.no_overlays:
         _write_overlays(out / "overlays", BOPDataset(root, "test"), models, funflow)
-    print(
-        f"\nwrote {out}/funflow6d.csv, timing.json, timing.png"
-        + ("" if args.no_overlays else ", overlays/")
-        + f" in {time.perf_counter() - start:.0f} s"
-    )
+        written.append("overlays/")
+    print(f"\nwrote {out}/{', '.join(written)} in {time.perf_counter() - start:.0f} s")
     return 0
 
 

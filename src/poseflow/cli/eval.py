@@ -3,7 +3,8 @@
 Prints a table (one row per object, then all targets pooled) and writes the full report as JSON
 (see :func:`poseflow.eval.evaluate.evaluate_bop`). With ``--run-baseline`` the classic
 FPFH/RANSAC/ICP baseline first predicts the split from its ground-truth masks and writes its
-results to the given CSV, which is then evaluated the same way.
+results to the given CSV (an existing one only with ``--overwrite``), which is then evaluated
+the same way.
 """
 
 from __future__ import annotations
@@ -12,6 +13,8 @@ import argparse
 import json
 from pathlib import Path
 from typing import Any
+
+from poseflow.cli.common import add_output_arguments
 
 __all__ = ["add_parser", "format_table", "run"]
 
@@ -44,7 +47,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         action="store_true",
         help="first predict with the classic baseline and write its results to RESULTS",
     )
-    parser.add_argument("--progress", action="store_true", help="show a progress bar")
+    parser.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="with --run-baseline: replace RESULTS when it exists",
+    )
+    add_output_arguments(parser)
     parser.set_defaults(run=run)
     return parser
 
@@ -73,21 +81,42 @@ def format_table(report: dict[str, Any]) -> str:
 
 def run(args: argparse.Namespace) -> int:
     """Evaluate (after predicting with the baseline when asked), print, write JSON."""
-    from poseflow.eval.evaluate import evaluate_bop
+    from poseflow.cli.common import LOG, check_dataset, check_writable, show_progress
+    from poseflow.errors import MissingFileError, OutputExistsError, UsageError
+    from poseflow.eval.evaluate import METRICS, evaluate_bop
 
     metrics = tuple(m.strip() for m in args.metrics.split(",") if m.strip())
+    unknown = [m for m in metrics if m not in METRICS]
+    if unknown or not metrics:
+        raise UsageError(f"--metrics takes a subset of {','.join(METRICS)}, got {args.metrics!r}")
+    check_dataset(args.dataset, args.split)
+    results: Path = args.results
     if args.run_baseline:
-        _predict_baseline(args.dataset, args.split, args.results)
+        if results.exists() and not args.overwrite:
+            raise OutputExistsError(
+                f"{results} exists; --run-baseline would replace it: pass --overwrite, or give "
+                "another RESULTS path"
+            )
+        check_writable(results, flag="RESULTS")
+    elif not results.is_file():
+        raise MissingFileError(
+            f"results file {results} does not exist: write one with `poseflow predict`, or pass "
+            "--run-baseline to predict with the classic baseline first"
+        )
+    out = args.json or results.with_name(results.stem + "_scores.json")
+    check_writable(out, flag="--json")
+    if args.run_baseline:
+        _predict_baseline(args.dataset, args.split, results, progress=show_progress(args))
+    LOG.info(f"evaluating {results} on {args.dataset}/{args.split}")
     report = evaluate_bop(
         args.dataset,
-        args.results,
+        results,
         split=args.split,
         targets=args.targets,
         metrics=metrics,
-        progress=args.progress,
+        progress=show_progress(args),
     )
     print(format_table(report))
-    out = args.json or args.results.with_name(args.results.stem + "_scores.json")
     out.write_text(json.dumps(report, indent=2))
     t = report["average_time"]
     if t >= 0:
@@ -96,20 +125,15 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _predict_baseline(root: Path, split: str, out: Path) -> None:
+def _predict_baseline(root: Path, split: str, out: Path, *, progress: bool) -> None:
     from poseflow.baselines import ClassicBaseline
+    from poseflow.cli.common import load_object_models
     from poseflow.data.bop import BOPDataset
-    from poseflow.data.objects import ObjectModel
     from poseflow.eval.results import write_results
 
     ds = BOPDataset(root, split, load_rgb=False)
-    infos = ds.models_info()
-    models = {
-        o: ObjectModel.from_file(ds.model_path(o), scale=1e-3, info=info, name=f"obj_{o:06d}")
-        for o, info in infos.items()
-    }
+    models = load_object_models(root, progress=progress)
     baseline = ClassicBaseline(models)
-    results = baseline.predict(ds)
-    out.parent.mkdir(parents=True, exist_ok=True)
+    results = baseline.predict(ds, progress=progress)
     write_results(out, results)
     print(f"classic baseline: {len(results)} estimates written to {out}")

@@ -36,7 +36,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from poseflow.cli.common import add_device_argument
+from poseflow.cli.common import add_device_argument, add_output_arguments, solver_name
 
 __all__ = ["add_parser", "run", "select_targets"]
 
@@ -58,7 +58,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         "--model",
         default=None,
         metavar="MODEL_DIR",
-        help="model folder written by `poseflow train`",
+        help="model folder written by `poseflow train`, or demo for the model shipped with "
+        "poseflow (the default, with a note)",
     )
     parser.add_argument("--out", required=True, metavar="CSV", help="results CSV to write")
     parser.add_argument("--split", default="test", help="split folder (default: test)")
@@ -99,7 +100,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         help="integration steps K (default: model's)",
     )
     parser.add_argument(
-        "--solver", default=None, help="ODE solver: euler, midpoint, heun, rk4 (model's)"
+        "--solver",
+        type=solver_name,
+        default=None,
+        help="ODE solver: euler, midpoint, heun, rk4 (model's)",
     )
     parser.add_argument(
         "--verify",
@@ -130,8 +134,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         help="folder holding prepared objects (objects/); default the model folder",
     )
     parser.add_argument("--seed", type=int, default=0, help="seed of noise, sampling, RANSAC")
-    parser.add_argument("--no-progress", action="store_true", help="hide the progress bars")
     add_device_argument(parser)
+    add_output_arguments(parser)
     parser.set_defaults(run=run)
     return parser
 
@@ -257,15 +261,11 @@ def _config_changes(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def _load_model(args: argparse.Namespace, device: Any, changes: dict[str, Any]) -> Any:
+    from poseflow.cli.common import load_model, resolve_model
     from poseflow.errors import ValueRangeError
-    from poseflow.models import FunFlow6D
 
-    if args.model is None:
-        raise ValueRangeError(
-            "--model MODEL_DIR is needed with --method funflow6d (a folder written by "
-            "`poseflow train`), or use --method baseline"
-        )
-    model = FunFlow6D.load(args.model, device=device)
+    args.model = str(resolve_model(args.model))
+    model = load_model(args.model, device=device)
     try:  # validated here, before the first image
         model.config = model.config.replace(**changes)
     except TypeError as exc:  # a value of the wrong kind reaching the dataclass
@@ -276,29 +276,38 @@ def _load_model(args: argparse.Namespace, device: Any, changes: dict[str, Any]) 
 def _cache_dir(args: argparse.Namespace, root: Path) -> Path | None:
     import os
 
-    from poseflow.cli.common import object_cache_dir
+    from poseflow.cli.common import LOG, object_cache_dir
 
     base = Path(args.cache if args.cache is not None else args.model)
     probe = base
     while not probe.exists() and probe != probe.parent:
         probe = probe.parent
     if not os.access(probe, os.W_OK):
-        print(f"note: {base} is not writable; prepared objects are not cached")
+        LOG.info("note: %s is not writable; prepared objects are not cached", base)
         return None
     return object_cache_dir(base, root)
 
 
 def run(args: argparse.Namespace) -> int:
     """Estimate, write the CSV (and the timing JSON); prints a summary; returns 0."""
-    from poseflow.cli.common import check_dataset, load_object_models, resolve_device
+    from poseflow.cli.common import (
+        check_dataset,
+        check_writable,
+        load_object_models,
+        resolve_device,
+        show_progress,
+    )
     from poseflow.data.bop import BOPDataset
     from poseflow.eval.predict import Estimator, predict_dataset
     from poseflow.eval.results import write_results
     from poseflow.eval.timing import StageTimer
 
     root = check_dataset(args.dataset, args.split)
+    check_writable(args.out)
+    if args.timing is not None:
+        check_writable(args.timing, flag="--timing")
     device = resolve_device(args.device)
-    show = not args.no_progress
+    show = show_progress(args)
     changes = _config_changes(args)
     model = _load_model(args, device, changes) if args.method == "funflow6d" else None
     ds = BOPDataset(root, args.split)

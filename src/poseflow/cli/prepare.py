@@ -17,7 +17,7 @@ from __future__ import annotations
 import argparse
 import time
 
-from poseflow.cli.common import add_config_arguments
+from poseflow.cli.common import add_config_arguments, add_output_arguments
 
 __all__ = ["add_parser", "run"]
 
@@ -44,8 +44,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     parser.add_argument(
         "--objects", type=int, nargs="+", default=None, metavar="ID", help="only these objects"
     )
-    parser.add_argument("--no-progress", action="store_true", help="hide the progress bars")
     add_config_arguments(parser)
+    add_output_arguments(parser)
     parser.set_defaults(run=run)
     return parser
 
@@ -58,26 +58,29 @@ def run(args: argparse.Namespace) -> int:
     from poseflow.cli.common import (
         build_config,
         check_dataset,
+        check_writable,
         config_requested,
         load_object_models,
         object_cache_dir,
+        show_progress,
     )
-    from poseflow.errors import ValueRangeError
+    from poseflow.errors import UsageError
     from poseflow.models import FunFlow6D, FunFlow6DConfig
     from poseflow.models.checkpoint import is_checkpoint
 
     start = time.perf_counter()
     root = check_dataset(args.dataset)
+    check_writable(args.out, folder=True)
     if is_checkpoint(args.out):
         if config_requested(args):
-            raise ValueRangeError(
+            raise UsageError(
                 f"{args.out} holds a trained model whose config.json fixes the configuration; "
                 "drop --config/--preset/--set and the other configuration options"
             )
         config = FunFlow6DConfig.from_json(f"{args.out}/config.json")
     else:
         config = build_config(args)
-    show = not args.no_progress
+    show = show_progress(args)
     models = load_object_models(root, obj_ids=args.objects, progress=show)
     cache = object_cache_dir(args.out, root)
     model = FunFlow6D(config)

@@ -149,7 +149,10 @@ def make_scenes(
 def _open3d_pipeline(scenes: Scenes, iterations: int, threshold: float, icp_scales: list[float]):
     """Open3D's RANSAC on the same correspondences, then its ICP per scale, looped over B."""
     import numpy as np
-    import open3d as o3d
+
+    from poseflow.render.backend import import_open3d
+
+    o3d = import_open3d("the comparison with Open3D")
 
     reg = o3d.pipelines.registration
     B, N = scenes.observed.shape[:2]

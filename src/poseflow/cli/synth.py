@@ -9,8 +9,11 @@ Example::
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
-__all__ = ["add_parser", "run"]
+from poseflow.cli.common import add_output_arguments, nonnegative_int, positive_int
+
+__all__ = ["add_parser", "check_output_folder", "run"]
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -26,8 +29,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         ),
     )
     parser.add_argument("out", help="output dataset folder")
-    parser.add_argument("--train", type=int, default=200, help="images of the train split")
-    parser.add_argument("--test", type=int, default=50, help="images of the test split")
+    parser.add_argument(
+        "--train", type=nonnegative_int, default=200, help="images of the train split"
+    )
+    parser.add_argument("--test", type=nonnegative_int, default=50, help="images of the test split")
     parser.add_argument(
         "--objects-per-image",
         type=int,
@@ -44,9 +49,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         metavar="N",
         help="distractor boxes/cylinders per scene: a number or a range LOW HIGH",
     )
-    parser.add_argument("--images-per-scene", type=int, default=10, help="viewpoints per layout")
-    parser.add_argument("--width", type=int, default=640)
-    parser.add_argument("--height", type=int, default=480)
+    parser.add_argument(
+        "--images-per-scene", type=positive_int, default=10, help="viewpoints per layout"
+    )
+    parser.add_argument("--width", type=positive_int, default=640)
+    parser.add_argument("--height", type=positive_int, default=480)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument(
         "--objects", default=None, metavar="DIR", help="folder of .ply/.obj meshes to use"
@@ -59,32 +66,64 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     )
     parser.add_argument("--clean-depth", action="store_true", help="no depth-sensor noise")
     parser.add_argument("--jpg", action="store_true", help="write colour images as JPEG")
-    parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    parser.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="write into OUT even when it is not empty (files of the same names are replaced; "
+        "others are left, so prefer an empty folder)",
+    )
+    add_output_arguments(parser)
     parser.set_defaults(run=run)
     return parser
 
 
 def _count_range(values: list[int], flag: str) -> int | tuple[int, int]:
-    from poseflow.errors import ValueRangeError
+    from poseflow.errors import UsageError
 
     if len(values) == 1:
         return values[0]
     if len(values) == 2:
         return (values[0], values[1])
-    raise ValueRangeError(f"{flag} takes one number or a range LOW HIGH, got {values}")
+    raise UsageError(f"{flag} takes one number or a range LOW HIGH, got {values}")
+
+
+def check_output_folder(out: str | Path, *, overwrite: bool) -> Path:
+    """Refuse to write a dataset into a non-empty folder unless ``overwrite``.
+
+    Two generations in one folder mix their images and annotations; scenes of the first that the
+    second does not rewrite would stay.
+
+    Raises:
+        OutputExistsError: ``out`` holds files and ``overwrite`` is False.
+        NotWritableError: ``out`` cannot be written.
+    """
+    from poseflow.cli.common import check_writable
+    from poseflow.errors import OutputExistsError
+
+    out = Path(out)
+    if out.is_dir() and any(out.iterdir()) and not overwrite:
+        raise OutputExistsError(
+            f"{out} is not empty: a new dataset would mix with what it holds; choose an empty "
+            "or new folder, or pass --overwrite"
+        )
+    return check_writable(out, flag="OUT", folder=True)
 
 
 def run(args: argparse.Namespace) -> int:
     """Generate the dataset described by ``args``; prints a summary and returns 0."""
+    from poseflow.cli.common import show_progress
     from poseflow.data.synthetic import DepthNoise, generate_dataset
 
+    objects_per_image = _count_range(args.objects_per_image, "--objects-per-image")
+    distractors = _count_range(args.distractors, "--distractors")
+    check_output_folder(args.out, overwrite=args.overwrite)
     root = generate_dataset(
         args.out,
         args.objects,
         num_train_images=args.train,
         num_test_images=args.test,
-        objects_per_image=_count_range(args.objects_per_image, "--objects-per-image"),
-        distractors_per_image=_count_range(args.distractors, "--distractors"),
+        objects_per_image=objects_per_image,
+        distractors_per_image=distractors,
         images_per_scene=args.images_per_scene,
         width=args.width,
         height=args.height,
@@ -92,7 +131,7 @@ def run(args: argparse.Namespace) -> int:
         depth_noise=None if args.clean_depth else DepthNoise(),
         image_ext=".jpg" if args.jpg else ".png",
         mesh_scale=args.mesh_scale,
-        progress=not args.no_progress,
+        progress=show_progress(args),
     )
     print(f"wrote {args.train} train and {args.test} test images to {root}")
     return 0

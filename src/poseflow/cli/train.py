@@ -30,9 +30,9 @@ import time
 from pathlib import Path
 from typing import Any
 
-from poseflow.cli.common import add_config_arguments, add_device_argument
+from poseflow.cli.common import add_config_arguments, add_device_argument, add_output_arguments
 
-__all__ = ["add_parser", "run"]
+__all__ = ["RESUME_SETTINGS", "add_parser", "run"]
 
 
 def _network_fields() -> tuple[str, ...]:
@@ -102,9 +102,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     parser.add_argument(
         "--data-only", action="store_true", help="stop after caching the training set"
     )
-    parser.add_argument("--no-progress", action="store_true", help="hide the progress bars")
     add_device_argument(parser)
     add_config_arguments(parser)
+    add_output_arguments(parser)
     parser.set_defaults(run=run)
     return parser
 
@@ -112,7 +112,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 def _run_config(args: argparse.Namespace, out: Path) -> Any:
     """The model configuration: from the options, or the saved run's when resuming."""
     from poseflow.cli.common import build_config, config_requested
-    from poseflow.errors import ValueRangeError
+    from poseflow.errors import UsageError
     from poseflow.flows import latest_checkpoint
     from poseflow.models import FunFlow6DConfig
 
@@ -123,26 +123,40 @@ def _run_config(args: argparse.Namespace, out: Path) -> Any:
             return saved
         config = build_config(args)
         if config.to_json() != saved.to_json():
-            raise ValueRangeError(
+            raise UsageError(
                 f"the configuration differs from that of the run in {out} ({run_file}); drop "
                 "the configuration options to resume it, or train into a new --out"
             )
         return config
     if not args.resume and latest_checkpoint(out / "checkpoints") is not None:
-        raise ValueRangeError(
+        raise UsageError(
             f"{out} already holds the checkpoints of a run; pass --resume to continue it or "
             "choose another --out"
         )
     return build_config(args)
 
 
+#: Trainer settings whose change on ``--resume`` makes the run differ from an uninterrupted one.
+RESUME_SETTINGS = ("steps", "batch_size", "lr", "warmup_steps", "ema_decay", "precision", "seed")
+
+
 def _train_set_key(config: Any, root: Path, args: argparse.Namespace) -> dict[str, Any]:
+    """Everything the training set is made from: its cache key.
+
+    The dataset (its path, the annotations' content, every file of the split by path, size and
+    modification time), the options that shape the set and the feature configuration.
+    """
+    from poseflow._cache import files_key
     from poseflow.cli.common import dataset_fingerprint
 
     network = _network_fields()
     features = {k: v for k, v in config.to_json().items() if k not in network}
+    split_files = [p for p in (root / args.split).rglob("*") if p.is_file()]
     return {
         "dataset": dataset_fingerprint(root, args.split),
+        "dataset_path": str(root.resolve()),
+        "files": files_key(split_files),
+        "num_files": len(split_files),
         "split": args.split,
         "copies": args.copies,
         "crop_jitter": args.crop_jitter if args.copies > 1 else 0.0,
@@ -153,16 +167,46 @@ def _train_set_key(config: Any, root: Path, args: argparse.Namespace) -> dict[st
     }
 
 
+def _cached_training_set(path: Path, meta: Path, key: dict[str, Any]) -> Any:
+    """The cached training set when its key is ``key`` and it reads back whole, else None.
+
+    A corrupt cache (a truncated key or tensor file) is reported with a warning and rebuilt.
+    """
+    import warnings
+
+    from poseflow.errors import CheckpointError, MissingWeightsError
+    from poseflow.flows.checkpoint import check_safetensors
+    from poseflow.models.training import FlowTrainingSet
+
+    if not (path.is_file() and meta.is_file()):
+        return None
+    try:
+        saved = json.loads(meta.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        warnings.warn(f"{meta} is corrupt ({exc}); rebuilding the training set", stacklevel=2)
+        return None
+    if saved != key:
+        return None
+    try:
+        check_safetensors(path)
+    except (CheckpointError, MissingWeightsError) as exc:
+        warnings.warn(f"{exc}; rebuilding the training set", stacklevel=2)
+        return None
+    return FlowTrainingSet.load(path)
+
+
 def _training_set(
     model: Any, root: Path, args: argparse.Namespace, out: Path, *, write: bool, progress: bool
 ) -> tuple[Any, bool]:
     """Load the cached training set when its key matches, else build (and, on rank 0, save) it."""
-    from poseflow.models.training import FlowTrainingSet, build_training_set
+    from poseflow.flows.checkpoint import atomic_write
+    from poseflow.models.training import build_training_set
 
     key = _train_set_key(model.config, root, args)
     path, meta = out / "train_set.safetensors", out / "train_set.json"
-    if path.is_file() and meta.is_file() and json.loads(meta.read_text()) == key:
-        return FlowTrainingSet.load(path), True
+    cached = _cached_training_set(path, meta, key)
+    if cached is not None:
+        return cached, True
     data = build_training_set(
         model,
         root,
@@ -177,8 +221,46 @@ def _training_set(
     if write:
         meta.unlink(missing_ok=True)  # no key beside a half-written set
         data.save(path)
-        meta.write_text(json.dumps(key, indent=1))
+        text = json.dumps(key, indent=1)
+        atomic_write(meta, lambda tmp: Path(tmp).write_text(text))
     return data, False
+
+
+def _run_record(
+    out: Path, args: argparse.Namespace, root: Path, config: Any, train_config: Any
+) -> dict[str, Any]:
+    """The ``run.json`` to write.
+
+    A new run's record, or the original one with this resumption appended (and a warning when its
+    trainer settings differ from the original's).
+    """
+    import warnings
+
+    settings = train_config.to_json()
+    record = {"config": config.to_json(), "train": settings}
+    record.update({"dataset": str(root), "split": args.split})
+    run_file = out / "run.json"
+    if not (args.resume and run_file.is_file()):
+        return record
+    original = json.loads(run_file.read_text())
+    before = original.get("train", {})
+    for earlier in original.get("resumed", []):
+        before = {**before, **earlier.get("train", {})}
+    changed = {
+        k: (before.get(k), settings[k])
+        for k in RESUME_SETTINGS
+        if k in before and before.get(k) != settings[k]
+    }
+    if changed:
+        text = ", ".join(f"{k} {new} (was {old})" for k, (old, new) in changed.items())
+        warnings.warn(
+            f"resuming {out} with other trainer settings: {text}; the result will differ from "
+            "an uninterrupted run (run.json keeps the original settings and records these)",
+            stacklevel=2,
+        )
+    resumed = {"train": settings, "dataset": str(root), "split": args.split}
+    original.setdefault("resumed", []).append(resumed)
+    return original
 
 
 def run(args: argparse.Namespace) -> int:
@@ -188,25 +270,28 @@ def run(args: argparse.Namespace) -> int:
 
     from poseflow.cli.common import (
         check_dataset,
+        check_writable,
         load_object_models,
         object_cache_dir,
         resolve_device,
+        show_progress,
     )
-    from poseflow.errors import PoseflowError, ValueRangeError
+    from poseflow.errors import PoseflowError, UsageError
     from poseflow.flows import (
         TrainConfig,
         destroy_distributed,
         init_distributed,
         main_rank_succeeded,
     )
+    from poseflow.flows.checkpoint import atomic_write
     from poseflow.models import FunFlow6D
     from poseflow.models.training import train
 
     start = time.perf_counter()
     root = check_dataset(args.dataset, args.split)
-    out = Path(args.out)
+    out = check_writable(args.out, folder=True)
     if args.copies < 1 or args.steps < 1:
-        raise ValueRangeError("--copies and --steps must be at least 1")
+        raise UsageError("--copies and --steps must be at least 1")
     warmup = min(500, args.steps // 10) if args.warmup_steps is None else args.warmup_steps
     train_config = TrainConfig(
         steps=args.steps,
@@ -217,7 +302,7 @@ def run(args: argparse.Namespace) -> int:
         precision=args.precision,
         ckpt_every=args.ckpt_every,
         seed=args.seed,
-        progress=not args.no_progress,
+        progress=show_progress(args),
     )
     device = resolve_device(args.device)
     had_group = dist.is_available() and dist.is_initialized()
@@ -232,7 +317,7 @@ def run(args: argparse.Namespace) -> int:
             torch.manual_seed(args.seed)
             model = FunFlow6D(config)
             cache = Path(args.cache) if args.cache is not None else out / "model"
-            show = not args.no_progress and ctx.is_main
+            show = show_progress(args) and ctx.is_main
             times = {}
             t0 = time.perf_counter()
             models = load_object_models(root, progress=show)
@@ -243,11 +328,8 @@ def run(args: argparse.Namespace) -> int:
             times["training set"] = time.perf_counter() - t0
             if ctx.is_main:
                 out.mkdir(parents=True, exist_ok=True)
-                record = {"config": config.to_json(), "train": train_config.to_json()}
-                record.update({"dataset": str(root), "split": args.split})
-                tmp = out / "run.json.tmp"
-                tmp.write_text(json.dumps(record, indent=1))
-                tmp.replace(out / "run.json")
+                text = json.dumps(_run_record(out, args, root, config, train_config), indent=1)
+                atomic_write(out / "run.json", lambda tmp: Path(tmp).write_text(text))
         except BaseException:
             if ctx.is_main:
                 main_rank_succeeded(ctx, False)

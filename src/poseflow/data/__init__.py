@@ -1,4 +1,4 @@
-"""Data: object models, default demo objects, BOP datasets and the synthetic scene generator.
+"""Data: object models, demo objects, BOP datasets, single frames, the synthetic scene generator.
 
 Units are metres inside the library; BOP files (millimetres) are converted when read and written.
 """
@@ -29,6 +29,14 @@ from poseflow.data.demo_objects import (
     demo_objects,
     write_demo_models,
 )
+from poseflow.data.frame import (
+    Frame,
+    read_color,
+    read_frame,
+    read_intrinsics,
+    read_masks,
+    read_metric_depth,
+)
 from poseflow.data.objects import (
     ObjectModel,
     discretize_symmetries,
@@ -55,6 +63,7 @@ __all__ = [
     "ContinuousSymmetry",
     "DepthNoise",
     "Detection",
+    "Frame",
     "GTInfo",
     "GTPose",
     "ModelInfo",
@@ -68,7 +77,12 @@ __all__ = [
     "generate_dataset",
     "load_mesh",
     "mesh_vertex_arrays",
+    "read_color",
     "read_detections",
+    "read_frame",
+    "read_intrinsics",
+    "read_masks",
+    "read_metric_depth",
     "read_models_info",
     "read_test_targets",
     "rle_decode",

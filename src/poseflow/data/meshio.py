@@ -70,7 +70,9 @@ def load_mesh(path: str | Path, *, scale: float = 1.0) -> TexturedMesh:
 
 
 def _read_open3d(path: Path) -> TexturedMesh:
-    import open3d as o3d
+    from poseflow.render.backend import import_open3d
+
+    o3d = import_open3d("reading this mesh format")
 
     m = o3d.io.read_triangle_mesh(str(path), enable_post_processing=False)
     if len(m.triangles) == 0:

@@ -17,6 +17,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from poseflow._cache import arrays_key
+from poseflow._units import check_diameter_units
 from poseflow.data.meshio import load_mesh
 from poseflow.errors import DegenerateInputError, ValueRangeError
 from poseflow.geometry.pointcloud import cloud_diameter, farthest_point_sample
@@ -396,8 +398,12 @@ class ObjectModel:
         max_sym_disc_step: float = 0.01,
         name: str | None = None,
         dtype: torch.dtype = torch.float32,
+        scale_name: str = "scale=",
     ) -> ObjectModel:
         """Load a mesh file and build its model (see :meth:`from_mesh`).
+
+        The scaled mesh must have a plausible diameter (5 mm to 5 m): a mesh in millimetres
+        read with ``scale=1`` stops here rather than giving a 155 m object.
 
         Args:
             path: mesh file (see :func:`load_mesh`).
@@ -410,11 +416,21 @@ class ObjectModel:
             max_sym_disc_step: discretisation step of continuous symmetries.
             name: defaults to the file's stem.
             dtype: dtype of the tensors.
+            scale_name: the option that sets ``scale``, for the message of a wrong unit
+                (e.g. ``--mesh-scale`` on a command line).
 
         Returns:
             The :class:`ObjectModel`.
+
+        Raises:
+            UnitsError: the scaled mesh's diameter is implausible (see
+                :data:`poseflow._units.DIAMETER_RANGE`); the message says which scale to set.
         """
         mesh = load_mesh(path, scale=scale)
+        verts = torch.from_numpy(np.ascontiguousarray(mesh.vertices))[None]
+        check_diameter_units(
+            float(cloud_diameter(verts)[0]), scale_name=scale_name, scale=scale, where=str(path)
+        )
         disc, cont = _symmetry_specs(info)
         return cls.from_mesh(
             mesh,
@@ -426,6 +442,39 @@ class ObjectModel:
             max_sym_disc_step=max_sym_disc_step,
             name=Path(path).stem if name is None else name,
             dtype=dtype,
+        )
+
+    def content_key(self) -> str:
+        """A key of everything derived data of this object is computed from.
+
+        The mesh in metres (so its scale as well as its geometry, texture and colours) and the
+        sampled query cloud: two objects with the same key prepare to the same result, so a
+        cache of prepared objects keyed by it (and the configuration) never serves the data of
+        another mesh or scale.
+
+        Example:
+            >>> import open3d as o3d
+            >>> box = o3d.geometry.TriangleMesh.create_box(0.1, 0.2, 0.3)
+            >>> a = ObjectModel.from_mesh(box, num_points=16)
+            >>> a.content_key() == ObjectModel.from_mesh(box, num_points=16).content_key()
+            True
+            >>> a.content_key() == ObjectModel.from_mesh(box.scale(2.0, [0, 0, 0]),
+            ...                                          num_points=16).content_key()
+            False
+        """
+        m = self.mesh
+        return arrays_key(
+            {
+                "vertices": m.vertices,
+                "triangles": m.triangles,
+                "triangle_uvs": m.triangle_uvs,
+                "texture": m.texture,
+                "vertex_colors": m.vertex_colors,
+                "vertex_normals": m.vertex_normals,
+                "points": self.points,
+                "normals": self.normals,
+                "colors": self.colors,
+            }
         )
 
     @property

@@ -35,6 +35,7 @@ import torch
 from PIL import Image
 from scipy import ndimage
 
+from poseflow._units import check_diameter_units
 from poseflow.data._arrays import as_numpy
 from poseflow.data.bop import (
     BOPWriter,
@@ -461,8 +462,9 @@ def _load_objects(objects: Any, mesh_scale: float = 1.0) -> list[SyntheticObject
         from poseflow.data.demo_objects import demo_objects
 
         objects = demo_objects(num_points=64)  # only the meshes and model infos are used
-    if isinstance(objects, (str, Path)):
-        objects = _load_mesh_folder(Path(objects), mesh_scale)
+    from_folder = isinstance(objects, (str, Path))
+    if from_folder:
+        objects = _load_mesh_folder(Path(objects), mesh_scale)  # checked file by file
     items = list(objects.items()) if isinstance(objects, Mapping) else list(enumerate(objects, 1))
     if not items:
         raise ValueRangeError("generate_dataset needs at least one object")
@@ -473,10 +475,17 @@ def _load_objects(objects: Any, mesh_scale: float = 1.0) -> list[SyntheticObject
             continue
         mesh = as_textured_mesh(obj)
         out.append(SyntheticObject(int(obj_id), mesh, _info_of(obj, mesh)))
+    for o in [] if from_folder else out:
+        where = f"object {o.obj_id} (a mesh passed in memory: scale it to metres first)"
+        check_diameter_units(_diameter(o.mesh), scale_name="its scale", where=where)
     ids = [o.obj_id for o in out]
     if len(set(ids)) != len(ids) or min(ids) < 1:
         raise ValueRangeError(f"object ids must be distinct and >= 1, got {ids}")
     return out
+
+
+def _diameter(mesh: TexturedMesh) -> float:
+    return float(cloud_diameter(torch.from_numpy(np.ascontiguousarray(mesh.vertices))[None])[0])
 
 
 def _load_mesh_folder(folder: Path, scale: float) -> dict[int, Any]:
@@ -485,8 +494,20 @@ def _load_mesh_folder(folder: Path, scale: float) -> dict[int, Any]:
     Files named like BOP models (``obj_000005.ply``) keep their id, and their entry of a
     ``models_info.json`` beside them (symmetries, diameter) is used; other files are numbered
     1, 2, ... in name order.
+
+    Raises:
+        UnitsError: a scaled mesh has an implausible diameter (the message names the file and
+            the ``--mesh-scale`` to set).
     """
     from poseflow.data.objects import load_mesh
+
+    def load(p: Path) -> TexturedMesh:
+        mesh = load_mesh(p, scale=scale)
+        check_diameter_units(
+            _diameter(mesh), scale_name="--mesh-scale", api_name="mesh_scale", scale=scale,
+            where=str(p),
+        )  # fmt: skip
+        return mesh
 
     if not folder.is_dir():
         raise ValueRangeError(f"objects must be a folder of meshes, {folder} is not a folder")
@@ -501,13 +522,13 @@ def _load_mesh_folder(folder: Path, scale: float) -> dict[int, Any]:
         out: dict[int, Any] = {}
         for p, match in zip(paths, bop_ids):
             obj_id = int(match.group(1))  # type: ignore[union-attr]
-            mesh = load_mesh(p, scale=scale)
+            mesh = load(p)
             if obj_id in infos:
                 out[obj_id] = SyntheticObject(obj_id, mesh, infos[obj_id])
             else:
                 out[obj_id] = mesh
         return out
-    return {i: load_mesh(p, scale=scale) for i, p in enumerate(paths, 1)}
+    return {i: load(p) for i, p in enumerate(paths, 1)}
 
 
 def _write_models(root: Path, objects: Sequence[SyntheticObject]) -> None:

@@ -5,7 +5,8 @@
 - the recall protocol (:func:`assign`, :func:`match`) and the dataset-level
   :func:`evaluate_bop` returning AR, AR_VSD, AR_MSSD, AR_MSPD, per object and per threshold;
 - :func:`predict_dataset`, the loop that runs any estimator over a BOP split (ground-truth or
-  detected masks) into results;
+  detected masks) into results, and :func:`estimate_frame` for one frame (poses behind the
+  camera are never valid), written by :func:`write_poses_json`;
 - BOP 2019 results CSV files (:func:`read_results`, :func:`write_results`);
 - the paper's correspondence-inlier metric (:func:`correspondence_inliers`);
 - the per-image stage breakdown (:class:`StageTimer`, reported to through :func:`stage` and
@@ -26,6 +27,7 @@ from poseflow.eval.errors import (
     vsd_from_depth,
 )
 from poseflow.eval.evaluate import METRICS, EvalModel, evaluate_bop, gt_results, load_eval_models
+from poseflow.eval.frame import FramePoses, estimate_frame, write_poses_json
 from poseflow.eval.inliers import InlierResult, correspondence_inliers, mutual_nearest_neighbors
 from poseflow.eval.overlay import ESTIMATE_COLOR, GT_COLOR, overlay_poses, write_overlay
 from poseflow.eval.predict import Estimator, PoseEstimate, on_device, predict_dataset
@@ -63,6 +65,7 @@ __all__ = [
     "Assignment",
     "Estimator",
     "EvalModel",
+    "FramePoses",
     "InlierResult",
     "PoseEstimate",
     "PoseResults",
@@ -75,6 +78,7 @@ __all__ = [
     "correspondence_inliers",
     "depth_to_distance",
     "discretize_continuous_symmetry",
+    "estimate_frame",
     "evaluate_bop",
     "gt_results",
     "load_eval_models",
@@ -94,5 +98,6 @@ __all__ = [
     "timed",
     "vsd_from_depth",
     "write_overlay",
+    "write_poses_json",
     "write_results",
 ]

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import math
 import os
+import warnings
 from collections import defaultdict
 from collections.abc import Mapping, Sequence
 from typing import Any
@@ -33,7 +34,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from poseflow.data.bop import BOPDataset, ModelInfo
+from poseflow.data.bop import BOPDataset, BOPDataWarning, ModelInfo
 from poseflow.data.objects import load_mesh
 from poseflow.errors import ValueRangeError
 from poseflow.eval.errors import (
@@ -209,8 +210,14 @@ def evaluate_bop(
         top-``inst_count``), ``average_time`` (seconds per image, -1 if unknown) and ``metrics``.
 
     Raises:
-        ValueRangeError: an unknown metric, or a target naming an image without ground truth.
-        MissingFileError: missing dataset files.
+        ValueRangeError: an unknown metric, a target naming an image without ground truth, or a
+            malformed results file (see :func:`~poseflow.eval.results.read_results`).
+        MissingFileError: missing dataset or results files.
+
+    Warns:
+        BOPDataWarning: results rows name objects without a model or images the split does not
+            hold (they cannot count: the count and the first examples are given), or the
+            translations look like metres where BOP files hold millimetres.
 
     Example:
         >>> import tempfile, open3d as o3d
@@ -228,7 +235,9 @@ def evaluate_bop(
     ds = dataset if isinstance(dataset, BOPDataset) else _open(dataset, split)
     res = results if isinstance(results, PoseResults) else read_results(results)
     tgts = _load_targets(ds, targets)
+    _warn_unknown_rows(ds, res)
     scenes = _Scene(ds, sorted({(t.scene_id, t.im_id) for t in tgts}))
+    _warn_metre_translations(res, scenes)
     a = assign(tgts, scenes.gt_objs, res.scene_ids, res.im_ids, res.obj_ids, res.scores)
     models = load_eval_models(ds, [t.obj_id for t in tgts], max_sym_disc_step=max_sym_disc_step)
     pairs = _Pairs(a, res, scenes)
@@ -269,6 +278,61 @@ def gt_results(
         return PoseResults.empty()
     poses = torch.from_numpy(np.stack(cols["p"]))
     return PoseResults.from_columns(cols["s"], cols["i"], cols["o"], [score] * len(poses), poses)
+
+
+def _examples(items: Sequence[Any], limit: int = 3) -> str:
+    shown = ", ".join(str(x) for x in items[:limit])
+    return shown + (", ..." if len(items) > limit else "")
+
+
+def _warn_unknown_rows(ds: BOPDataset, res: PoseResults) -> None:
+    """Warn about results rows that cannot count: unknown objects, scenes or images."""
+    if not len(res):
+        return
+    infos = ds.models_info()
+    objs = res.obj_ids.tolist()
+    unknown_objs = sorted({o for o in objs if o not in infos})
+    if unknown_objs:
+        n = sum(o in set(unknown_objs) for o in objs)
+        warnings.warn(
+            f"{n} results rows name objects that {ds.root}/models does not hold "
+            f"({_examples(unknown_objs)}); they are ignored",
+            BOPDataWarning,
+            stacklevel=3,
+        )
+    known_scenes = set(ds.scene_ids)
+    images = {(s, i) for s, i in zip(res.scene_ids.tolist(), res.im_ids.tolist())}
+    known = {
+        (s, i) for s in sorted({s for s, _ in images} & known_scenes) for i in ds.scene(s).im_ids
+    }
+    missing = sorted(images - known)
+    if missing:
+        n = sum((s, i) in set(missing) for s, i in zip(res.scene_ids.tolist(), res.im_ids.tolist()))
+        names = [f"scene {s} image {i}" for s, i in missing]
+        warnings.warn(
+            f"{n} results rows name images that the split {ds.split_path} does not hold "
+            f"({_examples(names)}); they are ignored: is this the right dataset and --split?",
+            BOPDataWarning,
+            stacklevel=3,
+        )
+
+
+def _warn_metre_translations(res: PoseResults, scenes: _Scene) -> None:
+    """Warn when the estimates' distances are about a thousandth of the ground truth's."""
+    est = res.poses[:, 2, 3].abs()
+    gt = [p[:, 2, 3] for p in scenes.gt_poses.values() if len(p)]
+    if not len(est) or not gt:
+        return
+    est_z = float(est.median())
+    gt_z = float(np.median(np.abs(np.concatenate(gt))))
+    if gt_z > 0 and est_z < 0.01 * gt_z:
+        warnings.warn(
+            f"the estimated translations are {1000 * est_z:.3g} mm from the camera (median), the "
+            f"ground truth {1000 * gt_z:.3g} mm: was t written in metres? BOP results files "
+            "hold t in millimetres",
+            BOPDataWarning,
+            stacklevel=3,
+        )
 
 
 def _open(root: str | os.PathLike[str], split: str) -> BOPDataset:

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import torch
 
+from poseflow._units import in_front_of_camera
 from poseflow.data.bop import BOPDataset, Detection
 from poseflow.eval.recall import Target
 from poseflow.eval.results import PoseResults
@@ -104,7 +105,7 @@ def predict_dataset(
         progress: show a progress bar.
 
     Returns:
-        One row per valid estimate.
+        One row per valid estimate; a pose behind the camera (``t_z <= 0``) is never valid.
     """
     from tqdm.auto import tqdm
 
@@ -150,7 +151,7 @@ def predict_dataset(
             with timer.active(), timer.image():
                 est = estimator(rgb, depth, K, torch.stack(masks), obj_ids)
         elapsed = time.perf_counter() - start
-        ok = est.valid.cpu()
+        ok = est.valid.cpu() & in_front_of_camera(est.poses.detach().cpu())
         if not bool(ok.any()):
             continue
         k = int(ok.sum())

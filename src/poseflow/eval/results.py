@@ -13,19 +13,24 @@ import math
 import os
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 
 from poseflow._checks import check_tensor
-from poseflow.errors import ShapeError, ValueRangeError
+from poseflow.errors import MissingFileError, ResultsFormatError, ShapeError, ValueRangeError
 
-__all__ = ["HEADER", "PoseResults", "read_results", "write_results"]
+__all__ = ["HEADER", "ROTATION_TOLERANCE", "PoseResults", "read_results", "write_results"]
 
 #: The header line of a BOP 2019 results file.
 HEADER = "scene_id,im_id,obj_id,score,R,t,time"
 
 #: Two times of one image that differ by more than this many seconds are an error (the toolkit's).
 TIME_TOLERANCE = 1e-3
+
+#: Largest entry of ``|R Rᵀ - I|`` and of ``|det R - 1|`` of a rotation read from a results file
+#: (results written with 4 decimals pass; a scaled, reflected or zero matrix does not).
+ROTATION_TOLERANCE = 1e-3
 
 
 @dataclass
@@ -171,6 +176,10 @@ def write_results(path: str | os.PathLike[str], results: PoseResults) -> None:
 def read_results(path: str | os.PathLike[str]) -> PoseResults:
     """Read a BOP 2019 CSV results file.
 
+    A UTF-8 byte-order mark (as some spreadsheet programs write) and Windows line ends are
+    accepted. Every rotation must be a rotation: orthonormal with determinant +1, within
+    :data:`ROTATION_TOLERANCE`.
+
     Args:
         path: the file; its first line must be exactly :data:`HEADER`.
 
@@ -178,15 +187,24 @@ def read_results(path: str | os.PathLike[str]) -> PoseResults:
         :class:`PoseResults` with poses in metres.
 
     Raises:
-        ValueRangeError: wrong header, a line without 7 fields, R without 9 or t without 3 numbers,
-            a non-finite number, or different times for one image.
-        FileNotFoundError: the file does not exist.
+        MissingFileError: the file does not exist.
+        ResultsFormatError: wrong header, a line without 7 fields, a field that is not a number,
+            R without 9 or t without 3 numbers, a non-finite number, an R that is not a rotation
+            (the message names the file and line), or different times for one image.
     """
-    with open(path, encoding="ascii") as f:
-        lines = [ln.strip() for ln in f]
+    if not os.path.isfile(path):
+        raise MissingFileError(
+            f"results file {path} does not exist (write one with `poseflow predict`, or pass "
+            "--run-baseline to `poseflow eval`)"
+        )
+    try:
+        with open(path, encoding="utf-8-sig") as f:
+            lines = [ln.strip() for ln in f]
+    except UnicodeDecodeError as exc:
+        raise ResultsFormatError(f"{path} is not a text (UTF-8/ASCII) CSV file: {exc}") from None
     if not lines or lines[0] != HEADER:
         got = lines[0] if lines else "an empty file"
-        raise ValueRangeError(f"{path}: the header must be exactly {HEADER!r}, got {got!r}")
+        raise ResultsFormatError(f"{path}: the header must be exactly {HEADER!r}, got {got!r}")
     ints: list[tuple[int, int, int]] = []
     scores, times, mats = [], [], []
     for n, line in enumerate(lines[1:], 2):
@@ -194,23 +212,28 @@ def read_results(path: str | os.PathLike[str]) -> PoseResults:
             continue
         fields = line.split(",")
         if len(fields) != 7:
-            raise ValueRangeError(
+            raise ResultsFormatError(
                 f"{path}:{n}: expected 7 comma-separated fields, got {len(fields)}"
             )
-        try:
-            ints.append((int(fields[0]), int(fields[1]), int(fields[2])))
-            score = float(fields[3])
-            R = [float(x) for x in fields[4].split()]
-            t = [float(x) for x in fields[5].split()]
-            time = float(fields[6])
-        except ValueError as exc:
-            raise ValueRangeError(f"{path}:{n}: {exc}") from exc
+        where = f"{path}:{n}"
+        ints.append(
+            (
+                _parse(int, fields[0], where, "scene_id"),
+                _parse(int, fields[1], where, "im_id"),
+                _parse(int, fields[2], where, "obj_id"),
+            )
+        )
+        score = _parse(float, fields[3], where, "score")
+        R = [_parse(float, x, where, "R") for x in fields[4].split()]
+        t = [_parse(float, x, where, "t") for x in fields[5].split()]
+        time = _parse(float, fields[6], where, "time")
         if len(R) != 9 or len(t) != 3:
-            raise ValueRangeError(
-                f"{path}:{n}: R needs 9 numbers and t 3, got {len(R)} and {len(t)}"
+            raise ResultsFormatError(
+                f"{where}: R needs 9 numbers and t 3, got {len(R)} and {len(t)}"
             )
         if not all(math.isfinite(x) for x in (score, time, *R, *t)):
-            raise ValueRangeError(f"{path}:{n}: non-finite number")
+            raise ResultsFormatError(f"{where}: non-finite number")
+        _check_rotation(R, where)
         scores.append(score)
         times.append(time)
         mats.append([*R[0:3], t[0] / 1000.0, *R[3:6], t[1] / 1000.0, *R[6:9], t[2] / 1000.0])
@@ -227,5 +250,30 @@ def read_results(path: str | os.PathLike[str]) -> PoseResults:
         poses,
         torch.tensor(times, dtype=torch.float64),
     )
-    out.image_times()
+    try:
+        out.image_times()
+    except ValueRangeError as exc:
+        raise ResultsFormatError(f"{path}: {exc}") from None
     return out
+
+
+def _parse(kind: type, text: str, where: str, field: str) -> Any:
+    """``kind(text)`` (int or float), or an error naming the file, line and field."""
+    try:
+        return kind(text)
+    except ValueError:
+        what = "an integer" if kind is int else "a number"
+        raise ResultsFormatError(f"{where}: {field} {text.strip()!r} is not {what}") from None
+
+
+def _check_rotation(R: Sequence[float], where: str) -> None:
+    """Raise unless the row-major 3x3 ``R`` is a rotation (orthonormal, determinant +1)."""
+    m = torch.tensor(R, dtype=torch.float64).reshape(3, 3)
+    ortho = float((m @ m.T - torch.eye(3, dtype=torch.float64)).abs().max())
+    det = float(torch.linalg.det(m))
+    if ortho > ROTATION_TOLERANCE or abs(det - 1.0) > ROTATION_TOLERANCE:
+        kind = "a reflection (det -1)" if abs(det + 1.0) <= ROTATION_TOLERANCE else "not a rotation"
+        raise ResultsFormatError(
+            f"{where}: R is {kind} (|R Rᵀ - I| = {ortho:.3g}, det R = {det:.3g}); a BOP results "
+            "file holds rotation matrices, row-major"
+        )

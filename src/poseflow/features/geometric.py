@@ -132,7 +132,9 @@ def open3d_normals(points: np.ndarray, radius: float, *, max_nn: int = 30) -> np
         >>> bool((np.sum(n * pts, axis=1) > 0.9).mean() > 0.9)
         True
     """
-    import open3d as o3d
+    from poseflow.render.backend import import_open3d
+
+    o3d = import_open3d("Open3D's normals and FPFH")
 
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.ascontiguousarray(points)))
     pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=max_nn))
@@ -272,7 +274,9 @@ class FPFHEncoder(Hyperparameters):
         diameter: torch.Tensor,
     ) -> torch.Tensor:
         """Raw float64 CPU histograms ``(B, P, D)`` by Open3D, cloud by cloud."""
-        import open3d as o3d
+        from poseflow.render.backend import import_open3d
+
+        o3d = import_open3d("Open3D's normals and FPFH")
 
         out = torch.zeros(*points.shape[:2], self.dim, dtype=torch.float64)
         pts_np = points.detach().cpu().double().numpy()

@@ -6,7 +6,9 @@ tensors: weights, EMA weights, the optimiser state flattened to tensors) and
 of the tensor file). Both are written to a temporary file in the same directory, flushed to disk
 and moved into place with ``os.replace``, the tensors first: a JSON file therefore only ever
 names a complete tensor file, and a crash leaves at worst a stray ``.tmp`` file. Loading reads
-safetensors and JSON only; nothing is unpickled.
+safetensors and JSON only; nothing is unpickled. A checkpoint damaged after the fact (a disk
+that filled up, a copy cut short) is detected when read; :func:`load_checkpoint` of a directory
+then falls back to the previous checkpoint with a warning.
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ import json
 import os
 import re
 import tempfile
+import warnings
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
@@ -22,10 +25,11 @@ from typing import Any
 import torch
 from safetensors.torch import load_file, save_file
 
-from poseflow.errors import MissingWeightsError, ShapeError
+from poseflow.errors import CheckpointError, MissingWeightsError, ShapeError
 
 __all__ = [
     "atomic_write",
+    "check_safetensors",
     "flatten_optimizer_state",
     "latest_checkpoint",
     "load_checkpoint",
@@ -112,13 +116,75 @@ def save_checkpoint(
     return atomic_write(directory / f"{stem}.json", lambda tmp: Path(tmp).write_text(text))
 
 
+def check_safetensors(path: str | os.PathLike[str]) -> Path:
+    """Check that a safetensors file is complete: its header parses and covers the whole file.
+
+    Reads the header only (the tensors are not loaded).
+
+    Args:
+        path: the file.
+
+    Returns:
+        ``path`` as a :class:`~pathlib.Path`.
+
+    Raises:
+        MissingWeightsError: the file does not exist.
+        CheckpointError: the file is truncated or is not a safetensors file.
+
+    Example:
+        >>> import tempfile, pathlib
+        >>> p = pathlib.Path(tempfile.mkdtemp()) / "w.safetensors"
+        >>> save_file({"w": torch.ones(4)}, str(p))
+        >>> check_safetensors(p).name
+        'w.safetensors'
+        >>> _ = p.write_bytes(p.read_bytes()[:-3])
+        >>> try:
+        ...     check_safetensors(p)
+        ... except CheckpointError as e:
+        ...     print(str(e).split(" (")[0])
+        w.safetensors is truncated or corrupt
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise MissingWeightsError(f"{path} does not exist")
+    size = path.stat().st_size
+    try:
+        with open(path, "rb") as f:
+            head = f.read(8)
+            if len(head) < 8:
+                raise ValueError(f"{size} bytes, fewer than a header")
+            n = int.from_bytes(head, "little")
+            if n > size - 8:
+                raise ValueError(f"the header claims {n} bytes, the file has {size - 8} after it")
+            header = json.loads(f.read(n))
+        if not isinstance(header, dict):
+            raise ValueError("the header is not a JSON object")
+        end = max(
+            (int(v["data_offsets"][1]) for k, v in header.items() if k != "__metadata__"),
+            default=0,
+        )
+    except (ValueError, KeyError, TypeError, IndexError) as exc:
+        raise CheckpointError(
+            f"{path.name} is truncated or corrupt ({exc}): {path}; restore it or write it again"
+        ) from None
+    if 8 + n + end != size:
+        raise CheckpointError(
+            f"{path.name} is truncated or corrupt (the header describes {8 + n + end} bytes, the "
+            f"file has {size}): {path}; restore it or write it again"
+        )
+    return path
+
+
 def load_checkpoint(
     path: str | os.PathLike[str], *, device: torch.device | str = "cpu"
 ) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
     """Read a checkpoint written by :func:`save_checkpoint`.
 
+    Given a directory, its latest readable checkpoint is read: one whose JSON or tensor file is
+    truncated or corrupt is skipped with a warning, for the one before it.
+
     Args:
-        path: the checkpoint's JSON file, or a directory (its latest checkpoint is read).
+        path: the checkpoint's JSON file, or a directory.
         device: where to put the tensors.
 
     Returns:
@@ -126,19 +192,46 @@ def load_checkpoint(
 
     Raises:
         MissingWeightsError: no checkpoint at ``path``.
+        CheckpointError: the checkpoint named by ``path`` (or every checkpoint of the
+            directory) is truncated or corrupt.
     """
     path = Path(path)
-    if path.is_dir():
-        latest = latest_checkpoint(path)
-        if latest is None:
-            raise MissingWeightsError(f"no checkpoint (step-*.json) in {path}")
-        path = latest
-    if not path.is_file():
-        raise MissingWeightsError(f"checkpoint {path} does not exist")
-    meta = json.loads(path.read_text())
-    tensor_file = path.parent / meta["tensors"]
+    if not path.is_dir():
+        if not path.is_file():
+            raise MissingWeightsError(f"checkpoint {path} does not exist")
+        return _read_checkpoint(path, device)
+    steps = _checkpoints(path)
+    if not steps:
+        raise MissingWeightsError(f"no checkpoint (step-*.json) in {path}")
+    errors = []
+    for step in sorted(steps, reverse=True):
+        try:
+            out = _read_checkpoint(steps[step], device)
+        except (CheckpointError, MissingWeightsError) as exc:
+            errors.append(str(exc))
+            continue
+        if errors:
+            warnings.warn(
+                f"skipped {len(errors)} unreadable checkpoint(s) in {path} ({errors[0]}); "
+                f"resuming from step {step}",
+                stacklevel=2,
+            )
+        return out
+    raise CheckpointError(f"no readable checkpoint in {path}: {'; '.join(errors)}")
+
+
+def _read_checkpoint(
+    path: Path, device: torch.device | str
+) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
+    try:
+        meta = json.loads(path.read_text())
+        tensor_name = meta["tensors"]
+    except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError) as exc:
+        raise CheckpointError(f"checkpoint {path} is truncated or corrupt ({exc})") from None
+    tensor_file = path.parent / tensor_name
     if not tensor_file.is_file():
         raise MissingWeightsError(f"checkpoint {path} names {tensor_file}, which does not exist")
+    check_safetensors(tensor_file)
     return load_file(tensor_file, device=str(device)), meta
 
 

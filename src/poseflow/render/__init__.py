@@ -1,5 +1,6 @@
 """Rendering: a CPU ray-casting renderer (depth, instance masks, textured RGB) on Open3D."""
 
+from poseflow.render.backend import import_open3d
 from poseflow.render.mesh import DEFAULT_COLOR, TexturedMesh, as_textured_mesh, sample_texture
 from poseflow.render.raycast import Light, Renderer, RenderOutput, render
 
@@ -10,6 +11,7 @@ __all__ = [
     "Renderer",
     "TexturedMesh",
     "as_textured_mesh",
+    "import_open3d",
     "render",
     "sample_texture",
 ]

@@ -208,7 +208,9 @@ class TexturedMesh:
 
     def to_open3d(self) -> Any:
         """Convert to a legacy ``open3d.geometry.TriangleMesh`` (texture flipped for Open3D)."""
-        import open3d as o3d
+        from poseflow.render.backend import import_open3d
+
+        o3d = import_open3d("converting meshes to Open3D")
 
         m = o3d.geometry.TriangleMesh(
             o3d.utility.Vector3dVector(self.vertices), o3d.utility.Vector3iVector(self.triangles)

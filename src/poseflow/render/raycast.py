@@ -119,7 +119,9 @@ class Renderer:
     """
 
     def __init__(self, meshes: Sequence[Any], *, nthreads: int = 0) -> None:
-        import open3d as o3d
+        from poseflow.render.backend import import_open3d
+
+        o3d = import_open3d("rendering")
 
         self.meshes: list[TexturedMesh] = [as_textured_mesh(m) for m in meshes]
         if not self.meshes:
@@ -275,7 +277,9 @@ class Renderer:
     def _cast(
         self, mesh_id: int, T: np.ndarray, Kinv: np.ndarray, u0: int, u1: int, v0: int, v1: int
     ) -> dict[str, Any]:
-        import open3d as o3d
+        from poseflow.render.backend import import_open3d
+
+        o3d = import_open3d("rendering")
 
         uu, vv = np.meshgrid(np.arange(u0, u1), np.arange(v0, v1))
         pix = np.stack([uu, vv, np.ones_like(uu)], axis=-1).astype(np.float64)

@@ -259,14 +259,28 @@ def read_detections(path: str | Path) -> list[Detection]:
 
     Raises:
         MissingFileError: the file does not exist.
-        BOPFormatError: an entry lacks a key (the message gives its index, scene and image).
+        BOPFormatError: an entry lacks a key or holds a value that is not a number (the message
+            gives its index, scene and image).
     """
     return _per_entry(Path(path), "detections", _detection)
 
 
+def _number(e: Any, key: str, where: str, kind: type = float, default: Any = None) -> Any:
+    """``kind(e[key])`` (``default`` when absent and given), or an error naming the entry."""
+    value = _get(e, key, where) if default is None or key in e else default
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise BOPFormatError(f"{where}: '{key}' must be a number, got {value!r}")
+    if kind is int and float(value) != int(value):
+        raise BOPFormatError(f"{where}: '{key}' must be an integer, got {value!r}")
+    out = kind(value)
+    if not math.isfinite(out):
+        raise BOPFormatError(f"{where}: '{key}' must be finite, got {value!r}")
+    return out
+
+
 def _detection(e: Any, where: str) -> Detection:
-    scene_id = int(_get(e, "scene_id", where))
-    im_id = int(_get(e, "image_id", where))
+    scene_id = _number(e, "scene_id", where, int)
+    im_id = _number(e, "image_id", where, int)
     where = where.removesuffix(")") + f", scene {scene_id}, image {im_id})"
     seg = e.get("segmentation")
     if seg is not None and not (isinstance(seg, Mapping) and "counts" in seg and "size" in seg):
@@ -275,11 +289,11 @@ def _detection(e: Any, where: str) -> Detection:
     return Detection(
         scene_id=scene_id,
         im_id=im_id,
-        obj_id=int(_get(e, "category_id", where)),
-        score=float(_get(e, "score", where)),
+        obj_id=_number(e, "category_id", where, int),
+        score=_number(e, "score", where),
         bbox=(float(bbox[0]), float(bbox[1]), float(bbox[2]), float(bbox[3])),
         segmentation=seg,
-        time=float(e.get("time", -1.0)),
+        time=_number(e, "time", where, default=-1.0),
     )
 
 

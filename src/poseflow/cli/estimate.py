@@ -1,0 +1,316 @@
+r"""``poseflow estimate``: the poses of the objects in one RGB-D frame, from plain files.
+
+No BOP tree: a colour image, a depth image, the intrinsics, one mask per instance (or a BOP
+detections file) and the object's mesh. Writes ``OUT/poses.json`` (per instance: ``R``, ``t`` in
+metres and millimetres, score, validity) and ``OUT/overlay.png`` (the valid estimates drawn on
+the image). Without ``--model`` the classic training-free baseline (FPFH + RANSAC + ICP)
+estimates; ``--model`` takes a FunFlow6D model folder (or ``demo``, the shipped one, trained on
+the demo objects only).
+
+The same from Python: :func:`poseflow.data.read_frame`, then
+:func:`poseflow.eval.estimate_frame` with ``ClassicBaseline(objects).estimator()`` or a prepared
+``FunFlow6D``'s ``estimator()``, then :func:`poseflow.eval.write_poses_json`.
+
+Example::
+
+    poseflow estimate --rgb rgb.png --depth depth.png --depth-scale 0.001 \
+        --K 572.4 0 325.3 0 573.6 242.0 0 0 1 --mask mask.png --mesh drill.ply --mesh-scale 0.001
+    poseflow estimate --rgb rgb.png --depth depth.png --K scene_camera.json --im-id 3 \
+        --detections cnos.json --mesh lmo/models --model runs/lmo/model --out out/
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+from pathlib import Path
+from typing import Any
+
+from poseflow.cli.common import add_device_argument, add_output_arguments
+
+__all__ = ["DESCRIPTION", "add_parser", "load_meshes", "run"]
+
+#: What ``poseflow estimate --help`` says.
+DESCRIPTION = """\
+Estimate the 6D pose of each object instance in one RGB-D frame and write OUT/poses.json
+(R, t in metres and in millimetres, score and validity per instance) and OUT/overlay.png.
+
+Inputs: --rgb, --depth (a 16-bit PNG with --depth-scale metres per unit, 0.001 by default, or a
+float TIFF/.npy in metres), --K (9 numbers row-major, a JSON file or text, or a BOP
+scene_camera.json with --im-id), the instances (--mask PNGs, one per instance, or a BOP
+--detections file) and the objects (--mesh: a mesh file with --mesh-scale to metres, or a BOP
+models folder in millimetres). Depth, intrinsics and mesh sizes are checked for plausible units.
+
+Estimator: the classic baseline (FPFH + RANSAC + ICP, no training) unless --model names a
+trained FunFlow6D model folder (or demo, the small model shipped with poseflow)."""
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """Register the ``estimate`` subcommand on ``subparsers``; its ``run`` is :func:`run`."""
+    parser = subparsers.add_parser(
+        "estimate",
+        help="estimate object poses in one RGB-D frame (image files and a mesh)",
+        description=DESCRIPTION,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    frame = parser.add_argument_group("the frame")
+    frame.add_argument("--rgb", required=True, metavar="IMAGE", help="colour image")
+    frame.add_argument("--depth", required=True, metavar="IMAGE", help="depth image")
+    frame.add_argument(
+        "--depth-scale",
+        type=float,
+        default=None,
+        metavar="M",
+        help="metres per unit of the depth image (default: 0.001 for integer images, i.e. "
+        "millimetres, 1 for float images; a BOP camera entry's depth_scale when --K is one)",
+    )
+    frame.add_argument(
+        "--K",
+        required=True,
+        nargs="+",
+        metavar="K",
+        help="intrinsics: 9 numbers (row-major), or a JSON file or text (a 3x3 list, cam_K, "
+        "fx/fy/cx/cy, or a BOP scene_camera.json)",
+    )
+    frame.add_argument(
+        "--im-id", type=int, default=None, help="image id in scene_camera.json / detections"
+    )
+    frame.add_argument("--scene-id", type=int, default=None, help="scene id in the detections")
+    inst = parser.add_argument_group("the instances")
+    inst.add_argument(
+        "--mask", action="append", default=[], metavar="PNG", help="an instance mask; repeatable"
+    )
+    inst.add_argument(
+        "--obj-id",
+        type=int,
+        action="append",
+        default=[],
+        metavar="ID",
+        help="object id of each --mask (one for all; default: the one mesh's id)",
+    )
+    inst.add_argument(
+        "--detections", default=None, metavar="JSON", help="BOP detections with COCO-RLE masks"
+    )
+    inst.add_argument(
+        "--score-threshold", type=float, default=0.0, help="drop detections scoring below this"
+    )
+    objs = parser.add_argument_group("the objects and the estimator")
+    objs.add_argument(
+        "--mesh",
+        action="append",
+        required=True,
+        metavar="PATH",
+        help="a mesh file (.ply/.obj; obj_000005.ply is object 5, another name object 1, 2, ... "
+        "in order) or a BOP models folder; repeatable",
+    )
+    objs.add_argument(
+        "--mesh-scale",
+        type=float,
+        default=None,
+        help="factor from the mesh's units to metres (default 1; 0.001 for a BOP models folder)",
+    )
+    objs.add_argument(
+        "--model",
+        default=None,
+        metavar="MODEL_DIR",
+        help="a FunFlow6D model folder, or demo (default: the classic baseline)",
+    )
+    objs.add_argument(
+        "--cache", default=None, metavar="DIR", help="cache prepared objects here (FunFlow6D)"
+    )
+    objs.add_argument("--seed", type=int, default=0, help="seed of sampling and RANSAC")
+    parser.add_argument("--out", default="estimate_output", help="folder for poses.json, overlay")
+    add_device_argument(parser)
+    add_output_arguments(parser)
+    parser.set_defaults(run=run)
+    return parser
+
+
+def _mesh_id(path: Path, index: int) -> int:
+    m = re.fullmatch(r"obj_(\d+)", path.stem)
+    return int(m.group(1)) if m else index
+
+
+def load_meshes(
+    specs: list[str], *, mesh_scale: float | None, num_points: int = 2048, progress: bool = False
+) -> dict[int, Any]:
+    """The objects named by ``--mesh``: mesh files and BOP models folders, in metres.
+
+    Args:
+        specs: mesh files (``obj_XXXXXX`` names keep their id, others are numbered 1, 2, ... in
+            order) or BOP models folders (``models_info.json`` beside ``obj_XXXXXX.ply``, in mm).
+        mesh_scale: factor to metres (default 1 for files, 0.001 for BOP folders).
+        num_points: size of each model's surface sample.
+        progress: show a progress bar.
+
+    Returns:
+        ``{obj_id: ObjectModel}``.
+
+    Raises:
+        MissingFileError: a path does not exist.
+        UnitsError: a mesh's diameter is implausible (the message gives the ``--mesh-scale``).
+        UsageError: two meshes get the same object id.
+    """
+    from poseflow.data.bop import read_models_info
+    from poseflow.data.objects import ObjectModel
+    from poseflow.errors import MissingFileError, UsageError
+
+    out: dict[int, Any] = {}
+    counter = 0
+    for spec in specs:
+        path = Path(spec)
+        if path.is_dir():
+            info_path = path / "models_info.json"
+            if not info_path.is_file():
+                raise MissingFileError(
+                    f"--mesh {path} is a folder without models_info.json; give mesh files or a "
+                    "BOP models folder"
+                )
+            infos = read_models_info(info_path)
+            scale = 0.001 if mesh_scale is None else mesh_scale
+            found = [(o, path / f"obj_{o:06d}.ply") for o in sorted(infos)]
+            entries = [(o, p, infos[o]) for o, p in found]
+        elif path.is_file():
+            counter += 1
+            scale = 1.0 if mesh_scale is None else mesh_scale
+            entries = [(_mesh_id(path, counter), path, None)]
+        else:
+            raise MissingFileError(f"--mesh {path} does not exist")
+        for obj_id, file, info in entries:
+            if obj_id in out:
+                raise UsageError(f"--mesh: two meshes are object {obj_id}; rename one")
+            if not file.is_file():
+                raise MissingFileError(f"missing model of obj {obj_id}: {file}")
+            out[obj_id] = ObjectModel.from_file(
+                file, scale=scale, info=info, num_points=num_points, scale_name="--mesh-scale"
+            )
+    return out
+
+
+def _obj_ids(args: argparse.Namespace, objects: dict[int, Any]) -> list[int] | None:
+    from poseflow.errors import UsageError
+
+    if not args.mask:
+        if args.obj_id:
+            raise UsageError("--obj-id names the objects of --mask files; give --mask too")
+        return None
+    if args.obj_id:
+        if len(args.obj_id) not in (1, len(args.mask)):
+            raise UsageError(
+                f"give one --obj-id for all masks or one per mask: {len(args.mask)} masks, "
+                f"{len(args.obj_id)} ids"
+            )
+        unknown = sorted(set(args.obj_id) - set(objects))
+        if unknown:
+            raise UsageError(f"--obj-id {unknown} has no --mesh (objects: {sorted(objects)})")
+        return list(args.obj_id)
+    if len(objects) != 1:
+        raise UsageError(
+            f"--mesh gives {len(objects)} objects: say which one each --mask shows with --obj-id"
+        )
+    return [next(iter(objects))]
+
+
+def _estimator(args: argparse.Namespace, objects: dict[int, Any], progress: bool) -> Any:
+    """The estimator and its name: FunFlow6D with ``--model``, else the classic baseline."""
+    from poseflow.cli.common import LOG, load_model, resolve_device, resolve_model
+
+    if args.model is None:
+        from poseflow.baselines import ClassicBaseline
+
+        LOG.info(
+            "estimating with the classic baseline (FPFH + RANSAC + ICP); --model for FunFlow6D"
+        )
+        baseline = ClassicBaseline(objects, seed=args.seed)
+        return baseline.estimator(), "classic baseline"
+    from poseflow._cache import json_key
+
+    folder = resolve_model(args.model)
+    model = load_model(folder, device=resolve_device(args.device))
+    cache = None
+    if args.cache is not None:
+        key = json_key(sorted((o, m.content_key()) for o, m in objects.items()))
+        cache = Path(args.cache) / "objects" / key
+    LOG.info(f"preparing {len(objects)} object(s) for FunFlow6D from {folder}")
+    model.prepare_objects(objects, cache_dir=cache, progress=progress)
+    return model.estimator(seed=args.seed), f"FunFlow6D ({folder})"
+
+
+def run(args: argparse.Namespace) -> int:
+    """Read the frame and the meshes, estimate, write the JSON and the overlay; returns 0."""
+    import torch
+
+    from poseflow.cli.common import LOG, check_writable, show_progress
+    from poseflow.data.frame import read_frame
+    from poseflow.errors import UsageError
+    from poseflow.eval.frame import estimate_frame, write_poses_json
+    from poseflow.eval.overlay import write_overlay
+
+    if not args.mask and args.detections is None:
+        raise UsageError("give the instances: one --mask PNG per instance, or --detections")
+    out = check_writable(args.out, flag="--out", folder=True)
+    progress = show_progress(args)
+    objects = load_meshes(args.mesh, mesh_scale=args.mesh_scale, progress=progress)
+    ids = _obj_ids(args, objects)
+    K: Any = args.K[0] if len(args.K) == 1 else [_number(x) for x in args.K]
+    frame = read_frame(
+        args.rgb,
+        args.depth,
+        K,
+        masks=args.mask,
+        obj_ids=ids,
+        detections=args.detections,
+        depth_scale=args.depth_scale,
+        scene_id=args.scene_id,
+        im_id=args.im_id,
+        score_threshold=args.score_threshold,
+    )
+    unknown = sorted({int(o) for o in frame.obj_ids.tolist()} - set(objects))
+    if unknown:
+        raise UsageError(f"the detections name objects {unknown} that no --mesh gives")
+    if len(frame) == 0:
+        LOG.warning("no instance to estimate: the detections hold none for this image")
+    estimator, method = _estimator(args, objects, progress)
+    diameters = {o: m.diameter for o, m in objects.items()}
+    result = estimate_frame(estimator, frame, diameters=diameters)
+    meta = {
+        "method": method,
+        "rgb": str(args.rgb),
+        "depth": str(args.depth),
+        "depth_scale": frame.depth_scale,
+        "K": frame.K.tolist(),
+        "meshes": {str(o): m.name for o, m in objects.items()},
+    }
+    write_poses_json(out / "poses.json", result, meta=meta)
+    order = sorted(objects)
+    keep = result.valid
+    write_overlay(
+        out / "overlay.png",
+        frame.rgb,
+        frame.K.float(),
+        [objects[o].mesh for o in order],
+        result.poses[keep].float(),
+        object_ids=[order.index(int(o)) for o in result.obj_ids[keep]],
+    )
+    for pose in result.to_json():
+        where = f"obj {pose['obj_id']} ({pose['source']})"
+        if pose["valid"]:
+            t = " ".join(f"{x:.1f}" for x in pose["t_mm"])
+            print(f"{where}: score {pose['score']:.3f}, t = [{t}] mm")
+        else:
+            print(f"{where}: invalid: {pose['note']}")
+    n_valid = int(torch.as_tensor(result.valid).sum())
+    print(
+        f"{method}: {n_valid} of {len(result)} poses valid in {result.seconds:.1f} s; wrote "
+        f"{out / 'poses.json'} and {out / 'overlay.png'}"
+    )
+    return 0
+
+
+def _number(text: str) -> float:
+    from poseflow.errors import UsageError
+
+    try:
+        return float(text)
+    except ValueError:
+        raise UsageError(f"--K takes 9 numbers or one JSON file/text, got {text!r}") from None

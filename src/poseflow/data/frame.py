@@ -1,0 +1,392 @@
+"""One RGB-D frame from plain files: colour, metric depth, intrinsics and instance masks.
+
+What ``poseflow estimate`` reads, for users with one camera frame and a mesh rather than a BOP
+dataset tree:
+
+- colour: any image file Pillow reads;
+- depth: a 16-bit PNG (or any integer image, or ``.npy``) with ``depth_scale`` metres per unit
+  (default 0.001: millimetres, as most sensors and BOP write), or a float TIFF/``.npy`` already
+  in metres; the median depth must be plausible (0.1-10 m), else the error says which
+  ``--depth-scale`` to set;
+- intrinsics: 9 numbers (row-major), a 3x3 matrix, or a JSON file or string holding either, an
+  object with ``cam_K``, ``K`` or ``fx``/``fy``/``cx``/``cy``, or a BOP ``scene_camera.json``
+  (one image's entry, whose ``depth_scale`` is used when none is given); the principal point must
+  lie inside the image;
+- instances: mask images (non-zero = object) or a BOP detections file (COCO-RLE masks).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from PIL import Image
+
+from poseflow._units import check_depth_units, check_intrinsics
+from poseflow.errors import BOPFormatError, MissingFileError, ShapeError, ValueRangeError
+
+__all__ = [
+    "Frame",
+    "read_color",
+    "read_frame",
+    "read_intrinsics",
+    "read_masks",
+    "read_metric_depth",
+]
+
+#: Metres per unit of an integer depth image when no scale is given (millimetres).
+DEFAULT_INTEGER_DEPTH_SCALE = 0.001
+
+
+@dataclass
+class Frame:
+    """One RGB-D frame and its instances.
+
+    Attributes:
+        rgb: the colour image ``(3, H, W)`` uint8.
+        depth: depth ``(H, W)`` float32 in metres, 0 where missing.
+        K: intrinsics ``(3, 3)`` float64.
+        masks: instance masks ``(B, H, W)`` bool.
+        obj_ids: object id of each instance ``(B,)`` int64.
+        scores: detection score of each instance ``(B,)`` float64 (1 for given masks).
+        sources: where each instance's mask came from (a file, or a detection).
+        depth_scale: the metres per unit that was applied to the depth file.
+    """
+
+    rgb: torch.Tensor
+    depth: torch.Tensor
+    K: torch.Tensor
+    masks: torch.Tensor
+    obj_ids: torch.Tensor
+    scores: torch.Tensor
+    sources: list[str] = field(default_factory=list)
+    depth_scale: float = 1.0
+
+    @property
+    def size(self) -> tuple[int, int]:
+        """``(width, height)`` in pixels."""
+        return int(self.depth.shape[1]), int(self.depth.shape[0])
+
+    def __len__(self) -> int:
+        return int(self.masks.shape[0])
+
+
+def _open(path: str | Path, what: str) -> np.ndarray:
+    path = Path(path)
+    if not path.is_file():
+        raise MissingFileError(f"{what} {path} does not exist")
+    if path.suffix.lower() == ".npy":
+        return np.load(path, allow_pickle=False)
+    try:
+        with Image.open(path) as im:
+            return np.asarray(im)
+    except OSError as exc:
+        raise BOPFormatError(f"{what} {path} is not an image Pillow can read ({exc})") from None
+
+
+def read_color(path: str | Path) -> torch.Tensor:
+    """Read a colour (or grey) image as ``(3, H, W)`` uint8.
+
+    Raises:
+        MissingFileError: the file does not exist.
+        BOPFormatError: not an image of 1, 3 or 4 channels.
+
+    Example:
+        >>> import tempfile
+        >>> p = Path(tempfile.mkdtemp()) / "c.png"
+        >>> Image.fromarray(np.zeros((4, 6, 3), np.uint8)).save(p)
+        >>> read_color(p).shape
+        torch.Size([3, 4, 6])
+    """
+    arr = _open(path, "colour image")
+    if arr.ndim == 2:
+        arr = np.repeat(arr[..., None], 3, axis=2)
+    if arr.ndim != 3 or arr.shape[2] not in (3, 4):
+        raise BOPFormatError(f"{path}: expected an RGB or grey image, got shape {arr.shape}")
+    if arr.dtype == np.uint16:
+        arr = (arr // 257).astype(np.uint8)
+    elif arr.dtype != np.uint8:
+        arr = np.clip(np.round(arr.astype(np.float64) * 255.0), 0, 255).astype(np.uint8)
+    return torch.from_numpy(np.array(arr[..., :3])).permute(2, 0, 1).contiguous()
+
+
+def read_metric_depth(
+    path: str | Path, *, depth_scale: float | None = None
+) -> tuple[torch.Tensor, float]:
+    """Read a depth image in metres and check that its scale is plausible.
+
+    Args:
+        path: a 16-bit PNG (or other integer image or ``.npy``), or a float image (TIFF mode
+            ``F``) or ``.npy`` in metres.
+        depth_scale: metres per unit of the file; default 0.001 for integer images (millimetres)
+            and 1 for float images (metres).
+
+    Returns:
+        ``(depth (H, W) float32 metres with 0 where missing, the scale applied)``.
+
+    Raises:
+        MissingFileError: the file does not exist.
+        BOPFormatError: not a single-channel image.
+        UnitsError: the median depth is implausible (the message gives the ``--depth-scale``
+            that fixes it).
+        DegenerateInputError: no valid depth at all.
+
+    Example:
+        >>> import tempfile
+        >>> p = Path(tempfile.mkdtemp()) / "d.png"
+        >>> Image.fromarray(np.full((4, 6), 800, np.uint16)).save(p)
+        >>> d, scale = read_metric_depth(p)
+        >>> round(float(d[0, 0]), 3), scale
+        (0.8, 0.001)
+    """
+    arr = _open(path, "depth image")
+    if arr.ndim == 3 and arr.shape[2] == 1:
+        arr = arr[..., 0]
+    if arr.ndim != 2 or arr.dtype.kind not in "uif":
+        raise BOPFormatError(
+            f"{path}: a depth image must have one channel of numbers, got {arr.dtype} {arr.shape}"
+        )
+    if depth_scale is None:
+        depth_scale = 1.0 if arr.dtype.kind == "f" else DEFAULT_INTEGER_DEPTH_SCALE
+    if not (math.isfinite(depth_scale) and depth_scale > 0):
+        raise ValueRangeError(f"depth_scale must be positive, got {depth_scale}")
+    depth = torch.from_numpy(arr.astype(np.float64) * depth_scale).float()
+    depth = torch.where(torch.isfinite(depth) & (depth > 0), depth, torch.zeros_like(depth))
+    check_depth_units(depth, scale=depth_scale, api_name="depth_scale", where=f"depth {path}")
+    return depth, float(depth_scale)
+
+
+def _load_json_spec(spec: str | Path) -> Any:
+    """JSON text, or the content of a JSON file."""
+    text = str(spec).strip()
+    if text[:1] in "[{":
+        try:
+            return json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise ValueRangeError(f"the intrinsics {text!r} are not valid JSON: {exc}") from None
+    path = Path(spec)
+    if not path.is_file():
+        raise MissingFileError(
+            f"intrinsics file {path} does not exist (give 9 numbers, a JSON file or JSON text)"
+        )
+    try:
+        return json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise BOPFormatError(f"intrinsics file {path} is not valid JSON: {exc}") from None
+
+
+def _camera_entry(spec: Any, im_id: int | None) -> tuple[Any, float | None]:
+    """``(K as given, BOP depth_scale in mm per unit or None)`` of an intrinsics spec."""
+    data = _load_json_spec(spec) if isinstance(spec, (str, Path)) else spec
+    if not isinstance(data, Mapping):
+        return data, None
+    if data and all(str(k).isdigit() for k in data):  # scene_camera.json: {im_id: entry}
+        ids = sorted(int(k) for k in data)
+        if im_id is None:
+            if len(ids) != 1:
+                raise ValueRangeError(
+                    f"{spec} holds the cameras of {len(ids)} images ({ids[0]} ... {ids[-1]}); "
+                    "choose one with --im-id (im_id=)"
+                )
+            im_id = ids[0]
+        entry = data.get(str(im_id), data.get(im_id))  # type: ignore[call-overload]
+        if entry is None:
+            raise ValueRangeError(f"{spec} has no camera of image {im_id} (images {ids})")
+        data = entry
+    if not isinstance(data, Mapping):
+        raise BOPFormatError(f"{spec}: a camera entry must be a JSON object")
+    scale = data.get("depth_scale")
+    scale = float(scale) if isinstance(scale, (int, float)) else None
+    for key in ("cam_K", "K"):
+        if key in data:
+            return data[key], scale
+    if all(k in data for k in ("fx", "fy", "cx", "cy")):
+        f = {k: data[k] for k in ("fx", "fy", "cx", "cy")}
+        return [[f["fx"], 0, f["cx"]], [0, f["fy"], f["cy"]], [0, 0, 1]], scale
+    raise BOPFormatError(f"{spec}: no cam_K, K or fx/fy/cx/cy in the camera entry")
+
+
+def read_intrinsics(
+    spec: Any, width: int, height: int, *, im_id: int | None = None
+) -> torch.Tensor:
+    """Read and check pinhole intrinsics.
+
+    Args:
+        spec: 9 numbers (row-major) or a 3x3 matrix (list, array, tensor); or a JSON file or
+            JSON text holding one, an object with ``cam_K``, ``K`` or ``fx``/``fy``/``cx``/``cy``,
+            or a BOP ``scene_camera.json`` (keyed by image id).
+        width: image width, pixels.
+        height: image height, pixels.
+        im_id: the image of a ``scene_camera.json`` (needed when it holds several).
+
+    Returns:
+        ``K`` ``(3, 3)`` float64.
+
+    Raises:
+        MissingFileError: a named file does not exist.
+        ShapeError: not 9 numbers.
+        ValueRangeError: malformed JSON, a missing image, or implausible intrinsics (a
+            principal point outside the image, as a transposed ``K`` gives).
+
+    Example:
+        >>> read_intrinsics('{"fx": 500, "fy": 500, "cx": 320, "cy": 240}', 640, 480)[0].tolist()
+        [500.0, 0.0, 320.0]
+    """
+    K, _ = _camera_entry(spec, im_id)
+    return check_intrinsics(K, width, height)
+
+
+def read_masks(paths: Sequence[str | Path], width: int, height: int) -> torch.Tensor:
+    """Read instance masks (non-zero pixels are the object) as ``(B, H, W)`` bool.
+
+    Raises:
+        MissingFileError: a file does not exist.
+        ShapeError: a mask's size differs from the image's.
+        DegenerateInputError: a mask is empty.
+    """
+    from poseflow.errors import DegenerateInputError
+
+    out = []
+    for p in paths:
+        arr = _open(p, "mask")
+        if arr.ndim == 3:
+            arr = arr[..., :3].max(axis=2)
+        if arr.shape != (height, width):
+            raise ShapeError(
+                f"mask {p} is {arr.shape[1]}x{arr.shape[0]}, the image {width}x{height}"
+            )
+        m = torch.from_numpy(arr > 0)
+        if not bool(m.any()):
+            raise DegenerateInputError(f"mask {p} is empty (no non-zero pixel)")
+        out.append(m)
+    if not out:
+        return torch.zeros(0, height, width, dtype=torch.bool)
+    return torch.stack(out)
+
+
+def _detections_of(
+    path: str | Path,
+    scene_id: int | None,
+    im_id: int | None,
+    score_threshold: float,
+    size: tuple[int, int],
+) -> tuple[torch.Tensor, list[int], list[float], list[str]]:
+    from poseflow.data.bop import read_detections
+
+    dets = read_detections(path)
+    images = sorted({(d.scene_id, d.im_id) for d in dets})
+    if scene_id is None and im_id is None:
+        if len(images) > 1:
+            raise ValueRangeError(
+                f"{path} holds detections of {len(images)} images; choose one with --scene-id "
+                "and --im-id (scene_id=, im_id=)"
+            )
+    kept = [
+        d
+        for d in dets
+        if (scene_id is None or d.scene_id == scene_id)
+        and (im_id is None or d.im_id == im_id)
+        and d.score >= score_threshold
+    ]
+    width, height = size
+    masks, ids, scores, sources = [], [], [], []
+    for k, d in enumerate(kept):
+        m = d.mask()
+        if tuple(m.shape) != (height, width):
+            raise ShapeError(
+                f"{path}: the mask of detection {k} (obj {d.obj_id}) is {m.shape[1]}x"
+                f"{m.shape[0]}, the image {width}x{height}"
+            )
+        masks.append(m.bool())
+        ids.append(d.obj_id)
+        scores.append(d.score)
+        sources.append(f"{Path(path).name}: scene {d.scene_id} image {d.im_id} obj {d.obj_id}")
+    stacked = torch.stack(masks) if masks else torch.zeros(0, height, width, dtype=torch.bool)
+    return stacked, ids, scores, sources
+
+
+def read_frame(
+    rgb: str | Path,
+    depth: str | Path,
+    K: Any,
+    *,
+    masks: Sequence[str | Path] = (),
+    obj_ids: Sequence[int] | int | None = None,
+    detections: str | Path | None = None,
+    depth_scale: float | None = None,
+    scene_id: int | None = None,
+    im_id: int | None = None,
+    score_threshold: float = 0.0,
+) -> Frame:
+    """Read one RGB-D frame and its instances from files, with every check of this module.
+
+    Args:
+        rgb: the colour image.
+        depth: the depth image (see :func:`read_metric_depth`).
+        K: the intrinsics (see :func:`read_intrinsics`); the ``depth_scale`` of a BOP camera
+            entry is used when ``depth_scale`` is None.
+        masks: mask images, one per instance.
+        obj_ids: the object id of each mask (one id for all); default 1.
+        detections: a BOP detections file instead of (or besides) ``masks``.
+        depth_scale: metres per unit of the depth file (see :func:`read_metric_depth`).
+        scene_id: the scene of the detections (and nothing else).
+        im_id: the image of the detections and of a ``scene_camera.json``.
+        score_threshold: detections scoring below it are dropped.
+
+    Returns:
+        The :class:`Frame` (``B`` may be 0 when the detections hold none for the image).
+
+    Raises:
+        ShapeError: the images differ in size, or ``obj_ids`` does not match ``masks``.
+        UnitsError: implausible depth (the message gives the ``depth_scale`` to set).
+        ValueRangeError: implausible intrinsics, or no instance source given.
+    """
+    if not masks and detections is None:
+        raise ValueRangeError("give the instances: mask images or a detections file")
+    color = read_color(rgb)
+    raw_K, bop_scale = _camera_entry(K, im_id)
+    if depth_scale is None and bop_scale is not None:
+        depth_scale = bop_scale / 1000.0  # BOP: millimetres per unit
+    d, scale = read_metric_depth(depth, depth_scale=depth_scale)
+    if tuple(color.shape[1:]) != tuple(d.shape):
+        raise ShapeError(
+            f"the colour image is {color.shape[2]}x{color.shape[1]}, the depth image "
+            f"{d.shape[1]}x{d.shape[0]}: they must be registered to the same pixels"
+        )
+    height, width = d.shape
+    intrinsics = check_intrinsics(raw_K, width, height)
+    m = read_masks(list(masks), width, height)
+    if obj_ids is None:
+        ids = [1] * len(m)
+    elif isinstance(obj_ids, int):
+        ids = [obj_ids] * len(m)
+    else:
+        ids = [int(o) for o in obj_ids]
+        if len(ids) == 1:
+            ids = ids * len(m)
+    if len(ids) != len(m):
+        raise ShapeError(f"got {len(m)} masks but {len(ids)} object ids")
+    scores = [1.0] * len(m)
+    sources = [str(p) for p in masks]
+    if detections is not None:
+        dm, dids, dscores, dsrc = _detections_of(
+            detections, scene_id, im_id, score_threshold, (width, height)
+        )
+        m = torch.cat([m, dm])
+        ids, scores, sources = ids + dids, scores + dscores, sources + dsrc
+    return Frame(
+        rgb=color,
+        depth=d,
+        K=intrinsics,
+        masks=m,
+        obj_ids=torch.tensor(ids, dtype=torch.long),
+        scores=torch.tensor(scores, dtype=torch.float64),
+        sources=sources,
+        depth_scale=scale,
+    )

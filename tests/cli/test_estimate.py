@@ -1,0 +1,166 @@
+"""``poseflow estimate``: one RGB-D frame from image files and a mesh."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import open3d as o3d
+import pytest
+import torch
+from PIL import Image
+
+from poseflow.cli import main
+from poseflow.data.bop import BOPDataset
+from poseflow.data.synthetic import generate_dataset
+from poseflow.geometry import translation_error
+
+
+@pytest.fixture(scope="module")
+def frame(tmp_path_factory):
+    """A generated frame of one box: the paths ``estimate`` takes, and its ground truth."""
+    box = o3d.geometry.TriangleMesh.create_box(0.1, 0.07, 0.05).translate((-0.05, -0.035, -0.025))
+    root = generate_dataset(
+        tmp_path_factory.mktemp("frame") / "ds", [box], num_train_images=0, num_test_images=1,
+        objects_per_image=1, distractors_per_image=0, width=160, height=120, progress=False,
+        seed=3,
+    )  # fmt: skip
+    scene = root / "test" / "000000"
+    gt = BOPDataset(root, "test").scene(0).gt_of(0)[0]
+    return {
+        "root": root,
+        "rgb": scene / "rgb" / "000000.png",
+        "depth": scene / "depth" / "000000.png",
+        "camera": scene / "scene_camera.json",
+        "mask": scene / "mask_visib" / "000000_000000.png",
+        "mesh": root / "models" / "obj_000001.ply",  # in mm, as BOP models are
+        "pose": gt.pose,
+    }
+
+
+def _argv(frame, out, *extra):
+    return [
+        "estimate", "--rgb", str(frame["rgb"]), "--depth", str(frame["depth"]),
+        "--K", str(frame["camera"]), "--mask", str(frame["mask"]),
+        "--mesh", str(frame["mesh"]), "--mesh-scale", "0.001", "--out", str(out), *extra,
+    ]  # fmt: skip
+
+
+def test_estimate_writes_poses_and_an_overlay(frame, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main([*_argv(frame, out), "--no-progress"]) == 0
+    data = json.loads((out / "poses.json").read_text())
+    (pose,) = data["poses"]
+    assert pose["obj_id"] == 1 and pose["valid"] and 0 < pose["score"] <= 1
+    assert pose["t_mm"] == pytest.approx([1000 * x for x in pose["t_m"]])
+    T = torch.eye(4, dtype=torch.float64)
+    T[:3, :3] = torch.tensor(pose["R"], dtype=torch.float64)
+    T[:3, 3] = torch.tensor(pose["t_m"], dtype=torch.float64)
+    gt = torch.as_tensor(frame["pose"])
+    assert translation_error(T, gt).item() < 0.02  # metres (a box looks alike turned over)
+    assert data["method"] == "classic baseline" and data["depth_scale"] == pytest.approx(1e-4)
+    with Image.open(out / "overlay.png") as im:
+        assert im.size == (160, 120)
+    assert "1 of 1 poses valid" in capsys.readouterr().out
+
+
+def test_nine_numbers_and_a_float_depth_in_metres(frame, tmp_path):
+    cam = json.loads(frame["camera"].read_text())["0"]
+    depth = np.asarray(Image.open(frame["depth"]), dtype=np.float32) * cam["depth_scale"] / 1000
+    np.save(tmp_path / "depth.npy", depth)
+    argv = _argv(frame, tmp_path / "out")
+    argv[argv.index("--depth") + 1] = str(tmp_path / "depth.npy")
+    k = argv.index("--K")
+    argv[k + 1 : k + 2] = [str(x) for x in cam["cam_K"]]
+    assert main([*argv, "-q"]) == 0
+    assert json.loads((tmp_path / "out" / "poses.json").read_text())["depth_scale"] == 1.0
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        (("--depth-scale", "1"), "set --depth-scale 0.0001"),  # 0.1 mm units read as metres
+        (("--mesh-scale", "1"), "set --mesh-scale 0.001"),  # a mesh in mm read as metres
+    ],
+)
+def test_unit_mix_ups_stop_with_the_flag_to_set(frame, tmp_path, capsys, change, message):
+    argv = _argv(frame, tmp_path / "out")
+    if change[0] in argv:
+        argv[argv.index(change[0]) + 1] = change[1]
+    else:
+        argv += list(change)
+    assert main([*argv, "--no-progress"]) == 1
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "out" / "poses.json").exists()
+
+
+def test_a_transposed_K_is_refused(frame, tmp_path, capsys):
+    cam = json.loads(frame["camera"].read_text())["0"]
+    K = np.array(cam["cam_K"]).reshape(3, 3).T.reshape(-1)
+    argv = _argv(frame, tmp_path / "out")
+    k = argv.index("--K")
+    argv[k + 1 : k + 2] = [str(x) for x in K]
+    assert main(argv) == 2  # an argument out of its range
+    assert "is K transposed?" in capsys.readouterr().err
+
+
+def test_usage_errors(frame, tmp_path, capsys):
+    argv = _argv(frame, tmp_path / "out")
+    two = [*argv, "--mesh", str(frame["mesh"])]
+    assert main(two) == 2  # the same object twice
+    assert "two meshes are object 1" in capsys.readouterr().err
+    no_masks = [a for a in argv if a not in (str(frame["mask"]),)]
+    no_masks.remove("--mask")
+    assert main(no_masks) == 2
+    assert "give the instances" in capsys.readouterr().err
+    assert main([*argv, "--obj-id", "4"]) == 2
+    assert "--obj-id [4] has no --mesh" in capsys.readouterr().err
+
+
+def test_a_broken_model_is_a_failed_run_with_what_to_do(frame, tmp_path, capsys):
+    from poseflow.assets import DEMO_CHECKPOINT
+
+    model = tmp_path / "model"
+    shutil.copytree(DEMO_CHECKPOINT, model, ignore=shutil.ignore_patterns("objects"))
+    weights = model / "model.safetensors"
+    weights.write_bytes(weights.read_bytes()[: weights.stat().st_size // 2])
+    argv = [*_argv(frame, tmp_path / "out"), "--model", str(model)]
+    assert main(argv) == 1
+    err = capsys.readouterr().err
+    assert "model.safetensors is truncated or corrupt" in err and "Traceback" not in err
+    shutil.copy(DEMO_CHECKPOINT / "model.safetensors", weights)
+    config = json.loads((model / "config.json").read_text())
+    config["num_points"] = "many"
+    (model / "config.json").write_text(json.dumps(config))
+    assert main(argv) == 1
+    assert "config.json" in capsys.readouterr().err
+
+
+def test_no_detection_for_the_image_writes_empty_poses(frame, tmp_path, capsys):
+    from poseflow.data.bop import Detection, write_detections
+    from poseflow.data.rle import rle_encode
+
+    mask = np.asarray(Image.open(frame["mask"])) > 0
+    write_detections(
+        tmp_path / "dets.json",
+        [Detection(0, 5, 1, 0.9, (0, 0, 1, 1), rle_encode(torch.from_numpy(mask)))],
+    )
+    argv = _argv(frame, tmp_path / "out")
+    argv[argv.index("--mask") : argv.index("--mask") + 2] = [
+        "--detections",
+        str(tmp_path / "dets.json"),
+    ]
+    assert main([*argv, "--im-id", "0"]) == 0
+    assert json.loads((tmp_path / "out" / "poses.json").read_text())["poses"] == []
+    assert "warning: no instance to estimate" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_estimate_with_the_demo_model_caches_the_prepared_mesh(frame, tmp_path, capsys):
+    argv = [*_argv(frame, tmp_path / "out"), "--model", "demo", "--cache", str(tmp_path / "c")]
+    assert main([*argv, "--no-progress"]) == 0
+    (pose,) = json.loads((tmp_path / "out" / "poses.json").read_text())["poses"]
+    assert pose["valid"] and pose["t_m"][2] > 0
+    assert len(list((tmp_path / "c" / "objects").glob("*/obj_000001/object.json"))) == 1
+    assert "FunFlow6D" in capsys.readouterr().out

@@ -1,0 +1,66 @@
+"""Cache keys and atomic cache entries (``poseflow._cache``)."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+
+from poseflow._cache import arrays_key, atomic_directory, cache_entry, files_key, json_key
+
+
+def test_files_key_changes_with_content_size_mtime_and_place(tmp_path):
+    a = tmp_path / "rgb" / "000000.png"
+    a.parent.mkdir()
+    a.write_bytes(b"abcd")
+    key = files_key([a])
+    assert files_key([a]) == key
+    os.utime(a, ns=(1, 1))
+    assert files_key([a]) != key  # rewritten in place: another mtime
+    stamp = files_key([a])
+    a.write_bytes(b"abcde")
+    os.utime(a, ns=(1, 1))
+    assert files_key([a]) != stamp  # another size
+    before = files_key([a], content=True)
+    a.write_bytes(b"abcdf")
+    os.utime(a, ns=(1, 1))
+    assert files_key([a], content=True) != before  # same size and mtime, other bytes
+    b = tmp_path / "other" / "000000.png"
+    b.parent.mkdir()
+    b.write_bytes(a.read_bytes())
+    assert files_key([b], content=True) != files_key([a], content=True)  # another path
+    assert files_key([a, b]) == files_key([b, a])
+
+
+def test_json_and_array_keys():
+    assert json_key({"a": 1, "b": 2}) == json_key({"b": 2, "a": 1})
+    assert json_key({"a": 1}) != json_key({"a": 2})
+    v = np.arange(6.0).reshape(2, 3)
+    assert arrays_key({"v": v}) == arrays_key({"v": v.copy()})
+    assert arrays_key({"v": v}) != arrays_key({"v": v * 0.001})  # another scale
+    assert arrays_key({"v": v}) != arrays_key({"v": v.astype(np.float32)})
+
+
+def test_entries_of_other_keys_sit_side_by_side(tmp_path):
+    one = cache_entry(tmp_path, "obj_000001", "mesh-a", "config")
+    two = cache_entry(tmp_path, "obj_000001", "mesh-b", "config")
+    assert one != two and one.parent == two.parent == tmp_path / "obj_000001"
+    assert cache_entry(tmp_path, "obj_000001", "mesh-a", "config") == one
+
+
+def test_atomic_directory_leaves_nothing_behind_on_failure(tmp_path):
+    entry = tmp_path / "obj_000001" / "k"
+    with pytest.raises(RuntimeError):
+        with atomic_directory(entry) as tmp:
+            (tmp / "object.json").write_text("{")
+            raise RuntimeError("killed while writing")
+    assert not entry.exists()
+    assert list(entry.parent.iterdir()) == []  # no half-written folder
+    with atomic_directory(entry) as tmp:
+        (tmp / "object.json").write_text("{}")
+    assert (entry / "object.json").read_text() == "{}"
+    with atomic_directory(entry) as tmp:  # written meanwhile by another process: kept
+        (tmp / "object.json").write_text('{"second": 1}')
+    assert (entry / "object.json").read_text() == "{}"
+    assert [p.name for p in entry.parent.iterdir()] == ["k"]
