@@ -24,7 +24,8 @@ priority order whose constraints the call meets. Two of those rules decide the s
   fusion's shape changes with the number of instances in each image; flash and the
   memory-efficient kernels are compiled ahead and need no plan. float32 never reaches cuDNN (nor
   flash), which is why only bfloat16 was slow. The backends the user has enabled otherwise are
-  kept, and when cuDNN is the only one enabled it is used.
+  kept, and when cuDNN is the only one enabled it is used. (Like ``sdpa_kernel`` itself, the
+  switch holds for the whole process while the call runs.)
 """
 
 from __future__ import annotations
