@@ -42,8 +42,9 @@ bench-unseen: $(STAMP)
 	@test -n "$(DATASET)" || { echo "usage: make bench-unseen DATASET=path/to/bop_dataset"; exit 2; }
 	$(PY) benchmarks/unseen.py $(DATASET)
 
+# gpu.py needs a GPU at full scale (benchmarks/RESULTS.md gives its commands); --quick is its CPU dry run
 bench-quick: $(STAMP)
-	for b in $(BENCHMARKS) unseen diagnose; do $(PY) benchmarks/$$b.py --quick || exit 1; done
+	for b in $(BENCHMARKS) unseen diagnose gpu; do $(PY) benchmarks/$$b.py --quick || exit 1; done
 
 demo: $(STAMP)
 	$(PY) -m poseflow.cli demo

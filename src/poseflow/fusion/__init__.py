@@ -1,6 +1,11 @@
 """Fusion: learned layers that merge per-point geometric and semantic descriptors (torch only)."""
 
-from poseflow.fusion.attention import CrossAttention, GatedCrossAttention, key_padding_mask
+from poseflow.fusion.attention import (
+    CrossAttention,
+    GatedCrossAttention,
+    attend,
+    key_padding_mask,
+)
 from poseflow.fusion.blocks import (
     FUSIONS,
     ConcatMLPFusion,
@@ -22,6 +27,7 @@ __all__ = [
     "GatedCrossAttention",
     "GatedCrossAttentionFusion",
     "SumFusion",
+    "attend",
     "build_fusion",
     "key_padding_mask",
 ]

@@ -10,20 +10,99 @@ gated cross-attention"): queries from ``X_q``, keys and values from ``X_kv``, mu
 dot-product attention, an element-wise sigmoid gate ``σ(X_q W_g)`` on the attention output, then
 ``W_O``, dropout and a LayerNorm with a residual from ``X_q``. :class:`CrossAttention` is the same
 layer without the gate (the ablation's "standard, ungated cross-attention").
+
+Which attention kernel runs (:func:`attend`): PyTorch's SDPA picks the first backend of its
+priority order whose constraints the call meets. Two of those rules decide the speed here:
+
+- A mask rules out flash attention. Without padding (every cloud has all its points, the common
+  case) no mask is passed at all, so float16/bfloat16 calls can use flash attention; with padding
+  the boolean key mask goes to the memory-efficient kernel, which accepts it in any dtype (torch
+  turns it into an additive bias of the query's dtype and aligns its last dimension itself).
+- cuDNN attention is left out on CUDA. From torch 2.11 on (its bundled cuDNN is newer than 9.15)
+  SDPA tries cuDNN first for float16/bfloat16 on sm90/sm100 GPUs (H100, H200, B200). cuDNN builds
+  an execution plan for every new shape, tens of milliseconds at the first call of each, and the
+  fusion's shape changes with the number of instances in each image; flash and the
+  memory-efficient kernels are compiled ahead and need no plan. float32 never reaches cuDNN (nor
+  flash), which is why only bfloat16 was slow. The backends the user has enabled otherwise are
+  kept, and when cuDNN is the only one enabled it is used. (Like ``sdpa_kernel`` itself, the
+  switch holds for the whole process while the call runs.)
 """
 
 from __future__ import annotations
+
+from collections.abc import Callable
 
 import torch
 import torch.nn.functional as F
 from einops import rearrange
 from torch import nn
+from torch.nn.attention import SDPBackend, sdpa_kernel
 
 from poseflow._checks import check_mask, check_same, check_tensor
 from poseflow._masks import key_padding_mask
 from poseflow.errors import ValueRangeError
 
-__all__ = ["CrossAttention", "GatedCrossAttention", "key_padding_mask"]
+__all__ = ["CrossAttention", "GatedCrossAttention", "attend", "key_padding_mask"]
+
+#: SDPA backends :func:`attend` uses on CUDA, in torch's order, each with the switch a user
+#: may have turned off (``torch.backends.cuda.enable_*_sdp``). cuDNN is not among them.
+_BACKENDS: tuple[tuple[SDPBackend, Callable[[], bool]], ...] = (
+    (SDPBackend.FLASH_ATTENTION, torch.backends.cuda.flash_sdp_enabled),
+    (SDPBackend.EFFICIENT_ATTENTION, torch.backends.cuda.mem_efficient_sdp_enabled),
+    (SDPBackend.MATH, torch.backends.cuda.math_sdp_enabled),
+)
+
+
+def _backends_without_cudnn() -> list[SDPBackend]:
+    """The enabled SDPA backends other than cuDNN, in torch's order (empty: only cuDNN is on)."""
+    return [backend for backend, enabled in _BACKENDS if enabled()]
+
+
+def attend(
+    q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, kv_mask: torch.Tensor | None = None
+) -> torch.Tensor:
+    """Multi-head scaled dot-product attention with an optional key-padding mask.
+
+    Same result as :func:`torch.nn.functional.scaled_dot_product_attention` with the mask of
+    :func:`key_padding_mask`, on a kernel chosen for speed (see the module docstring): a mask
+    without padding is dropped (one host synchronisation to find out), and on CUDA the cuDNN
+    backend is left out.
+
+    Args:
+        q: queries ``(B, H, P, D_h)``.
+        k: keys ``(B, H, S, D_h)``.
+        v: values ``(B, H, S, D_h)``.
+        kv_mask: ``(B, S)`` bool, True for valid keys; None: all valid.
+
+    Returns:
+        ``(B, H, P, D_h)``, in ``q``'s dtype.
+
+    Example:
+        >>> q, k, v = torch.randn(2, 4, 5, 8), torch.randn(2, 4, 6, 8), torch.randn(2, 4, 6, 8)
+        >>> mask = torch.tensor([[True] * 6, [True] * 4 + [False] * 2])
+        >>> out = attend(q, k, v, mask)
+        >>> out.shape, torch.allclose(out[1], attend(q[1:], k[1:, :, :4], v[1:, :, :4])[0])
+        (torch.Size([2, 4, 5, 8]), True)
+
+    Raises:
+        ShapeError: shapes, dtypes or devices that do not match.
+    """
+    sizes = check_tensor(q, "q", ("B", "H", "P", "D_h"))
+    check_tensor(k, "k", ("B", "H", "S", "D_h"), sizes=sizes)
+    check_tensor(v, "v", ("B", "H", "S", "D_h"), sizes=sizes)
+    check_same(("q", q), ("k", k), ("v", v))
+    if kv_mask is not None:
+        check_mask(kv_mask, "kv_mask", ("B", "S"), sizes)
+        check_same(("q", q), ("kv_mask", kv_mask), dtype=False)
+    attn_mask = None
+    if kv_mask is not None and not bool(kv_mask.all()):
+        attn_mask = key_padding_mask(kv_mask)
+    if q.device.type == "cuda" and torch.backends.cuda.cudnn_sdp_enabled():
+        backends = _backends_without_cudnn()
+        if backends:
+            with sdpa_kernel(backends):
+                return F.scaled_dot_product_attention(q, k, v, attn_mask=attn_mask)
+    return F.scaled_dot_product_attention(q, k, v, attn_mask=attn_mask)
 
 
 class CrossAttention(nn.Module):
@@ -99,8 +178,7 @@ class CrossAttention(nn.Module):
             rearrange(y, "b n (h d_h) -> b h n d_h", h=self.num_heads)
             for y in (self.to_q(x_q), self.to_k(x_kv), self.to_v(x_kv))
         )
-        attn_mask = None if kv_mask is None else key_padding_mask(kv_mask)
-        att = F.scaled_dot_product_attention(q, k, v, attn_mask=attn_mask)
+        att = attend(q, k, v, kv_mask)
         att = rearrange(att, "b h p d_h -> b p (h d_h)")
         gate = self.gate(x_q)
         if gate is not None:
