@@ -86,3 +86,24 @@ def test_a_stream_without_an_encoder_is_fed_the_other(tiny_model, box, scene, mi
     assert torch.equal(inputs.geometric, inputs.semantic) and inputs.x_1 is None
     est = model.estimate(scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 1])
     assert est.poses.shape == (2, 4, 4) and torch.isfinite(est.poses).all()
+
+
+def test_a_symmetric_pose_gives_an_end_state_among_the_equivalents(tiny_model, scene):
+    from poseflow.flows import apply_equivalents
+    from poseflow.models.inputs import equivalent_maps
+
+    obs = tiny_model.observe(
+        scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 1],
+        generator=torch.Generator().manual_seed(0),
+    )  # fmt: skip
+    half_turn = torch.diag(torch.tensor([-1.0, -1.0, 1.0, 1.0]))
+    half_turn[:2, 3] = torch.tensor([0.01, -0.02])  # about an axis off the origin
+    symmetries = torch.stack([torch.eye(4), half_turn])
+    plain = tiny_model.flow_inputs(obs, scene["poses"])
+    turned = tiny_model.flow_inputs(obs, scene["poses"] @ half_turn)
+    scale = tiny_model.objects[1].diameter / 2
+    maps = equivalent_maps(symmetries, scale).expand(2, -1, -1, -1)
+    every = apply_equivalents(plain.x_1, maps, plain.frozen_mask)
+    assert torch.allclose(every[:, 1], turned.x_1, atol=1e-5)
+    assert torch.equal(every[:, 0], plain.x_1)
+    assert not torch.allclose(plain.x_1, turned.x_1, atol=1e-3)

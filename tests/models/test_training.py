@@ -78,3 +78,38 @@ def test_dense_cap_keeps_valid_observed_points(tiny_model, scene):
         assert d.min(dim=1).values.max() < 1e-6
     with pytest.raises(ValueRangeError):
         config.replace(dense_points=cap - 1)
+
+
+def test_the_training_set_keeps_the_maps_of_symmetric_objects_only(tiny_model, tmp_path):
+    from poseflow.data.demo_objects import demo_objects
+    from poseflow.data.synthetic import generate_dataset
+    from poseflow.models.inputs import equivalent_maps
+    from poseflow.models.training import build_training_set
+
+    root = generate_dataset(
+        tmp_path / "ds", num_train_images=1, num_test_images=0, width=160, height=120,
+        seed=2, progress=False,
+    )  # fmt: skip
+    (box,) = demo_objects(num_points=64, names=["labelled_box"], geometric_symmetries=True)
+    assert len(box.symmetries) == 4  # the identity and three half turns
+    kwargs = {"max_images": 1, "progress": False}
+    plain = build_training_set(tiny_model, root, **kwargs)
+    asymmetric = build_training_set(tiny_model, root, symmetries={1: torch.eye(4)[None]}, **kwargs)
+    symmetric = build_training_set(tiny_model, root, symmetries={1: box.symmetries}, **kwargs)
+    assert "equivalents" not in plain.tensors and "equivalents" not in asymmetric.tensors
+    assert torch.equal(plain.tensors["x_1"], symmetric.tensors["x_1"])
+    maps = symmetric.tensors["equivalents"]
+    assert maps.shape == (len(symmetric), 4, 3, 4) and maps.dtype == torch.float32
+    expected = equivalent_maps(box.symmetries, tiny_model.objects[1].diameter / 2).float()
+    assert torch.allclose(maps, expected.expand_as(maps))
+    assert set(symmetric[0]) == {*plain[0], "equivalents"}  # what the trainer's batches hold
+    import copy
+
+    from poseflow.flows import TrainConfig
+    from poseflow.models.training import train
+
+    config = TrainConfig(
+        steps=2, batch_size=len(symmetric), warmup_steps=1, progress=False, ema_decay=None
+    )
+    metrics = train(copy.deepcopy(tiny_model), symmetric, config=config, device="cpu")
+    assert torch.isfinite(torch.tensor(metrics["loss"]))

@@ -1,9 +1,11 @@
 """``poseflow train``: train FunFlow6D on the training images of a BOP dataset.
 
 Steps: prepare the dataset's objects (cached under ``RUN_DIR/model/objects/`` or ``--cache``),
-run the frozen encoders over the training instances once (``--copies`` augmented copies each;
-cached as ``RUN_DIR/train_set.safetensors`` and reused while the dataset, the feature settings
-and the options that shape the set are unchanged), train the network by flow matching
+run the frozen encoders over the training instances once (``--copies`` augmented copies each,
+with the maps to the symmetric equivalents of the objects that ``models_info.json`` declares
+symmetric, so that a flipped ground truth of a symmetric object costs no loss; cached as
+``RUN_DIR/train_set.safetensors`` and reused while the dataset, the feature settings and the
+options that shape the set are unchanged), train the network by flow matching
 (:func:`poseflow.models.training.train`; checkpoints and ``metrics.jsonl`` in
 ``RUN_DIR/checkpoints``), and save the EMA weights with :meth:`FunFlow6D.save
 <poseflow.models.FunFlow6D.save>` to ``RUN_DIR/model``, the folder ``poseflow predict --model``
@@ -102,6 +104,14 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     parser.add_argument(
         "--data-only", action="store_true", help="stop after caching the training set"
     )
+    parser.add_argument(
+        "--symmetric-targets",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="train symmetric objects (symmetries_discrete / symmetries_continuous of "
+        "models_info.json) towards the nearest symmetric equivalent of the ground truth "
+        "(default: on)",
+    )
     add_device_argument(parser)
     add_config_arguments(parser)
     add_output_arguments(parser)
@@ -163,6 +173,7 @@ def _train_set_key(config: Any, root: Path, args: argparse.Namespace) -> dict[st
         "max_images": args.max_images,
         "min_visib_fract": args.min_visib_fract,
         "seed": args.seed,
+        "symmetric_targets": args.symmetric_targets,
         "features": features,
     }
 
@@ -196,7 +207,14 @@ def _cached_training_set(path: Path, meta: Path, key: dict[str, Any]) -> Any:
 
 
 def _training_set(
-    model: Any, root: Path, args: argparse.Namespace, out: Path, *, write: bool, progress: bool
+    model: Any,
+    root: Path,
+    args: argparse.Namespace,
+    out: Path,
+    *,
+    symmetries: dict[int, Any],
+    write: bool,
+    progress: bool,
 ) -> tuple[Any, bool]:
     """Load the cached training set when its key matches, else build (and, on rank 0, save) it."""
     from poseflow.flows.checkpoint import atomic_write
@@ -216,6 +234,7 @@ def _training_set(
         min_visib_fract=args.min_visib_fract,
         max_images=args.max_images,
         seed=args.seed,
+        symmetries=symmetries if args.symmetric_targets else None,
         progress=progress,
     )
     if write:
@@ -324,7 +343,10 @@ def run(args: argparse.Namespace) -> int:
             model.prepare_objects(models, cache_dir=object_cache_dir(cache, root), progress=show)
             times["objects"] = time.perf_counter() - t0
             t0 = time.perf_counter()
-            data, reused = _training_set(model, root, args, out, write=ctx.is_main, progress=show)
+            symmetries = {oid: m.symmetries for oid, m in models.items()}
+            data, reused = _training_set(
+                model, root, args, out, symmetries=symmetries, write=ctx.is_main, progress=show
+            )
             times["training set"] = time.perf_counter() - t0
             if ctx.is_main:
                 out.mkdir(parents=True, exist_ok=True)

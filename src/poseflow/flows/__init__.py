@@ -32,6 +32,7 @@ from poseflow.flows.dit import (
     sinusoidal_time_embedding,
 )
 from poseflow.flows.ema import EMA
+from poseflow.flows.equivalents import apply_equivalents, identity_maps, nearest_equivalent
 from poseflow.flows.loss import cfm_loss
 from poseflow.flows.objective import CFMObjective, FlowBatch, StepRandom
 from poseflow.flows.path import LinearPath, PathSample
@@ -84,18 +85,21 @@ __all__ = [
     "ValidateHook",
     "VelocityModel",
     "all_reduce_mean",
+    "apply_equivalents",
     "atomic_write",
     "barrier",
     "cfm_loss",
     "destroy_distributed",
     "flatten_optimizer_state",
     "get_sampler",
+    "identity_maps",
     "init_distributed",
     "initial_noise",
     "latest_checkpoint",
     "load_checkpoint",
     "logit_normal_time",
     "main_rank_succeeded",
+    "nearest_equivalent",
     "nerf_embedding",
     "prune_checkpoints",
     "sample",

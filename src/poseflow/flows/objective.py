@@ -14,7 +14,8 @@ a ``DataLoader`` collates:
 (torch.Size([2, 5, 3]), ['condition', 'mask'], torch.Size([2, 5]), None)
 
 For FunFlow6D a batch is ``x_1 = [Q ; T^r]`` ``(B, 2N, 3)``, the conditioning tensors, the point
-``mask`` and the anchor's ``frozen_mask``.
+``mask``, the anchor's ``frozen_mask`` and, for symmetric objects, the ``equivalents`` of ``x_1``
+(see :mod:`poseflow.flows.equivalents`).
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ from torch import nn
 
 from poseflow._checks import check_tensor
 from poseflow.errors import ShapeError, ValueRangeError
+from poseflow.flows.equivalents import nearest_equivalent
 from poseflow.flows.loss import cfm_loss
 from poseflow.flows.path import LinearPath
 from poseflow.flows.timesteps import TIME_SAMPLERS, sample_time
@@ -45,20 +47,23 @@ class FlowBatch:
             ``mask``).
         mask: optional ``(B, L)`` bool, True at valid points (the loss ignores the others).
         frozen_mask: optional ``(B, L)`` bool, True at anchor points.
+        equivalents: optional ``(B, K, C, C + 1)`` affine maps carrying ``x_1`` to each of the
+            data states that are equally right (see :mod:`poseflow.flows.equivalents`).
     """
 
     x_1: torch.Tensor
     cond: dict[str, Any] = field(default_factory=dict)
     mask: torch.Tensor | None = None
     frozen_mask: torch.Tensor | None = None
+    equivalents: torch.Tensor | None = None
 
     @classmethod
     def from_any(cls, batch: Any) -> FlowBatch:
         """Interpret a batch: a :class:`FlowBatch`, a tensor ``x_1``, or a mapping.
 
-        A mapping must hold ``"x_1"``; ``"mask"`` and ``"frozen_mask"`` are taken as the masks;
-        every key except ``"x_1"`` and ``"frozen_mask"`` is passed to the model, so ``mask``
-        reaches models that take one (the DiT does).
+        A mapping must hold ``"x_1"``; ``"mask"`` and ``"frozen_mask"`` are taken as the masks
+        and ``"equivalents"`` as :attr:`equivalents`; every other key, ``"mask"`` included, is
+        passed to the model (the DiT takes a mask).
 
         Raises:
             ShapeError: the batch has none of these forms.
@@ -70,12 +75,13 @@ class FlowBatch:
         if isinstance(batch, Mapping):
             if "x_1" not in batch:
                 raise ShapeError(f"a batch mapping needs an 'x_1' entry, got keys {sorted(batch)}")
-            cond = {k: v for k, v in batch.items() if k not in ("x_1", "frozen_mask")}
+            own = ("x_1", "frozen_mask", "equivalents")
             return cls(
                 x_1=batch["x_1"],
-                cond=cond,
+                cond={k: v for k, v in batch.items() if k not in own},
                 mask=batch.get("mask"),
                 frozen_mask=batch.get("frozen_mask"),
+                equivalents=batch.get("equivalents"),
             )
         raise ShapeError(
             f"cannot read a flow batch from {type(batch).__name__}: "
@@ -139,7 +145,9 @@ class CFMObjective:
     Draws ``x_0 ~ N(0, I)`` and ``t`` from the time sampler, builds ``x_t`` on the path, asks the
     model for the velocity, ``model(x=x_t, t=t, **cond)``, and returns :func:`cfm_loss` against
     ``x_1 - x_0``. The model's output is cast to the dtype of ``x_1`` before the loss, so the loss
-    stays in full precision under autocast.
+    stays in full precision under autocast. A batch with :attr:`FlowBatch.equivalents` is trained
+    towards the equivalent of ``x_1`` nearest ``x_0``
+    (:func:`~poseflow.flows.equivalents.nearest_equivalent`).
 
     Args:
         path: the probability path (default :class:`~poseflow.flows.path.LinearPath`).
@@ -186,6 +194,10 @@ class CFMObjective:
         x_1 = fb.x_1
         check_tensor(x_1, "x_1", ("B", "L", "C"))
         x_0 = rng.randn_like(x_1)
+        if fb.equivalents is not None:
+            x_1 = nearest_equivalent(
+                x_0, x_1, fb.equivalents.to(x_1), mask=fb.mask, frozen_mask=fb.frozen_mask
+            )
         t = rng.time(x_1.shape[0], self.time_sampler, dtype=x_1.dtype, device=x_1.device)
         frozen = fb.frozen_mask if self.pin_frozen else None
         ps = self.path.sample(x_0, x_1, t, frozen_mask=frozen)

@@ -28,7 +28,13 @@ from poseflow.models.network import NetInputs
 from poseflow.models.objects import PreparedObject
 from poseflow.models.observe import Observation
 
-__all__ = ["TRAINING_FIELDS", "FlowInputs", "reduce_appearance"]
+__all__ = [
+    "OPTIONAL_TRAINING_FIELDS",
+    "TRAINING_FIELDS",
+    "FlowInputs",
+    "equivalent_maps",
+    "reduce_appearance",
+]
 
 
 @dataclass(kw_only=True)
@@ -139,6 +145,41 @@ class FlowInputs(NetInputs):
 #: The tensors a training set keeps per instance: the flow's end state and anchor mask, under
 #: the names :class:`~poseflow.flows.FlowBatch` reads, and the network's inputs.
 TRAINING_FIELDS: tuple[str, ...] = ("x_1", "frozen_mask", *NetInputs.field_names())
+
+#: What a training set keeps when some object is symmetric: the maps from each instance's
+#: ``x_1`` to its symmetric equivalents ``(I, K, 3, 4)`` (see :func:`equivalent_maps`).
+OPTIONAL_TRAINING_FIELDS: tuple[str, ...] = ("equivalents",)
+
+
+def equivalent_maps(symmetries: torch.Tensor, scale: float) -> torch.Tensor:
+    """The maps that carry a target's flow end state to its symmetric equivalents.
+
+    For a model symmetry ``S = (R_s, t_s)`` the pose ``P S`` shows the object as ``P`` does, and
+    the target's canonical points become ``S⁻¹ Tʳ``; in the flow's unit (``/ s``) that is
+    ``x ↦ R_sᵀ x − R_sᵀ t_s / s``, stored as ``[R_sᵀ | −R_sᵀ t_s / s]`` for
+    :func:`~poseflow.flows.equivalents.nearest_equivalent`.
+
+    Args:
+        symmetries: the object's symmetries ``(S, 4, 4)``, metres, the identity among them
+            (:attr:`~poseflow.data.objects.ObjectModel.symmetries`).
+        scale: the object's half diameter ``s``, metres.
+
+    Returns:
+        ``(S, 3, 4)`` in the dtype of ``symmetries``.
+
+    Example:
+        >>> flip = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0]))
+        >>> flip[2, 3] = 0.02
+        >>> m = equivalent_maps(torch.stack([torch.eye(4), flip]), 0.05)[1]
+        >>> m[:, :3].diagonal().tolist(), [round(v, 4) + 0.0 for v in m[:, 3].tolist()]
+        ([1.0, -1.0, -1.0], [0.0, 0.0, 0.4])
+    """
+    check_tensor(symmetries, "symmetries", ("S", 4, 4))
+    if not scale > 0:
+        raise ValueRangeError(f"scale must be positive, got {scale}")
+    Rt = symmetries[:, :3, :3].transpose(1, 2)
+    b = -(Rt @ symmetries[:, :3, 3:]) / scale
+    return torch.cat([Rt, b], dim=2)
 
 
 def reduce_appearance(

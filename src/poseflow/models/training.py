@@ -8,6 +8,7 @@ augmentations) and stores the flow inputs; :func:`train` then runs
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -16,9 +17,9 @@ import torch.nn.functional as F
 
 from poseflow.data.bop import BOPImageDataset
 from poseflow.errors import DegenerateInputError, ValueRangeError
-from poseflow.flows import CFMObjective, CFMTrainer, TrainConfig
+from poseflow.flows import CFMObjective, CFMTrainer, TrainConfig, identity_maps
 from poseflow.models.funflow6d import FunFlow6D
-from poseflow.models.inputs import TRAINING_FIELDS
+from poseflow.models.inputs import OPTIONAL_TRAINING_FIELDS, TRAINING_FIELDS, equivalent_maps
 
 __all__ = ["FlowTrainingSet", "augment", "build_training_set", "train"]
 
@@ -29,7 +30,8 @@ class FlowTrainingSet(torch.utils.data.Dataset):
     Args:
         tensors: ``{name: (I, ...)}`` for every name of
             :data:`~poseflow.models.inputs.TRAINING_FIELDS` (fields of
-            :class:`~poseflow.models.inputs.FlowInputs`); a saved set is stored under these names.
+            :class:`~poseflow.models.inputs.FlowInputs`), and optionally ``equivalents``
+            ``(I, K, 3, 4)`` for symmetric objects; a saved set is stored under these names.
     """
 
     def __init__(self, tensors: dict[str, torch.Tensor]) -> None:
@@ -39,7 +41,8 @@ class FlowTrainingSet(torch.utils.data.Dataset):
         sizes = {len(v) for v in tensors.values()}
         if len(sizes) != 1:
             raise ValueRangeError(f"training tensors have different lengths: {sorted(sizes)}")
-        self.tensors = {k: tensors[k] for k in TRAINING_FIELDS}
+        names = TRAINING_FIELDS + tuple(k for k in OPTIONAL_TRAINING_FIELDS if k in tensors)
+        self.tensors = {k: tensors[k] for k in names}
 
     def __len__(self) -> int:
         return len(self.tensors["x_1"])
@@ -125,9 +128,15 @@ def build_training_set(
     min_visib_fract: float = 0.1,
     max_images: int | None = None,
     seed: int = 0,
+    symmetries: Mapping[int, torch.Tensor] | None = None,
     progress: bool = True,
 ) -> FlowTrainingSet:
     """Run the frozen encoders over the instances of a BOP split.
+
+    With ``symmetries``, the instances of a symmetric object keep the maps to their equivalent
+    targets (:func:`~poseflow.models.inputs.equivalent_maps`, identity-padded to the largest
+    count), and training pairs each noise draw with the nearest one: a flipped ground truth of
+    a symmetric object costs no loss. A set whose objects are all asymmetric stores no maps.
 
     Args:
         model: the model; the objects of the split must be prepared.
@@ -139,6 +148,8 @@ def build_training_set(
         min_visib_fract: skip instances less visible than this.
         max_images: use at most this many images.
         seed: seed of the augmentations and samplings.
+        symmetries: ``{obj_id: (S, 4, 4)}`` symmetry transforms in metres, identity included
+            (:attr:`~poseflow.data.objects.ObjectModel.symmetries`); None: no equivalents.
         progress: show a progress bar.
 
     Returns:
@@ -153,6 +164,7 @@ def build_training_set(
     count = len(images) if max_images is None else min(max_images, len(images))
     g = torch.Generator().manual_seed(seed)
     parts: dict[str, list[torch.Tensor]] = {k: [] for k in TRAINING_FIELDS}
+    maps: list[torch.Tensor] = []  # (S, 3, 4) per kept instance
     for i in tqdm(range(count), desc=f"features of {split}", disable=not progress):
         s = images[i]
         keep = (s["visib_fract"] >= min_visib_fract) & s["valid"]
@@ -170,9 +182,24 @@ def build_training_set(
             inputs = model.flow_inputs(obs, s["poses"][keep])
             for k in TRAINING_FIELDS:
                 parts[k].append(getattr(inputs, k)[obs.valid])
+            if symmetries is not None:
+                for oid in obs.obj_ids[obs.valid].tolist():
+                    sym = symmetries.get(int(oid), torch.eye(4)[None])
+                    maps.append(equivalent_maps(sym, model.objects[int(oid)].diameter / 2))
     if not parts["x_1"] or sum(len(p) for p in parts["x_1"]) == 0:
         raise DegenerateInputError(f"{root}/{split} holds no usable instance of a prepared object")
-    return FlowTrainingSet({k: torch.cat(v) for k, v in parts.items()})
+    tensors = {k: torch.cat(v) for k, v in parts.items()}
+    if maps and max(len(m) for m in maps) > 1:
+        tensors["equivalents"] = _padded_maps(maps, dtype=tensors["x_1"].dtype)
+    return FlowTrainingSet(tensors)
+
+
+def _padded_maps(maps: list[torch.Tensor], *, dtype: torch.dtype) -> torch.Tensor:
+    """Stack ``(S_i, 3, 4)`` maps into ``(I, K, 3, 4)``, padding with the identity."""
+    out = identity_maps(len(maps), max(len(m) for m in maps), 3, dtype=dtype)
+    for i, m in enumerate(maps):
+        out[i, : len(m)] = m.to(dtype)
+    return out
 
 
 def train(
