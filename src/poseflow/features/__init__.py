@@ -33,6 +33,7 @@ from poseflow.features.geometric import (
     GeometricEncoder,
     TorchScriptEncoder,
     compute_fpfh,
+    encode_on_support,
     estimate_outward_normals,
 )
 from poseflow.features.lifting import (
@@ -68,6 +69,7 @@ __all__ = [
     "UMAPReducer",
     "cached_query_features",
     "compute_fpfh",
+    "encode_on_support",
     "estimate_outward_normals",
     "lift_query_features",
     "lift_target_features",

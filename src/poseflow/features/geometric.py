@@ -37,6 +37,7 @@ __all__ = [
     "TorchScriptEncoder",
     "check_geometric_inputs",
     "compute_fpfh",
+    "encode_on_support",
     "estimate_outward_normals",
     "open3d_normals",
 ]
@@ -61,6 +62,63 @@ class GeometricEncoder(Protocol):
     ) -> torch.Tensor:
         """Describe every point: ``(B, P, 3)`` points → ``(B, P, D)`` descriptors."""
         ...
+
+
+def encode_on_support(
+    encoder: GeometricEncoder,
+    points: torch.Tensor,
+    normals: torch.Tensor,
+    mask: torch.Tensor | None,
+    support: torch.Tensor,
+    support_normals: torch.Tensor,
+    support_mask: torch.Tensor | None,
+    diameter: torch.Tensor | float,
+) -> torch.Tensor:
+    """Describe sparse points with neighbourhoods drawn from a denser cloud of the same surface.
+
+    A descriptor such as FPFH summarises the surface within a radius; computed among a few
+    dozen sampled points alone, its neighbourhoods hold a handful of points and it says little.
+    Here every point is described within ``[points ; support]``, so the neighbourhoods are
+    those of the support cloud (a thinned dense cloud), and the rows of ``points`` are kept.
+
+    Args:
+        encoder: the geometric encoder.
+        points: the points to describe ``(B, N, 3)``.
+        normals: their unit normals ``(B, N, 3)``.
+        mask: their validity ``(B, N)``, or None.
+        support: the denser cloud ``(B, M, 3)``, same frame.
+        support_normals: its unit normals ``(B, M, 3)``, oriented as ``normals``.
+        support_mask: its validity ``(B, M)``, or None.
+        diameter: object diameter(s) in metres, float or ``(B,)``.
+
+    Returns:
+        Descriptors ``(B, N, D)``.
+
+    Example:
+        >>> g = torch.Generator().manual_seed(0)
+        >>> surface = torch.rand(1, 400, 3, generator=g) * torch.tensor([0.1, 0.1, 0.0])
+        >>> up = torch.tensor([0.0, 0.0, 1.0]).expand(1, 400, 3)
+        >>> out = encode_on_support(FPFHEncoder(backend="torch"), surface[:, :8], up[:, :8], None,
+        ...                         surface, up, None, 0.15)
+        >>> out.shape
+        torch.Size([1, 8, 66])
+    """
+    n = check_tensor(points, "points", ("B", "N", 3))["N"]
+    check_tensor(support, "support", (points.shape[0], "M", 3))
+
+    cloud = torch.cat([points, support.to(points)], 1)
+    cloud_normals = torch.cat([normals, support_normals.to(normals)], 1)
+    cloud_mask = None
+    if mask is not None or support_mask is not None:
+        cloud_mask = torch.cat([_all_valid(points, mask), _all_valid(support, support_mask)], 1)
+    return encoder.encode(cloud, cloud_normals, cloud_mask, diameter)[:, :n]
+
+
+def _all_valid(points: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
+    """``mask``, or all True ``(B, P)`` when it is None."""
+    if mask is not None:
+        return mask
+    return torch.ones(points.shape[:2], dtype=torch.bool, device=points.device)
 
 
 def check_geometric_inputs(

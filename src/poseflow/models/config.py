@@ -212,6 +212,11 @@ class FunFlow6DConfig:
         geometric_encoder: ``"fpfh"`` (multi-scale FPFH, weight-free), ``"gedi:PATH"`` (GeDi
             weights from a local file) or ``"none"``.
         geometric_radii: FPFH/GeDi radii as fractions of the diameter (paper: 0.30 and 0.40).
+        geometric_support_voxel: the geometric descriptors of the ``N`` points take their
+            neighbourhoods from a denser cloud of the same surface, thinned on a grid of this
+            many diameters (the target's cleaned back-projected cloud, the object's surface
+            sample; see :func:`~poseflow.features.encode_on_support`); 0: from the ``N`` points
+            alone, as checkpoints written before the field did.
         appearance_encoder: ``"dsift"`` (dense SIFT, weight-free), ``"dinov2:NAME_OR_PATH"``
             (e.g. ``dinov2:vits14`` or a local folder) or ``"none"``.
         crop_size: side of the square crop fed to the appearance encoder, pixels.
@@ -261,6 +266,7 @@ class FunFlow6DConfig:
     dense_points: int = 4096
     geometric_encoder: str = "fpfh"
     geometric_radii: tuple[float, ...] = (0.30, 0.40)
+    geometric_support_voxel: float = 0.04
     appearance_encoder: str = "dsift"
     crop_size: int = 128
     query_views: int = 20
@@ -319,6 +325,10 @@ class FunFlow6DConfig:
             raise ValueRangeError(
                 f"dense_points ({self.dense_points}) must be at least num_points "
                 f"({self.num_points})"
+            )
+        if not 0.0 <= self.geometric_support_voxel < 0.5:
+            raise ValueRangeError(
+                f"geometric_support_voxel must be in [0, 0.5), got {self.geometric_support_voxel}"
             )
         if self.steps < 1 or self.num_hypotheses < 1 or self.ransac_iterations < 1:
             raise ValueRangeError("steps, num_hypotheses and ransac_iterations must be >= 1")

@@ -135,6 +135,7 @@ class FunFlow6D(nn.Module):
             rgb, depth, K, masks, obj_ids, diameters,
             num_points=self.config.num_points, dense_points=self.config.dense_points,
             geometric_encoder=self.geometric_encoder, appearance_encoder=self.appearance_encoder,
+            geometric_support_voxel=self.config.geometric_support_voxel,
             generator=generator, crop_jitter=crop_jitter,
         )  # fmt: skip
 

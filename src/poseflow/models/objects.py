@@ -19,17 +19,18 @@ from typing import Any
 
 import torch
 
-from poseflow.data.objects import ObjectModel
+from poseflow.data.objects import ObjectModel, sample_surface
 from poseflow.errors import ValueRangeError
 from poseflow.features import (
     AppearanceEncoder,
     GeometricEncoder,
     QueryFeatureBank,
     Reducer,
+    encode_on_support,
     lift_query_features,
     load_reducer,
 )
-from poseflow.geometry.pointcloud import farthest_point_sample
+from poseflow.geometry.pointcloud import farthest_point_sample, voxel_downsample
 from poseflow.models.components import build_reducer
 from poseflow.models.config import FunFlow6DConfig
 
@@ -43,6 +44,10 @@ __all__ = [
 
 #: Rows of the appearance bank the reducer is fitted on, at most.
 _REDUCER_FIT_ROWS = 4096
+
+#: Surface samples drawn for the query's descriptor support before the grid thinning (enough to
+#: fill a grid of 0.02 diameters on a compact object).
+_SUPPORT_SAMPLES = 30_000
 
 
 @dataclass
@@ -123,7 +128,7 @@ def object_fingerprint(config: FunFlow6DConfig) -> dict[str, Any]:
         >>> sorted(object_fingerprint(FunFlow6DConfig()))[:3]
         ['appearance_encoder', 'crop_size', 'feature_dim']
     """
-    return {
+    out = {
         "num_points": config.num_points,
         "geometric_encoder": config.geometric_encoder,
         "geometric_radii": list(config.geometric_radii),
@@ -133,6 +138,9 @@ def object_fingerprint(config: FunFlow6DConfig) -> dict[str, Any]:
         "reducer": config.reducer,
         "feature_dim": config.feature_dim,
     }
+    if config.geometric_support_voxel:  # absent when 0, so that older caches stay valid
+        out["geometric_support_voxel"] = config.geometric_support_voxel
+    return out
 
 
 def prepare_object(
@@ -161,7 +169,7 @@ def prepare_object(
     points, normals = dense[idx[0]], dense_normals[idx[0]]
     geometric = None
     if geometric_encoder is not None:
-        geometric = geometric_encoder.encode(points[None], normals[None], None, model.diameter)[0]
+        geometric = _describe_query(model, points, normals, config, geometric_encoder)
     bank, reducer = None, None
     if appearance_encoder is not None:
         bank = lift_query_features(
@@ -178,6 +186,34 @@ def prepare_object(
         bank=bank,
         reducer=reducer,
     )
+
+
+def _describe_query(
+    model: ObjectModel,
+    points: torch.Tensor,
+    normals: torch.Tensor,
+    config: FunFlow6DConfig,
+    encoder: GeometricEncoder,
+) -> torch.Tensor:
+    """``Φ(Q)`` ``(N, Dg)``, on a grid-thinned dense surface sample when the config asks."""
+    if not config.geometric_support_voxel:
+        return encoder.encode(points[None], normals[None], None, model.diameter)[0]
+    surface, surface_normals, _ = sample_surface(
+        model.mesh, _SUPPORT_SAMPLES, generator=torch.Generator().manual_seed(0)
+    )
+    support = torch.from_numpy(surface).float()[None]
+    idx, ok = voxel_downsample(support, config.geometric_support_voxel * model.diameter)
+    keep = idx[0][ok[0]]
+    return encode_on_support(
+        encoder,
+        points[None],
+        normals[None],
+        None,
+        support[:, keep],
+        torch.from_numpy(surface_normals).float()[None, keep],
+        None,
+        model.diameter,
+    )[0]
 
 
 def prepare_objects(

@@ -20,18 +20,27 @@ import torch
 from poseflow._checks import check_tensor
 from poseflow.errors import ShapeError
 from poseflow.eval.timing import stage
-from poseflow.features import AppearanceEncoder, GeometricEncoder, lift_target_features
+from poseflow.features import (
+    AppearanceEncoder,
+    GeometricEncoder,
+    encode_on_support,
+    lift_target_features,
+)
 from poseflow.geometry.pointcloud import (
     backproject_depth,
     estimate_normals,
     farthest_point_sample,
     remove_statistical_outliers,
+    voxel_downsample,
 )
 
 __all__ = ["MIN_POINTS", "Observation", "observe"]
 
 #: Instances with fewer valid target points are flagged invalid.
 MIN_POINTS = 16
+
+#: Neighbours of the normals of the grid-thinned descriptor support.
+_SUPPORT_NORMAL_NEIGHBOURS = 16
 
 
 @dataclass
@@ -76,6 +85,7 @@ def observe(
     dense_points: int,
     geometric_encoder: GeometricEncoder | None = None,
     appearance_encoder: AppearanceEncoder | None = None,
+    geometric_support_voxel: float = 0.0,
     generator: torch.Generator | None = None,
     crop_jitter: float = 0.0,
 ) -> Observation:
@@ -92,6 +102,9 @@ def observe(
         dense_points: cap on the back-projected cloud before outlier removal and sampling.
         geometric_encoder: the frozen geometric encoder, or None.
         appearance_encoder: the frozen appearance encoder, or None.
+        geometric_support_voxel: describe the ``N`` points within the cleaned dense cloud
+            thinned on a grid of this many diameters (see
+            :func:`~poseflow.features.encode_on_support`); 0: within the ``N`` points alone.
         generator: seeds the dense-cloud cap and the start of the farthest-point sampling.
         crop_jitter: training augmentation of the appearance crop (see
             :func:`~poseflow.features.lifting.jitter_boxes`); 0 at inference.
@@ -137,7 +150,21 @@ def observe(
     if geometric_encoder is not None:
         with stage("geometric_encoder"):
             geometric = points.new_zeros(B, n, geometric_encoder.dim)
-            if bool(v.any()):
+            if bool(v.any()) and geometric_support_voxel:
+                support, support_ok = _grid_thinned(
+                    cloud_points[v], keep[v], geometric_support_voxel * diameter[v]
+                )
+                geometric[v] = encode_on_support(
+                    geometric_encoder,
+                    points[v],
+                    normals[v],
+                    valid_pts[v],
+                    support,
+                    estimate_normals(support, support_ok, k=_SUPPORT_NORMAL_NEIGHBOURS),
+                    support_ok,
+                    diameter[v],
+                )
+            elif bool(v.any()):
                 geometric[v] = geometric_encoder.encode(
                     points[v], normals[v], valid_pts[v], diameter[v]
                 )
@@ -187,3 +214,14 @@ def _random_subset(
     idx = keys.topk(size, dim=1, largest=False).indices
     take = lambda t: torch.gather(t, 1, idx[..., None].expand(-1, -1, t.shape[-1]))  # noqa: E731
     return take(points), take(pixels), torch.gather(mask, 1, idx)
+
+
+def _grid_thinned(
+    points: torch.Tensor, mask: torch.Tensor, voxel: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """One point per grid cell of side ``voxel[b]`` of each cloud: ``(B, M, 3)`` and its mask.
+
+    The clouds are scaled to unit voxels so that one call thins every instance at its own size.
+    """
+    idx, ok = voxel_downsample(points / voxel[:, None, None], 1.0, mask)
+    return torch.gather(points, 1, idx[..., None].expand(-1, -1, 3)), ok
