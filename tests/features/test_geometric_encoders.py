@@ -104,3 +104,43 @@ def test_torchscript_encoder(tmp_path) -> None:
     assert torch.allclose(out[1], 2 * pts[1])
     with pytest.raises(MissingWeightsError):
         TorchScriptEncoder(tmp_path / "missing.pt", 3)
+
+
+def _box_surface(n: int, generator: torch.Generator, dtype: torch.dtype) -> tuple:
+    """``n`` points on the surface of a 6 x 4 x 2 cm box, with outward normals."""
+    half = torch.tensor([0.03, 0.02, 0.01], dtype=dtype)
+    face = torch.randint(0, 6, (n,), generator=generator)
+    axis, sign = face // 2, (face % 2) * 2 - 1
+    pts = (torch.rand(n, 3, generator=generator, dtype=dtype) * 2 - 1) * half
+    pts[torch.arange(n), axis] = sign.to(dtype) * half[axis]
+    normals = torch.zeros(n, 3, dtype=dtype)
+    normals[torch.arange(n), axis] = sign.to(dtype)
+    return pts[None], normals[None]
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_descriptors_on_a_dense_support_agree_across_samplings_of_the_surface(dtype) -> None:
+    """Sparse points described within two independent dense samplings of the same surface get
+    nearly the same descriptors; described among themselves, two sparse samplings do not."""
+    from poseflow.features.geometric import encode_on_support
+
+    g = torch.Generator().manual_seed(0)
+    encoder = FPFHEncoder(backend="torch")
+    points, normals = _box_surface(48, g, dtype)
+    cosines = []
+    for _ in range(2):
+        support, support_normals = _box_surface(3000, g, dtype)
+        cosines.append(
+            encode_on_support(encoder, points, normals, None, support, support_normals, None, 0.075)
+        )
+    agree = (cosines[0] * cosines[1]).sum(-1)
+    assert cosines[0].shape == (1, 48, encoder.dim) and cosines[0].dtype == dtype
+    assert float(agree.median()) > 0.97
+    # The sparse cloud's own descriptors differ from those of a denser sampling of its surface.
+    alone = encoder.encode(points, normals, None, 0.075)
+    assert float((alone * cosines[0]).sum(-1).median()) < float(agree.median()) - 0.02
+    masked = encode_on_support(
+        encoder, points, normals, torch.ones(1, 48, dtype=torch.bool), support,
+        support_normals, torch.zeros(1, 3000, dtype=torch.bool), 0.075,
+    )  # fmt: skip
+    assert torch.allclose(masked, alone)  # an all-invalid support is no support

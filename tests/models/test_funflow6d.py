@@ -226,3 +226,39 @@ def test_checkpoints_from_before_verification_load_without_it(tiny_model, tmp_pa
     assert FunFlow6DConfig.from_json(raw).verification is True
     # the shipped demo checkpoint verifies
     assert FunFlow6D.load(DEMO_CHECKPOINT).config.verification is True
+
+
+def test_checkpoints_from_before_the_descriptor_support_describe_the_sampled_points(
+    tiny_model, tmp_path
+):
+    from poseflow.models import object_fingerprint
+
+    folder = tiny_model.save(tmp_path / "ckpt")
+    raw = json.loads((folder / "config.json").read_text())
+    assert raw["geometric_support_voxel"] == 0.04
+    del raw["geometric_support_voxel"]
+    (folder / "config.json").write_text(json.dumps(raw))
+    old = FunFlow6D.load(folder).config
+    assert old.geometric_support_voxel == 0.0
+    assert FunFlow6D.load(DEMO_CHECKPOINT).config.geometric_support_voxel == 0.0
+    # caches of objects prepared before the field keep their key; new ones get another
+    assert "geometric_support_voxel" not in object_fingerprint(old)
+    assert object_fingerprint(tiny_model.config)["geometric_support_voxel"] == 0.04
+    with pytest.raises(ValueRangeError, match="geometric_support_voxel"):
+        old.replace(geometric_support_voxel=0.5)
+
+
+def test_the_descriptor_support_changes_the_geometric_features_only(tiny_model, scene):
+    args = (scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 1])
+    config = tiny_model.config
+    try:
+        tiny_model.config = config.replace(geometric_support_voxel=0.0)
+        sparse = tiny_model.observe(*args, generator=torch.Generator().manual_seed(4))
+    finally:
+        tiny_model.config = config
+    dense = tiny_model.observe(*args, generator=torch.Generator().manual_seed(4))
+    assert torch.equal(sparse.points, dense.points) and torch.equal(sparse.normals, dense.normals)
+    rows = dense.mask
+    assert torch.isfinite(dense.geometric).all()
+    assert torch.allclose(dense.geometric[rows].norm(dim=-1), torch.ones(int(rows.sum())))
+    assert not torch.allclose(sparse.geometric[rows], dense.geometric[rows], atol=1e-2)
