@@ -204,6 +204,17 @@ def check_writable(path: str | Path, *, flag: str = "--out", folder: bool = Fals
 # ------------------------------------------------------------------------------ option types
 
 
+def _int_at_least(text: str, minimum: int) -> int:
+    """``text`` as an integer of at least ``minimum``, or an ``ArgumentTypeError``."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if value < minimum:
+        raise argparse.ArgumentTypeError(f"must be at least {minimum}, got {value}")
+    return value
+
+
 def positive_int(text: str) -> int:
     """An ``argparse`` type: an integer of at least 1.
 
@@ -211,13 +222,7 @@ def positive_int(text: str) -> int:
         >>> positive_int("3")
         3
     """
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
-    return value
+    return _int_at_least(text, 1)
 
 
 def nonnegative_int(text: str) -> int:
@@ -227,13 +232,7 @@ def nonnegative_int(text: str) -> int:
         >>> nonnegative_int("0")
         0
     """
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be at least 0, got {value}")
-    return value
+    return _int_at_least(text, 0)
 
 
 def solver_name(text: str) -> str:

@@ -26,6 +26,8 @@ import numpy as np
 from llvmlite import ir
 from numba.extending import intrinsic
 
+from poseflow.geometry._tracker_cpu import partition_at
+
 __all__ = ["LEAF_SIZE", "fps_kernel"]
 
 #: Largest number of points in a k-d tree leaf.
@@ -45,31 +47,6 @@ def _fma(typingctx, a, b, c):  # type: ignore[no-untyped-def]
         return builder.call(fn, args)
 
     return sig, codegen
-
-
-@_jit
-def _select(perm, coord, lo, hi, kth):  # type: ignore[no-untyped-def]
-    """Reorder ``perm[lo:hi]`` so that ``coord`` is no larger before ``kth`` than from it on."""
-    while hi - lo > 1:
-        a, b, c = coord[perm[lo]], coord[perm[(lo + hi) // 2]], coord[perm[hi - 1]]
-        pivot = max(min(a, b), min(max(a, b), c))  # the median of the three
-        i, j = lo, hi - 1
-        while i <= j:
-            while coord[perm[i]] < pivot:
-                i += 1
-            while coord[perm[j]] > pivot:
-                j -= 1
-            if i <= j:
-                perm[i], perm[j] = perm[j], perm[i]
-                i += 1
-                j -= 1
-        # now coord <= pivot on [lo, j], >= pivot on [i, hi), == pivot in between
-        if kth <= j:
-            hi = j + 1
-        elif kth >= i:
-            lo = i
-        else:
-            return
 
 
 @_jit
@@ -98,7 +75,7 @@ def _build_leaves(x, y, z, perm, leaf_size):  # type: ignore[no-untyped-def]
             if ext[axis] > 0:
                 coord = x if axis == 0 else (y if axis == 1 else z)
                 mid = (lo + hi) // 2
-                _select(perm, coord, lo, hi, mid)
+                partition_at(perm, coord, lo, hi, mid)
                 stack[top, 0], stack[top, 1] = lo, mid
                 stack[top + 1, 0], stack[top + 1, 1] = mid, hi
                 top += 2

@@ -22,7 +22,7 @@ import math
 import numba
 import numpy as np
 
-__all__ = ["LEAF_SIZE", "build_trees", "knn", "track"]
+__all__ = ["LEAF_SIZE", "build_trees", "knn", "partition_at", "track"]
 
 #: Largest number of points in a leaf of the k-d tree.
 LEAF_SIZE = 16
@@ -31,7 +31,7 @@ _jit = numba.njit(cache=True, nogil=True)
 
 
 @_jit
-def _select(perm, coord, lo, hi, kth):  # type: ignore[no-untyped-def]
+def partition_at(perm, coord, lo, hi, kth):  # type: ignore[no-untyped-def]
     """Reorder ``perm[lo:hi]`` so that ``coord`` is no larger before ``kth`` than from it on."""
     while hi - lo > 1:
         a, b, c = coord[perm[lo]], coord[perm[(lo + hi) // 2]], coord[perm[hi - 1]]
@@ -46,6 +46,7 @@ def _select(perm, coord, lo, hi, kth):  # type: ignore[no-untyped-def]
                 perm[i], perm[j] = perm[j], perm[i]
                 i += 1
                 j -= 1
+        # now coord <= pivot on [lo, j], >= pivot on [i, hi), == pivot in between
         if kth <= j:
             hi = j + 1
         elif kth >= i:
@@ -124,7 +125,7 @@ def build_trees(columns, valid, M, leaf_size):  # type: ignore[no-untyped-def]
             if box[node, 3 + axis] - box[node, axis] <= 0:
                 continue  # all points coincide: a leaf, whatever its size
             mid = (a + z) // 2
-            _select(perm, columns[axis], a, z, mid)
+            partition_at(perm, columns[axis], a, z, mid)
             left[node], right[node] = n_nodes, n_nodes + 1
             lo[n_nodes], hi[n_nodes] = a, mid
             lo[n_nodes + 1], hi[n_nodes + 1] = mid, z
