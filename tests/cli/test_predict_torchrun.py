@@ -1,8 +1,8 @@
 """``poseflow predict`` under ``torchrun``: two gloo ranks write the CSV of one process.
 
-Each test starts two processes that load the estimator (30-60 s on two busy cores): they run with
-``make test-slow``. The protocol itself (merging, stopping, recovering) is tested with two gloo
-ranks in ``make test`` by ``tests/eval/test_distributed_prediction.py``.
+The tests that start two processes, each loading the estimator (30-60 s on two busy cores), run
+with ``make test-slow``; the protocol itself (merging, stopping, recovering) is tested with two
+gloo ranks in ``make test`` by ``tests/eval/test_distributed_prediction.py``.
 """
 
 from __future__ import annotations
@@ -78,6 +78,18 @@ def _rows(path: Path) -> list[list[str]]:
     lines = path.read_text().splitlines()
     assert lines[0] == HEADER
     return [line.split(",")[:6] for line in lines[1:]]
+
+
+def test_an_image_has_the_same_estimate_whatever_images_precede_it(dataset, tmp_path):
+    targets = json.loads((dataset / "test_targets_bop19.json").read_text())
+    last = max((t["scene_id"], t["im_id"]) for t in targets)
+    alone = tmp_path / "last.json"
+    alone.write_text(json.dumps([t for t in targets if (t["scene_id"], t["im_id"]) == last]))
+    argv = ["predict", str(dataset), "--model", "demo", "--no-progress", "--hypotheses", "2"]
+    assert main([*argv, "--out", str(tmp_path / "all.csv")]) == 0
+    assert main([*argv, "--targets", str(alone), "--out", str(tmp_path / "last.csv")]) == 0
+    after_others = [r for r in _rows(tmp_path / "all.csv") if (int(r[0]), int(r[1])) == last]
+    assert len(after_others) == 2 and after_others == _rows(tmp_path / "last.csv")
 
 
 @pytest.mark.slow
