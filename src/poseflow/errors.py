@@ -18,6 +18,7 @@ __all__ = [
     "NotWritableError",
     "OutputExistsError",
     "PoseflowError",
+    "RankFailedError",
     "ResultsFormatError",
     "ShapeError",
     "UnitsError",
@@ -101,6 +102,13 @@ class UsageError(ValueRangeError):
 
 class OutputExistsError(PoseflowError, FileExistsError):
     """An output file or folder exists and overwriting it was not asked for."""
+
+
+class RankFailedError(PoseflowError, RuntimeError):
+    """A process of a job split over several processes failed; the message names its rank and why.
+
+    Raised on every rank of the job, so that all of them stop with a non-zero exit.
+    """
 
 
 class BOPFormatError(PoseflowError, ValueError):

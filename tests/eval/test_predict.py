@@ -99,3 +99,28 @@ def test_a_pose_behind_the_camera_never_becomes_a_row(dataset):
     images = len({(s, i) for s, i in zip(full.scene_ids.tolist(), full.im_ids.tolist())})
     assert len(kept) == len(full) - images
     assert bool((kept.poses[:, 2, 3] > 0).all())
+
+
+def test_before_image_runs_before_each_image_and_can_stop_the_loop(dataset):
+    calls = []
+    oracle = _oracle(dataset)
+
+    def estimate(rgb, depth, K, masks, obj_ids):
+        calls.append(("estimate", len(obj_ids)))
+        return oracle(rgb, depth, K, masks, obj_ids)
+
+    timer = StageTimer(synchronize=False)
+    predict_dataset(estimate, dataset, timer=timer, before_image=lambda s, i: calls.append((s, i)))
+    images = sorted((s, i) for s in dataset.scene_ids for i in dataset.scene(s).im_ids)
+    assert [c for c in calls if c[0] != "estimate"] == images
+    assert [c[0] == "estimate" for c in calls] == [False, True] * len(images)  # hook, image, ...
+    assert timer.num_images == len(images)
+
+    def stop(s, i):
+        if (s, i) == images[1]:
+            raise RuntimeError("another process failed")
+
+    calls.clear()
+    with pytest.raises(RuntimeError, match="another process failed"):
+        predict_dataset(estimate, dataset, before_image=stop)
+    assert len(calls) == 1  # the first image only

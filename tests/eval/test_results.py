@@ -144,3 +144,24 @@ def test_a_missing_file_says_how_to_make_one(tmp_path):
 
     with pytest.raises(MissingFileError, match="poseflow predict"):
         read_results(tmp_path / "none.csv")
+
+
+def test_the_file_is_written_aside_and_renamed(tmp_path, monkeypatch):
+    path = tmp_path / "r.csv"
+    path.write_text("an earlier run\n")
+    r = _results()
+
+    def interrupted(src, dst):
+        assert path.read_text() == "an earlier run\n"  # untouched until the rename
+        assert read_results(src).obj_ids.tolist() == r.obj_ids.tolist()  # complete aside
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr("poseflow.eval.results.os.replace", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        write_results(path, r)
+    assert [p.name for p in tmp_path.iterdir()] == ["r.csv"]  # no temporary file left
+    assert path.read_text() == "an earlier run\n"
+    monkeypatch.undo()
+    write_results(path, r)
+    assert [p.name for p in tmp_path.iterdir()] == ["r.csv"]
+    assert torch.equal(read_results(path).obj_ids, r.obj_ids)

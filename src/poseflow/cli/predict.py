@@ -16,6 +16,13 @@ Both estimators verify their poses by rendering and comparing (:mod:`poseflow.ve
 so it applies to checkpoints saved before it existed too); the CSV's scores are then the
 verifier's.
 
+Started by ``torchrun`` (``WORLD_SIZE`` above 1), the command splits the images over the
+processes (:mod:`poseflow.eval.distributed`): each estimates its share on its own device
+(``cuda:LOCAL_RANK``, or the CPU with its share of the cores) and rank 0 writes one CSV, the same
+rows in the same order as one process writes, and one timing JSON over all images. Every image's
+random draws are seeded from ``--seed`` and its ids, so that its estimate does not depend on the
+images before it. A failed process stops the others, and no CSV is written.
+
 Example::
 
     poseflow predict data/synth --model runs/small/model --out results/ff_synth-test.csv
@@ -23,6 +30,8 @@ Example::
         --out results/ff_lmo-test.csv --device cuda --timing results/ff_lmo_timing.json
     poseflow predict data/synth --method baseline --out results/base_synth-test.csv
     poseflow predict data/synth --method baseline --no-verify --out results/base_nv-test.csv
+    torchrun --nproc_per_node=4 -m poseflow.cli predict data/lmo --model runs/small/model \
+        --device cuda --out results/ff_lmo-test.csv
     poseflow eval data/synth results/ff_synth-test.csv
 """
 
@@ -34,9 +43,12 @@ import json
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from poseflow.cli.common import add_device_argument, add_output_arguments, solver_name
+
+if TYPE_CHECKING:
+    from poseflow.eval.distributed import PredictionPart, Ranks
 
 __all__ = ["add_parser", "run", "select_targets"]
 
@@ -51,6 +63,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
             "the masks of a BOP detections file) with FunFlow6D or the classic baseline, and "
             "write the BOP 2019 results CSV with per-image times. By default only the "
             "instances named by test_targets_bop19.json are estimated on test splits."
+        ),
+        epilog=(
+            "Several processes: `torchrun --nproc_per_node=K -m poseflow.cli predict ...` (also "
+            "across machines, as torchrun allows) splits the images over K processes, each on its "
+            "own GPU (cuda:LOCAL_RANK) or on the CPU with its share of the cores (torchrun sets "
+            "OMP_NUM_THREADS=1 unless it is set); rank 0 writes the same CSV as one process. A "
+            "failed process stops all of them, and no CSV is written."
         ),
     )
     parser.add_argument("dataset", help="BOP dataset folder")
@@ -289,32 +308,68 @@ def _cache_dir(args: argparse.Namespace, root: Path) -> Path | None:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Estimate, write the CSV (and the timing JSON); prints a summary; returns 0."""
-    from poseflow.cli.common import (
-        check_dataset,
-        check_writable,
-        load_object_models,
-        resolve_device,
-        show_progress,
-    )
-    from poseflow.data.bop import BOPDataset
-    from poseflow.eval.predict import Estimator, predict_dataset
-    from poseflow.eval.results import write_results
-    from poseflow.eval.timing import StageTimer
+    """Estimate, write the CSV (and the timing JSON); prints a summary; returns 0.
+
+    Under ``torchrun`` every process estimates its share of the images and rank 0 writes the
+    merged outputs (:mod:`poseflow.eval.distributed`).
+    """
+    from poseflow.cli.common import check_dataset, check_writable, resolve_device
+    from poseflow.eval.distributed import join_ranks
 
     root = check_dataset(args.dataset, args.split)
     check_writable(args.out)
     if args.timing is not None:
         check_writable(args.timing, flag="--timing")
     device = resolve_device(args.device)
-    show = show_progress(args)
     changes = _config_changes(args)
+    ranks = join_ranks(device)
+    if ranks is None:
+        _report(args, _predict(args, root, device, changes))
+        return 0
+    with ranks:
+        ranks.run(
+            lambda: _predict(args, root, ranks.device, changes, ranks),
+            lambda merged: _report(args, merged),
+        )
+    return 0
+
+
+def _predict(
+    args: argparse.Namespace,
+    root: Path,
+    device: Any,
+    changes: dict[str, Any],
+    ranks: Ranks | None = None,
+) -> PredictionPart:
+    """Estimate the images (this rank's share under ``torchrun``)."""
+    import functools
+
+    import torch
+
+    from poseflow.cli.common import LOG, load_object_models, show_progress
+    from poseflow.data.bop import BOPDataset
+    from poseflow.eval.distributed import PredictionPart, image_seed
+    from poseflow.eval.predict import Estimator, on_device, predict_dataset
+    from poseflow.eval.timing import StageTimer
+
+    show = show_progress(args) and (ranks is None or ranks.is_main)
     model = _load_model(args, device, changes) if args.method == "funflow6d" else None
     ds = BOPDataset(root, args.split)
     wanted = _targets_option(args, root)
     detections = _detections(args, ds, wanted) if args.detections is not None else None
     targets = select_targets(ds, targets=wanted, detections=detections)
     images = set(sorted({(t.scene_id, t.im_id) for t in targets})[: args.max_images])
+    if ranks is not None:  # this rank's share of the images, balanced by instances
+        targets = ranks.shard_targets([t for t in targets if (t.scene_id, t.im_id) in images])
+        images = {(t.scene_id, t.im_id) for t in targets}
+        LOG.info(
+            "rank %d of %d: %d images on %s (%d threads)",
+            ranks.rank,
+            ranks.world_size,
+            len(images),
+            device,
+            ranks.threads,
+        )
     infos = ds.models_info()
     needed = sorted({t.obj_id for t in targets if (t.scene_id, t.im_id) in images})
     missing = [o for o in needed if o not in infos]
@@ -325,9 +380,13 @@ def run(args: argparse.Namespace) -> int:
         import open3d  # noqa: F401
 
     estimator: Estimator
+    # Every image's draws are seeded from --seed and its ids: its estimate does not depend on the
+    # images before it, so that any split of the images over processes gives the same results.
+    generator: torch.Generator | None = None
     if model is not None:
         model.prepare_objects(objects, cache_dir=_cache_dir(args, root), progress=show)
-        estimator = model.estimator(seed=args.seed)
+        generator = torch.Generator(device=device)
+        estimator = on_device(functools.partial(model.estimate, generator=generator), device)
     else:
         from poseflow.baselines import ClassicBaseline
 
@@ -336,7 +395,7 @@ def run(args: argparse.Namespace) -> int:
                 objects, verification=args.verify, verifier=changes.get("verifier"), seed=args.seed
             )
             baseline.prepare()  # banks and verifier now, so that no image's time includes them
-            estimator = baseline.estimator()
+            estimator = baseline.estimator()  # seeds each instance itself
 
     instances = 0
 
@@ -344,6 +403,12 @@ def run(args: argparse.Namespace) -> int:
         nonlocal instances
         instances += len(obj_ids)
         return estimator(rgb, depth, K, masks, obj_ids)
+
+    def before_image(scene_id: int, im_id: int) -> None:
+        if ranks is not None:
+            ranks.check_peers()  # another rank failed: stop here
+        if generator is not None:
+            generator.manual_seed(image_seed(args.seed, scene_id, im_id))
 
     timer = StageTimer()
     results = predict_dataset(
@@ -357,33 +422,42 @@ def run(args: argparse.Namespace) -> int:
         max_images=args.max_images,
         timer=timer,
         progress=show,
+        before_image=before_image,
     )
     if detections:
         results = _add_detection_time(results, detections)
+    config = model.config.to_json() if model is not None else None
+    return PredictionPart(results, timer, instances, [str(device)], [timer.num_images], config)
+
+
+def _report(args: argparse.Namespace, part: PredictionPart) -> None:
+    """Write the CSV (and the timing JSON) of the whole run; print a summary."""
+    from poseflow.eval.results import write_results
+
+    results, timer, processes = part.results, part.timer, len(part.devices)
+    device = ", ".join(dict.fromkeys(part.devices))  # each device once, in rank order
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     write_results(out, results)
     print(
         f"{args.method}{' + verification' if args.verify else ''}: {timer.num_images} images, "
-        f"{instances} instances, {len(results)} poses ({instances - len(results)} invalid) "
-        f"written to {out}"
+        f"{part.instances} instances, {len(results)} poses "
+        f"({part.instances - len(results)} invalid) written to {out}"
+        + (f" by {processes} processes" if processes > 1 else "")
     )
     mean = results.average_time()
     if mean >= 0:
         print(f"mean time per image: {1000 * mean:.1f} ms on {device}")
     if args.timing is not None:
-        report = {
-            "method": args.method,
-            "verification": args.verify,
-            "device": str(device),
-            **timer.breakdown(),
-        }
-        if model is not None:
-            report["config"] = model.config.to_json()
+        report = {"method": args.method, "verification": args.verify, "device": device}
+        if processes > 1:
+            report.update(ranks=processes, devices=part.devices, images_per_rank=part.images)
+        report.update(timer.breakdown())
+        if part.config is not None:
+            report["config"] = part.config
         Path(args.timing).parent.mkdir(parents=True, exist_ok=True)
         Path(args.timing).write_text(json.dumps(report, indent=2))
         print(f"stage timing written to {args.timing}")
-    return 0
 
 
 def _add_detection_time(results: Any, detections: Any) -> Any:

@@ -7,6 +7,8 @@
 - :func:`predict_dataset`, the loop that runs any estimator over a BOP split (ground-truth or
   detected masks) into results, and :func:`estimate_frame` for one frame (poses behind the
   camera are never valid), written by :func:`write_poses_json`;
+- the same loop split over the processes of a ``torchrun`` job (:func:`join_ranks`,
+  :class:`Ranks`, :func:`shard_images`, :func:`merge_parts`), merged into one process's results;
 - BOP 2019 results CSV files (:func:`read_results`, :func:`write_results`);
 - the paper's correspondence-inlier metric (:func:`correspondence_inliers`);
 - the per-image stage breakdown (:class:`StageTimer`, reported to through :func:`stage` and
@@ -14,6 +16,16 @@
   (:func:`overlay_poses`, :func:`write_overlay`).
 """
 
+from poseflow.eval.distributed import (
+    PredictionPart,
+    Ranks,
+    image_seed,
+    join_ranks,
+    merge_parts,
+    merge_results,
+    merge_timers,
+    shard_images,
+)
 from poseflow.eval.errors import (
     MSPD_THRESHOLDS,
     MSSD_THRESHOLDS,
@@ -69,6 +81,8 @@ __all__ = [
     "InlierResult",
     "PoseEstimate",
     "PoseResults",
+    "PredictionPart",
+    "Ranks",
     "Recall",
     "StageTimer",
     "Target",
@@ -81,8 +95,13 @@ __all__ = [
     "estimate_frame",
     "evaluate_bop",
     "gt_results",
+    "image_seed",
+    "join_ranks",
     "load_eval_models",
     "match",
+    "merge_parts",
+    "merge_results",
+    "merge_timers",
     "mspd",
     "mssd",
     "mutual_nearest_neighbors",
@@ -91,6 +110,7 @@ __all__ = [
     "predict_dataset",
     "project_points",
     "read_results",
+    "shard_images",
     "stage",
     "symmetries_from_model_info",
     "symmetry_transforms",

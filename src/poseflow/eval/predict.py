@@ -85,6 +85,7 @@ def predict_dataset(
     max_images: int | None = None,
     timer: StageTimer | None = None,
     progress: bool = False,
+    before_image: Callable[[int, int], None] | None = None,
 ) -> PoseResults:
     """Estimate the poses of the target instances of every image of a split.
 
@@ -103,6 +104,10 @@ def predict_dataset(
             ``timer.image()`` with the timer active (``timer.active()``), so that the stages the
             estimator reports through :func:`~poseflow.eval.timing.stage` are charged to it.
         progress: show a progress bar.
+        before_image: called as ``before_image(scene_id, im_id)`` before each image is read,
+            outside its time: e.g. to reseed the estimator's generator per image
+            (:func:`~poseflow.eval.distributed.image_seed`), or to stop when another process
+            of a split run failed (:meth:`~poseflow.eval.distributed.Ranks.check_peers`).
 
     Returns:
         One row per valid estimate; a pose behind the camera (``t_z <= 0``) is never valid.
@@ -125,6 +130,8 @@ def predict_dataset(
     keys = sorted(images.items())[:max_images]
     parts = []
     for (s, i), wanted in tqdm(keys, desc="predict", disable=not progress):
+        if before_image is not None:
+            before_image(s, i)
         scene = ds.scene(s)
 
         def usable(obj_id: int, wanted: set[int] | None = wanted) -> bool:

@@ -13,6 +13,7 @@ import math
 import os
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -138,7 +139,8 @@ def write_results(path: str | os.PathLike[str], results: PoseResults) -> None:
     """Write results as a BOP 2019 CSV file (poses converted to millimetres).
 
     Numbers are written with Python's shortest round-trip representation, so that reading the file
-    back gives the same scores and rotations and translations equal up to the mm/m rounding.
+    back gives the same scores and rotations and translations equal up to the mm/m rounding. The
+    file is written beside ``path`` under a temporary name and renamed when complete.
 
     Raises:
         ValueRangeError: the estimates of one image report different times.
@@ -169,8 +171,16 @@ def write_results(path: str | os.PathLike[str], results: PoseResults) -> None:
                 )
             )
         )
-    with open(path, "w", encoding="ascii") as f:
-        f.write("\n".join(lines) + "\n")
+    # Written aside and renamed: an interrupted run never leaves a file that looks complete.
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        with open(tmp, "w", encoding="ascii") as f:
+            f.write("\n".join(lines) + "\n")
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
 
 
 def read_results(path: str | os.PathLike[str]) -> PoseResults:
