@@ -342,14 +342,12 @@ def _predict(
     ranks: Ranks | None = None,
 ) -> PredictionPart:
     """Estimate the images (this rank's share under ``torchrun``)."""
-    import functools
-
     import torch
 
     from poseflow.cli.common import LOG, load_object_models, show_progress
     from poseflow.data.bop import BOPDataset
     from poseflow.eval.distributed import PredictionPart, image_seed
-    from poseflow.eval.predict import Estimator, on_device, predict_dataset
+    from poseflow.eval.predict import Estimator, predict_dataset
     from poseflow.eval.timing import StageTimer
 
     show = show_progress(args) and (ranks is None or ranks.is_main)
@@ -386,7 +384,7 @@ def _predict(
     if model is not None:
         model.prepare_objects(objects, cache_dir=_cache_dir(args, root), progress=show)
         generator = torch.Generator(device=device)
-        estimator = on_device(functools.partial(model.estimate, generator=generator), device)
+        estimator = model.estimator(generator=generator)
     else:
         from poseflow.baselines import ClassicBaseline
 

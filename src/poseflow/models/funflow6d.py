@@ -225,14 +225,16 @@ class FunFlow6D(nn.Module):
         finally:
             self.train(was_training)
 
-    def estimator(self, *, seed: int = 0) -> Estimator:
+    def estimator(self, *, seed: int = 0, generator: torch.Generator | None = None) -> Estimator:
         """This model as an :data:`~poseflow.eval.predict.Estimator` of :func:`predict_dataset`.
 
-        Inputs are moved to the network's device; one generator seeded ``seed`` serves all
-        calls, so a sequence of images gives the same estimates on every run.
+        Inputs are moved to the network's device; one generator serves all calls: ``generator``
+        (on the network's device), e.g. to be reseeded per image, or a new one seeded ``seed``,
+        so that a sequence of images gives the same estimates on every run.
         """
         device = next(self.net.parameters()).device
-        generator = torch.Generator(device=device).manual_seed(seed)
+        if generator is None:
+            generator = torch.Generator(device=device).manual_seed(seed)
         return on_device(functools.partial(self.estimate, generator=generator), device)
 
     def predict(
@@ -256,7 +258,9 @@ class FunFlow6D(nn.Module):
                 split's ``test_targets_bop19.json`` when present, else every instance).
             detections: masks from a BOP segmentation file instead of the ground truth.
             max_images: stop after this many images.
-            seed: seeds the noise, sampling and RANSAC of every image.
+            seed: seeds the noise, sampling and RANSAC: each image's draws come from ``seed`` and
+                its ids (:func:`~poseflow.eval.distributed.image_seed`), as in ``poseflow
+                predict``, so an image's estimate does not depend on the images before it.
             timer: optional :class:`~poseflow.eval.timing.StageTimer`, active while each image
                 is estimated.
             progress: show a progress bar.
@@ -264,8 +268,15 @@ class FunFlow6D(nn.Module):
         Returns:
             :class:`~poseflow.eval.results.PoseResults`, one row per valid estimate.
         """
+        from poseflow.eval.distributed import image_seed
+
+        generator = torch.Generator(device=next(self.net.parameters()).device)
+
+        def reseed(scene_id: int, im_id: int) -> None:
+            generator.manual_seed(image_seed(seed, scene_id, im_id))
+
         return predict_dataset(
-            self.estimator(seed=seed),
+            self.estimator(generator=generator),
             dataset,
             split=split,
             object_ids=sorted(self.objects),
@@ -274,6 +285,7 @@ class FunFlow6D(nn.Module):
             max_images=max_images,
             timer=timer,
             progress=progress,
+            before_image=reseed,
         )
 
     def save(self, folder: str | Path) -> Path:
