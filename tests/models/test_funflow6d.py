@@ -5,7 +5,7 @@ import torch
 
 from poseflow.assets import DEMO_CHECKPOINT
 from poseflow.data.objects import sample_surface
-from poseflow.errors import MissingWeightsError, ShapeError, ValueRangeError
+from poseflow.errors import CheckpointError, MissingWeightsError, ShapeError, ValueRangeError
 from poseflow.eval.timing import StageTimer
 from poseflow.geometry.se3 import rotation_angle_error, transform_points, translation_error
 from poseflow.models import FunFlow6D, FunFlow6DConfig
@@ -97,6 +97,31 @@ def test_save_load_round_trip(tiny_model, tmp_path):
         assert torch.equal(a, b)
     with pytest.raises(MissingWeightsError):
         FunFlow6D.load(tmp_path / "nothing")
+
+
+def test_a_damaged_checkpoint_is_a_checkpoint_error_naming_the_file(tiny_model, tmp_path):
+    folder = tiny_model.save(tmp_path / "ckpt")
+    weights = folder / "model.safetensors"
+    whole = weights.read_bytes()
+    for damaged in (whole[: len(whole) // 2], whole[:-1], b"\xff" * 64, b""):
+        weights.write_bytes(damaged)
+        with pytest.raises(CheckpointError, match=r"model\.safetensors is truncated") as err:
+            FunFlow6D.load(folder)
+        assert str(weights) in str(err.value)
+    weights.write_bytes(whole)
+    config = json.loads((folder / "config.json").read_text())
+    for text in ("{", "[1, 2]", json.dumps({**config, "num_points": "many"})):
+        (folder / "config.json").write_text(text)
+        with pytest.raises(CheckpointError, match=r"config\.json"):
+            FunFlow6D.load(folder)
+    # weights of another network than the configuration describes
+    (folder / "config.json").write_text(json.dumps(config))
+    assert FunFlow6D.load(folder).config == tiny_model.config
+    other = FunFlow6D(tiny_model.config.replace(feature_dim=16))
+    other.save(tmp_path / "other")
+    weights.write_bytes((tmp_path / "other" / "model.safetensors").read_bytes())
+    with pytest.raises(CheckpointError, match=r"does not fit its config\.json"):
+        FunFlow6D.load(folder)
 
 
 def test_prepared_objects_are_cached(tiny_model, box, tmp_path):

@@ -299,9 +299,8 @@ def load_model(folder: str | Path, *, device: Any = "cpu") -> Any:
         CheckpointError: ``config.json`` is not valid JSON or holds a value of the wrong type,
             or ``model.safetensors`` is truncated or corrupt.
     """
-    from poseflow.errors import CheckpointError, MissingWeightsError, PoseflowError
-    from poseflow.flows.checkpoint import check_safetensors
-    from poseflow.models import FunFlow6D, FunFlow6DConfig
+    from poseflow.errors import MissingWeightsError
+    from poseflow.models import FunFlow6D
     from poseflow.models.checkpoint import is_checkpoint
 
     folder = Path(folder)
@@ -310,18 +309,6 @@ def load_model(folder: str | Path, *, device: Any = "cpu") -> Any:
             f"{folder} holds no FunFlow6D checkpoint (config.json + model.safetensors); train "
             "one with `poseflow train`, or pass --model demo for the shipped demo model"
         )
-    config_path = folder / "config.json"
-    try:
-        FunFlow6DConfig.from_json(json.loads(config_path.read_text()))
-    except json.JSONDecodeError as exc:
-        raise CheckpointError(f"{config_path} is not valid JSON ({exc}); restore it") from None
-    except (TypeError, KeyError, AttributeError) as exc:
-        raise CheckpointError(
-            f"{config_path} holds a value of the wrong type ({exc}); restore it or train again"
-        ) from None
-    except PoseflowError as exc:
-        raise CheckpointError(f"{config_path}: {exc}") from None
-    check_safetensors(folder / "model.safetensors")
     return FunFlow6D.load(folder, device=device)
 
 

@@ -23,7 +23,7 @@ import torch
 from torch import nn
 
 from poseflow.data.objects import ObjectModel
-from poseflow.errors import ValueRangeError
+from poseflow.errors import CheckpointError, ValueRangeError
 from poseflow.eval.predict import Estimator, PoseEstimate, on_device, predict_dataset
 from poseflow.eval.results import PoseResults
 from poseflow.eval.timing import StageTimer
@@ -281,8 +281,22 @@ class FunFlow6D(nn.Module):
 
     @classmethod
     def load(cls, folder: str | Path, *, device: str | torch.device = "cpu") -> FunFlow6D:
-        """Load a model written by :meth:`save` (no pickle is ever read)."""
+        """Load a model written by :meth:`save` (no pickle is ever read).
+
+        Raises:
+            MissingWeightsError: ``folder`` holds no checkpoint.
+            CheckpointError: a file of the checkpoint is truncated, corrupt or of the wrong
+                type, or the weights do not fit the configuration (the file is named).
+        """
         config, state = read_checkpoint(folder)
         model = cls(config)
-        model.net.load_state_dict(state)
+        try:
+            model.net.load_state_dict(state)
+        except RuntimeError as exc:
+            lines = str(exc).strip().splitlines()  # a title, then one line per problem
+            detail = (lines[1] if len(lines) > 1 else lines[0]).strip()[:200]
+            raise CheckpointError(
+                f"{Path(folder) / 'model.safetensors'} does not fit its config.json ({detail}); "
+                "restore the pair or train again"
+            ) from None
         return model.to(device)
