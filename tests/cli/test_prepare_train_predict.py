@@ -10,6 +10,7 @@ import signal
 import socket
 import subprocess
 import sys
+import types
 
 import numpy as np
 import pytest
@@ -248,6 +249,27 @@ def test_predict_checks_that_out_is_writable_before_any_work(
     argv = ["predict", str(dataset), "--method", "baseline", "--out", str(blocker / "r.csv")]
     assert main([*argv, "--no-progress"]) == 1
     assert "cannot write in" in capsys.readouterr().err
+
+
+def test_predict_names_the_apt_package_of_a_missing_open3d_library(
+    dataset, tmp_path, capsys, monkeypatch
+):
+    from poseflow.render import backend
+
+    def import_module(name, package=None):
+        raise ImportError("libGL.so.1: cannot open shared object file: No such file or directory")
+
+    monkeypatch.setattr(backend, "importlib", types.SimpleNamespace(import_module=import_module))
+    monkeypatch.setattr("poseflow.baselines.ClassicBaseline.prepare", _never)
+    monkeypatch.setattr("poseflow.eval.predict.predict_dataset", _never)
+    argv = ["predict", str(dataset), "--method", "baseline", "--out", str(tmp_path / "r.csv")]
+    assert main([*argv, "--no-progress"]) == 1
+    err = capsys.readouterr().err
+    assert "libGL.so.1" in err and "sudo apt-get install libgl1" in err and "Traceback" not in err
+
+
+def _never(*args, **kwargs):
+    raise AssertionError("ran although Open3D cannot be imported")
 
 
 @pytest.mark.parametrize("command", ["prepare", "train", "predict"])
