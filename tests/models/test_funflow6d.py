@@ -6,6 +6,7 @@ import torch
 from poseflow.assets import DEMO_CHECKPOINT
 from poseflow.data.objects import sample_surface
 from poseflow.errors import CheckpointError, MissingWeightsError, ShapeError, ValueRangeError
+from poseflow.eval.predict import PoseEstimate
 from poseflow.eval.timing import StageTimer
 from poseflow.geometry.se3 import rotation_angle_error, transform_points, translation_error
 from poseflow.models import FunFlow6D, FunFlow6DConfig
@@ -87,6 +88,58 @@ def test_bad_input(tiny_model, scene):
     empty = torch.zeros_like(scene["masks"])
     est = tiny_model.estimate(scene["rgb"], scene["depth"], scene["K"], empty, [1, 1])
     assert not est.valid.any() and torch.isfinite(est.poses).all()
+
+
+def test_intrinsics_as_lists_or_arrays_and_their_shape(tiny_model, scene):
+    args = (scene["rgb"], scene["depth"])
+    masks, ids = scene["masks"], [1, 1]
+
+    def estimate(K):
+        return tiny_model.estimate(*args, K, masks, ids, generator=torch.Generator().manual_seed(0))
+
+    ref = estimate(scene["K"])
+    for K in (scene["K"].tolist(), scene["K"].double().numpy(), scene["K"].reshape(9).tolist()):
+        est = estimate(K)
+        assert torch.equal(est.poses, ref.poses) and torch.equal(est.valid, ref.valid)
+        obs = tiny_model.observe(*args, K, masks, ids)
+        assert obs.points.shape == (2, tiny_model.config.num_points, 3)
+    for bad in (torch.eye(2), [[300.0, 0], [0, 300.0]], "K", [[1, 2, 3]] * 3 + [[4, 5, 6]]):
+        with pytest.raises(ShapeError, match="K must be 9 numbers"):
+            tiny_model.estimate(*args, bad, masks, ids)
+        with pytest.raises(ShapeError, match="K must be 9 numbers"):
+            tiny_model.observe(*args, bad, masks, ids)
+    with pytest.raises(ValueRangeError, match="transposed"):
+        tiny_model.estimate(*args, scene["K"].T, masks, ids)
+
+
+def test_no_masks_give_an_empty_estimate(tiny_model, scene):
+    none = scene["masks"][:0]
+    for K in (scene["K"], scene["K"].tolist()):
+        est = tiny_model.estimate(scene["rgb"], scene["depth"], K, none, [])
+        assert est.poses.shape == (0, 4, 4) and est.scores.shape == (0,)
+        assert est.valid.shape == (0,) and est.valid.dtype == torch.bool
+    obs = tiny_model.observe(scene["rgb"], scene["depth"], scene["K"], none, torch.tensor([]))
+    n = tiny_model.config.num_points
+    assert obs.points.shape == (0, n, 3) and obs.mask.shape == (0, n) and obs.valid.shape == (0,)
+    assert obs.geometric.shape == (0, n, tiny_model.geometric_encoder.dim)
+    assert obs.appearance.shape == (0, n, tiny_model.appearance_encoder.dim)
+
+
+@pytest.mark.parametrize("verification", [False, True])
+def test_a_pose_behind_the_camera_is_never_valid(tiny_model, scene, monkeypatch, verification):
+    import poseflow.models.funflow6d as funflow6d
+
+    behind = torch.eye(4).repeat(2, 1, 1)
+    behind[:, 2, 3] = torch.tensor([0.5, -0.5])
+    flagged = PoseEstimate(behind, torch.full((2,), 0.9), torch.ones(2, dtype=torch.bool))
+    if verification:
+        monkeypatch.setattr(funflow6d, "verify_estimate", lambda *a, **k: flagged)
+    else:
+        monkeypatch.setattr(funflow6d, "select_hypotheses", lambda *a, **k: flagged)
+    model = FunFlow6D(tiny_model.config.replace(verification=verification))
+    model.objects, model.verifier = tiny_model.objects, tiny_model.verifier
+    est = model.estimate(scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 1])
+    assert est.valid.tolist() == [True, False] and est.scores.tolist() == pytest.approx([0.9, 0])
 
 
 def test_save_load_round_trip(tiny_model, tmp_path):
