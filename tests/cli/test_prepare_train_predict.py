@@ -64,7 +64,7 @@ def run_dir(dataset, tmp_path_factory):
 
 
 def _object_files(out, dataset):
-    return sorted(object_cache_dir(out, dataset).glob("obj_*/object.safetensors"))
+    return sorted(object_cache_dir(out, dataset).glob("obj_*/*/object.safetensors"))
 
 
 # ------------------------------------------------------------------------------ the pipeline
@@ -83,7 +83,7 @@ def test_subcommands_are_registered(capsys):
 
 def test_prepare_caches_every_object_and_the_model_reuses_the_cache(run_dir, dataset, capsys):
     files = _object_files(run_dir / "model", dataset)
-    assert [f.parent.name for f in files] == ["obj_000001", "obj_000002", "obj_000003"]
+    assert [f.parent.parent.name for f in files] == ["obj_000001", "obj_000002", "obj_000003"]
     stamps = [f.stat().st_mtime_ns for f in files]
     # Preparing again into the trained model's folder takes its config.json: every object is a
     # cache hit, nothing is rewritten.

@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from poseflow.assets import DEMO_CHECKPOINT
-from poseflow.data.objects import sample_surface
+from poseflow.data.objects import ObjectModel, sample_surface
 from poseflow.errors import CheckpointError, MissingWeightsError, ShapeError, ValueRangeError
 from poseflow.eval.predict import PoseEstimate
 from poseflow.eval.timing import StageTimer
@@ -186,10 +186,29 @@ def test_prepared_objects_are_cached(tiny_model, box, tmp_path):
     assert torch.equal(a.points, b.points) and torch.allclose(a.geometric, b.geometric)
     x = a.bank.pooled()
     assert torch.allclose(a.reducer.transform(x), b.reducer.transform(x), atol=1e-4)
-    # the verifier's preparation sits beside the object's and is read back too
-    assert (tmp_path / "obj_000001" / "verifier.json").is_file()
+    # the verifier's preparation sits beside the object's, in its own entry, and is read back
+    (verifier_entry,) = (tmp_path / "obj_000001").glob("*/verifier.json")
+    (object_entry,) = (tmp_path / "obj_000001").glob("*/object.json")
+    assert verifier_entry.parent != object_entry.parent
     va, vb = model.verifier.objects[1], again.verifier.objects[1]
     assert torch.equal(va.points, vb.points) and torch.equal(va.candidates, vb.candidates)
+
+
+def test_preparing_another_mesh_under_the_same_id_replaces_it_everywhere(tiny_model, box, tmp_path):
+    larger = ObjectModel.from_mesh(box.mesh.scaled(1.5), num_points=1000)
+    model = FunFlow6D(tiny_model.config)
+    model.prepare_objects({1: box}, cache_dir=tmp_path, progress=False)
+    model.prepare_objects({1: larger}, cache_dir=tmp_path, progress=False)
+    assert model.objects[1].diameter == pytest.approx(larger.diameter)
+    assert model.verifier.objects[1].diameter == pytest.approx(larger.diameter)
+    folder = tmp_path / "obj_000001"
+    assert len(list(folder.glob("*/object.json"))) == len(list(folder.glob("*/verifier.json"))) == 2
+    # both meshes read their own entries back, the verifier's too
+    again = FunFlow6D(tiny_model.config)
+    again.prepare_objects({1: box}, cache_dir=tmp_path, progress=False)
+    assert again.verifier.objects[1].diameter == pytest.approx(box.diameter)
+    assert torch.equal(again.verifier.objects[1].points, tiny_model.verifier.objects[1].points)
+    assert len(list(folder.glob("*/verifier.json"))) == 2
 
 
 def test_noise_conditioning_can_be_switched_off(tiny_model, scene):

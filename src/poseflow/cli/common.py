@@ -598,6 +598,7 @@ def object_cache_dir(base: str | Path, root: str | Path) -> Path:
     """Where the prepared objects of dataset ``root`` are cached under ``base``.
 
     ``base/objects/<hash of root/models>``; :meth:`~poseflow.models.FunFlow6D.prepare_objects`
-    then keys each object by the configuration fields it depends on.
+    then keys each object's entry by its mesh (content and scale) and the configuration fields
+    it depends on (``obj_XXXXXX/<key>/``).
     """
     return Path(base) / "objects" / models_fingerprint(root)

@@ -97,13 +97,15 @@ class FunFlow6D(nn.Module):
         """Prepare every object (:func:`~poseflow.models.objects.prepare_objects`) for inference.
 
         With ``config.verification`` on, the objects are prepared for the verifier too
-        (:func:`~poseflow.models.verification.prepare_verification`, cached in the same
-        folders); a verifier of another configuration than ``config.verifier`` is replaced.
+        (:func:`~poseflow.models.verification.prepare_verification`, cached beside them); a
+        verifier of another configuration than ``config.verifier`` is replaced.
 
         Args:
             models: ``{obj_id: ObjectModel}`` (metres, textured meshes for appearance).
-            cache_dir: where prepared objects are stored and looked up (safetensors + JSON);
-                None computes everything in memory.
+            cache_dir: where prepared objects are stored and looked up (safetensors + JSON), one
+                entry per object, mesh content (and scale) and configuration
+                (:func:`~poseflow.models.objects.object_cache_entry`), each written whole; None
+                computes everything in memory.
             progress: show a progress bar.
         """
         self.objects.update(
