@@ -60,6 +60,7 @@ from poseflow.models import (
     FunFlow6DConfig,
     NetOptions,
     Observation,
+    load_prepared_object,
 )
 from poseflow.models.training import FlowTrainingSet, build_training_set, train
 
@@ -146,10 +147,12 @@ def prepare(model: FunFlow6D, objects: Mapping[int, Any] | None, cache: Path) ->
         SystemExit: ``objects`` is None and ``cache`` lacks an object.
     """
     if objects is None:
-        missing = [i for i in (1, 2, 3) if not (cache / f"obj_{i:06d}" / "object.json").is_file()]
+        objects = demo_object_map()
+        missing = [
+            i for i, m in objects.items() if load_prepared_object(cache, i, m, model.config) is None
+        ]
         if missing:
             raise SystemExit(f"{cache} lacks objects {missing}: run --phase features first")
-        objects = demo_object_map()
     model.prepare_objects(objects, cache_dir=cache, progress=False)
 
 

@@ -73,13 +73,7 @@ from poseflow.cli.common import load_object_models, object_cache_dir
 from poseflow.errors import MissingDependencyError
 from poseflow.features import DINOv2Encoder, UMAPReducer
 from poseflow.fusion import key_padding_mask
-from poseflow.models import (
-    FunFlow6D,
-    FunFlow6DConfig,
-    NetOptions,
-    PreparedObject,
-    object_fingerprint,
-)
+from poseflow.models import FunFlow6D, FunFlow6DConfig, NetOptions, load_prepared_object
 
 #: The paper's per-image breakdown on an A100 (LM-O, 8 instances, Euler 50), ms.
 PAPER_A100_MS = {
@@ -204,11 +198,8 @@ def load_prepared_objects(model: FunFlow6D, root: Path, cache: Path, device: tor
         SystemExit: an object of the dataset is not in the cache for this configuration.
     """
     models = load_object_models(root)
-    fingerprint = object_fingerprint(model.config)
     missing = [
-        i
-        for i in sorted(models)
-        if PreparedObject.load(cache / f"obj_{i:06d}", fingerprint=fingerprint) is None
+        i for i in sorted(models) if load_prepared_object(cache, i, models[i], model.config) is None
     ]
     if missing:
         raise SystemExit(

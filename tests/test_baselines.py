@@ -41,15 +41,50 @@ def test_bad_inputs(bracket):
         ClassicBaseline({3: bracket}, verifier=32)
     assert ClassicBaseline({3: bracket}, verifier={"crop_size": 32}).verifier.config.crop_size == 32
     baseline = ClassicBaseline({3: bracket}, num_views=4)
-    K = torch.eye(3, dtype=torch.float64)
+    K = torch.tensor([[100.0, 0, 4], [0, 100.0, 4], [0, 0, 1]], dtype=torch.float64)
     depth = torch.zeros(8, 8)
     masks = torch.zeros(1, 8, 8, dtype=torch.bool)
-    with pytest.raises(ValueRangeError):
+    with pytest.raises(ValueRangeError, match="no model"):
         baseline.estimate(depth, K, masks, [7])
-    with pytest.raises(ValueRangeError):
+    with pytest.raises(ValueRangeError, match="object ids"):
         baseline.estimate(depth, K, masks, [3, 3])
     with pytest.raises(ShapeError):
         baseline.estimate(depth, K, torch.zeros(1, 8, 9, dtype=torch.bool), [3])
+    for bad in (torch.eye(2), [[100.0, 0], [0, 100.0]], [1.0] * 8):
+        with pytest.raises(ShapeError, match="K must be 9 numbers"):
+            baseline.estimate(depth, bad, masks, [3])
+    with pytest.raises(ValueRangeError, match="transposed"):
+        baseline.estimate(depth, K.T, masks, [3])
+
+
+def test_intrinsics_as_lists_or_arrays_and_no_masks(bracket):
+    baseline = ClassicBaseline({3: bracket}, num_views=4)
+    K = torch.tensor([[100.0, 0, 4], [0, 100.0, 4], [0, 0, 1]], dtype=torch.float64)
+    depth, masks = torch.full((8, 8), 0.5), torch.ones(1, 8, 8, dtype=torch.bool)
+    ref = baseline.estimate(depth, K, masks, [3])
+    for same in (K.tolist(), K.numpy(), K.reshape(9).tolist()):
+        est = baseline.estimate(depth, same, masks, [3])
+        assert torch.equal(est.poses, ref.poses) and torch.equal(est.valid, ref.valid)
+    est = baseline.estimate(depth, K.tolist(), masks[:0], [])
+    assert est.poses.shape == (0, 4, 4) and est.scores.shape == est.valid.shape == (0,)
+
+
+def test_a_pose_behind_the_camera_is_never_valid(bracket, monkeypatch):
+    baseline = ClassicBaseline({3: bracket}, num_views=4, verification=False)
+    behind = torch.eye(4, dtype=torch.float64)
+    behind[2, 3] = -0.5  # depth in the wrong unit can put the object there
+
+    def estimate_one(depth, K, mask, obj_id, i):
+        pose = behind.clone()
+        pose[2, 3] *= -1 if i == 0 else 1
+        return pose, 0.8, torch.zeros(0, 3)
+
+    monkeypatch.setattr(baseline, "_estimate_one", estimate_one)
+    K = torch.tensor([[100.0, 0, 4], [0, 100.0, 4], [0, 0, 1]], dtype=torch.float64)
+    est = baseline.estimate(
+        torch.full((8, 8), 0.5), K, torch.ones(2, 8, 8, dtype=torch.bool), [3, 3]
+    )
+    assert est.valid.tolist() == [True, False] and est.scores.tolist() == [0.8, 0.0]
 
 
 def test_empty_mask_is_invalid_not_nan(bracket):

@@ -2,12 +2,21 @@
 
 from __future__ import annotations
 
+import json
 import os
 
 import numpy as np
 import pytest
 
-from poseflow._cache import arrays_key, atomic_directory, cache_entry, files_key, json_key
+from poseflow._cache import (
+    arrays_key,
+    atomic_directory,
+    cache_entry,
+    files_key,
+    json_key,
+    read_entry,
+    write_entry,
+)
 
 
 def test_files_key_changes_with_content_size_mtime_and_place(tmp_path):
@@ -64,3 +73,30 @@ def test_atomic_directory_leaves_nothing_behind_on_failure(tmp_path):
         (tmp / "object.json").write_text('{"second": 1}')
     assert (entry / "object.json").read_text() == "{}"
     assert [p.name for p in entry.parent.iterdir()] == ["k"]
+
+
+def test_a_damaged_entry_is_dropped_with_a_warning_and_written_again(tmp_path):
+    entry = tmp_path / "obj_000001" / "k"
+
+    def read(folder):
+        return json.loads((folder / "object.json").read_text())
+
+    assert read_entry(entry, read, what="object 1") is None  # absent: no warning
+    assert write_entry(entry, lambda tmp: (tmp / "object.json").write_text('{"a": 1}'), what="x")
+    assert read_entry(entry, read, what="object 1") == {"a": 1}
+    (entry / "object.json").write_text('{"a": ')  # damaged after the fact
+    with pytest.warns(UserWarning, match="object 1: the cache entry .* is damaged"):
+        assert read_entry(entry, read, what="object 1") is None
+    assert not entry.exists()  # so that a new entry takes its place
+    assert write_entry(entry, lambda tmp: (tmp / "object.json").write_text('{"a": 2}'), what="x")
+    assert read_entry(entry, read, what="object 1") == {"a": 2}
+
+
+def test_a_cache_that_cannot_be_written_is_a_warning(tmp_path):
+    blocked = tmp_path / "a_file"
+    blocked.write_text("")
+    with pytest.warns(UserWarning, match="object 1 is not cached"):
+        assert not write_entry(blocked / "obj_000001" / "k", lambda tmp: None, what="object 1")
+    with pytest.raises(ZeroDivisionError):  # an error of the writer itself is not hidden
+        write_entry(tmp_path / "e", lambda tmp: 1 / 0, what="object 1")
+    assert not (tmp_path / "e").exists()

@@ -6,6 +6,9 @@ its inputs: file contents, or the paths, sizes and modification times of files t
 Entries live in one folder per key (:func:`cache_entry`), so several coexist, and each is written
 into a temporary sibling folder that is renamed into place when complete
 (:func:`atomic_directory`): a crash never leaves a half-written entry that a later run would read.
+:func:`read_entry` and :func:`write_entry` wrap both for a cache that is an optimisation only: an
+entry damaged after the fact is dropped with a warning (and computed again), and a cache that
+cannot be written gives a warning instead of failing the run.
 """
 
 from __future__ import annotations
@@ -16,9 +19,10 @@ import json
 import os
 import shutil
 import tempfile
-from collections.abc import Iterable, Iterator, Mapping
+import warnings
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -29,7 +33,11 @@ __all__ = [
     "cache_entry",
     "files_key",
     "json_key",
+    "read_entry",
+    "write_entry",
 ]
+
+T = TypeVar("T")
 
 #: Hex digits of a cache key.
 KEY_LENGTH = 16
@@ -154,3 +162,76 @@ def atomic_directory(folder: str | os.PathLike[str]) -> Iterator[Path]:
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+
+
+def read_entry(
+    folder: str | os.PathLike[str], read: Callable[[Path], T | None], *, what: str
+) -> T | None:
+    """Read a cache entry, or None when it is absent or damaged (a damaged one is removed).
+
+    Entries are written whole by :func:`write_entry`, so a damaged one was broken after the fact
+    (a disk that filled up, a copy cut short): it is removed with a warning, so that the caller
+    computes the data again and writes a new entry in its place.
+
+    Args:
+        folder: the entry (see :func:`cache_entry`).
+        read: reads the entry's folder; returns None for an entry that does not apply, raises
+            ``OSError``, ``ValueError`` (JSON, CheckpointError), ``KeyError`` or a safetensors
+            error for a damaged one.
+        what: what the entry holds, for the warning (e.g. ``"object 5"``).
+
+    Returns:
+        What ``read`` returned, or None.
+
+    Example:
+        >>> d = Path(tempfile.mkdtemp()) / "entry"
+        >>> read = lambda f: json.loads((f / "x.json").read_text())
+        >>> read_entry(d, read, what="x") is None  # absent
+        True
+        >>> with atomic_directory(d) as tmp:
+        ...     _ = (tmp / "x.json").write_text('{"a": 1}')
+        >>> read_entry(d, read, what="x")
+        {'a': 1}
+    """
+    from safetensors import SafetensorError
+
+    folder = Path(folder)
+    if not folder.is_dir():
+        return None
+    try:
+        return read(folder)
+    except (OSError, ValueError, KeyError, SafetensorError) as exc:
+        warnings.warn(
+            f"{what}: the cache entry {folder} is damaged ({exc}); it is computed again",
+            stacklevel=2,
+        )
+        shutil.rmtree(folder, ignore_errors=True)
+        return None
+
+
+def write_entry(folder: str | os.PathLike[str], write: Callable[[Path], Any], *, what: str) -> bool:
+    """Write a cache entry atomically (:func:`atomic_directory`); warn when it cannot be written.
+
+    Args:
+        folder: the entry (see :func:`cache_entry`).
+        write: writes the entry's files into the folder it is given.
+        what: what the entry holds, for the warning (e.g. ``"object 5"``).
+
+    Returns:
+        Whether the entry is on disk now (False: the cache folder cannot be written, and the data
+        stays in memory only).
+
+    Example:
+        >>> d = Path(tempfile.mkdtemp()) / "entry"
+        >>> write_entry(d, lambda tmp: (tmp / "x.json").write_text("{}"), what="x")
+        True
+        >>> sorted(p.name for p in d.iterdir())
+        ['x.json']
+    """
+    try:
+        with atomic_directory(folder) as tmp:
+            write(tmp)
+    except OSError as exc:
+        warnings.warn(f"{what} is not cached ({exc})", stacklevel=2)
+        return False
+    return True

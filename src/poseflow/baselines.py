@@ -40,11 +40,12 @@ from typing import Any
 import torch
 
 from poseflow._checks import check_mask, check_tensor
+from poseflow._units import check_intrinsics
 from poseflow.data.bop import BOPDataset
 from poseflow.data.objects import ObjectModel, sample_surface
 from poseflow.errors import DegenerateInputError, ValueRangeError
 from poseflow.eval.inliers import mutual_nearest_neighbors
-from poseflow.eval.predict import Estimator, PoseEstimate, predict_dataset
+from poseflow.eval.predict import Estimator, PoseEstimate, invalidate_implausible, predict_dataset
 from poseflow.eval.recall import Target
 from poseflow.eval.results import PoseResults
 from poseflow.eval.timing import StageTimer, stage
@@ -266,22 +267,25 @@ class ClassicBaseline:
 
         Args:
             depth: depth in metres, ``(H, W)``, 0 (or NaN) where missing.
-            K: intrinsics ``(3, 3)``.
-            masks: instance masks ``(n, H, W)`` bool.
+            K: intrinsics ``(3, 3)``: a tensor, an array, nested lists or 9 numbers.
+            masks: instance masks ``(n, H, W)`` bool (``n`` may be 0).
             obj_ids: object id of each instance, ``(n,)``.
             rgb: the colour image ``(3, H, W)`` (uint8, or float in ``[0, 1]``) for the
                 verifier's appearance term; unused without verification.
 
         Returns:
-            A :class:`PoseEstimate`; with verification, the verified poses with the verifier's
-            scores.
+            A :class:`PoseEstimate` (float64); with verification, the verified poses
+            with the verifier's scores. A pose that is not finite or puts the object behind the
+            camera is flagged invalid (:func:`~poseflow.eval.predict.invalidate_implausible`).
 
         Raises:
-            ShapeError: bad shapes.
-            ValueRangeError: an object id without a model.
+            ShapeError: bad shapes, or ``K`` not 9 numbers.
+            ValueRangeError: an object id without a model, or a ``K`` that is not a pinhole
+                matrix of this image.
         """
         sizes = check_tensor(depth, "depth", ("H", "W"))
         check_mask(masks, "masks", ("n", "H", "W"), sizes)
+        Kd = check_intrinsics(K, sizes["W"], sizes["H"], dtype=torch.float64, device=depth.device)
         ids = [int(o) for o in torch.as_tensor(obj_ids).reshape(-1).tolist()]
         n = masks.shape[0]
         if len(ids) != n:
@@ -292,7 +296,6 @@ class ClassicBaseline:
         poses = torch.eye(4, dtype=torch.float64).repeat(n, 1, 1)
         scores = torch.zeros(n, dtype=torch.float64)
         valid = torch.zeros(n, dtype=torch.bool)
-        Kd = torch.as_tensor(K, dtype=torch.float64)
         d = torch.nan_to_num(depth.to(torch.float64), nan=0.0, posinf=0.0, neginf=0.0)
         clouds = []
         for i in range(n):
@@ -300,9 +303,10 @@ class ClassicBaseline:
             clouds.append(cloud)
             if pose is not None:
                 poses[i], scores[i], valid[i] = pose, score, True
-        if not self.verification or not bool(valid.any()):
-            return PoseEstimate(poses, scores, valid)
-        return self._verify(rgb, d, Kd, masks, ids, PoseEstimate(poses, scores, valid), clouds)
+        est = invalidate_implausible(PoseEstimate(poses, scores, valid))
+        if not self.verification or not bool(est.valid.any()):
+            return est
+        return invalidate_implausible(self._verify(rgb, d, Kd, masks, ids, est, clouds))
 
     def _verify(
         self,

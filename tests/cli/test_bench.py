@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 
 import pytest
 import torch
 
 from poseflow.cli import bench, main
+from poseflow.cli.common import command_output, show_progress
 from poseflow.data.synthetic import generate_dataset
 from poseflow.errors import ValueRangeError
 from poseflow.eval.results import read_results
@@ -106,3 +108,27 @@ def test_generated_split_is_made_once(monkeypatch, tmp_path):
     assert len(calls) == 1 and calls[0]["objects_per_image"] == 8
     bench.generated_split(tmp_path / "e", images=3, instances=8, seed=1, progress=False)
     assert len(calls) == 2
+
+
+def test_quiet_keeps_the_results_and_drops_the_status_lines(monkeypatch, tmp_path, capsys):
+    def fake(root, **kwargs):
+        root.mkdir(parents=True)
+        return root
+
+    monkeypatch.setattr("poseflow.data.synthetic.generate_dataset", fake)
+    for quiet in (False, True):
+        with command_output(argparse.Namespace(quiet=quiet)):
+            bench.generated_split(tmp_path / "d", images=2, instances=8, seed=1, progress=False)
+        out, err = capsys.readouterr()
+        assert out == "" and ("generat" in err) is not quiet
+    args = bench.add_parser(argparse.ArgumentParser().add_subparsers()).parse_args(["--quiet"])
+    assert args.quiet and not show_progress(args)
+
+
+def test_bench_runs_quietly(model_dir, dataset, tmp_path, capsys):
+    argv = ["bench", str(dataset), "--model", str(model_dir), "--out", str(tmp_path / "out"),
+            "--samplers", "euler:1", "--device", "cpu", "--quiet", "--no-verify"]  # fmt: skip
+    assert main(argv) == 0
+    out, err = capsys.readouterr()
+    assert "euler:1" in out and "bench.json" in out  # the results
+    assert err == ""

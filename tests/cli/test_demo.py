@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import pytest
 import torch
 
@@ -31,6 +33,32 @@ def test_pose_demo_writes_results_timing_and_overlays(tmp_path, capsys):
     assert (out / "funflow6d.csv").read_text().startswith("scene_id,im_id,obj_id,score,R,t,time")
     assert (out / "timing.json").is_file() and (out / "timing.png").is_file()
     assert len(list((out / "overlays").glob("*.png"))) == 1
+
+
+def test_the_shipped_model_has_the_demo_objects_prepared(tmp_path, monkeypatch):
+    """The demo (and predict, bench) read every object of the shipped model from its cache."""
+    import poseflow.models.objects
+    from poseflow.assets import DEMO_CHECKPOINT
+    from poseflow.cli.common import load_object_models, object_cache_dir
+    from poseflow.data.synthetic import generate_dataset
+    from poseflow.verify import PoseVerifier
+
+    def never(*args, **kwargs):
+        raise AssertionError("an object of the shipped demo model was prepared again")
+
+    root = generate_dataset(
+        tmp_path / "ds", num_train_images=0, num_test_images=0, progress=False
+    )  # the demo's models/, no images
+    cache = object_cache_dir(DEMO_CHECKPOINT, root)
+    assert cache.is_dir()
+    monkeypatch.setattr(poseflow.models.objects, "prepare_object", never)
+    monkeypatch.setattr(PoseVerifier, "prepare", never)
+    model = FunFlow6D.load(DEMO_CHECKPOINT)
+    assert model.config.verification
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no damaged entry, nothing to write
+        model.prepare_objects(load_object_models(root), cache_dir=cache, progress=False)
+    assert sorted(model.objects) == sorted(model.verifier.objects) == [1, 2, 3]
 
 
 def test_missing_model_is_a_clear_error(tmp_path, capsys):

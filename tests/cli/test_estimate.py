@@ -162,5 +162,5 @@ def test_estimate_with_the_demo_model_caches_the_prepared_mesh(frame, tmp_path, 
     assert main([*argv, "--no-progress"]) == 0
     (pose,) = json.loads((tmp_path / "out" / "poses.json").read_text())["poses"]
     assert pose["valid"] and pose["t_m"][2] > 0
-    assert len(list((tmp_path / "c" / "objects").glob("*/obj_000001/object.json"))) == 1
+    assert len(list((tmp_path / "c" / "objects").glob("obj_000001/*/object.json"))) == 1
     assert "FunFlow6D" in capsys.readouterr().out

@@ -47,7 +47,7 @@ def test_the_command_line_exit_codes():
     assert proc.returncode == 2 and "must be at least 1" in proc.stderr
 
 
-@pytest.mark.parametrize("command", [c for c in SUBCOMMANDS if c != "bench"])
+@pytest.mark.parametrize("command", SUBCOMMANDS)
 def test_every_command_has_no_progress_and_quiet(command, capsys):
     with pytest.raises(SystemExit):
         main([command, "--help"])

@@ -10,6 +10,7 @@ import signal
 import socket
 import subprocess
 import sys
+import types
 
 import numpy as np
 import pytest
@@ -63,7 +64,7 @@ def run_dir(dataset, tmp_path_factory):
 
 
 def _object_files(out, dataset):
-    return sorted(object_cache_dir(out, dataset).glob("obj_*/object.safetensors"))
+    return sorted(object_cache_dir(out, dataset).glob("obj_*/*/object.safetensors"))
 
 
 # ------------------------------------------------------------------------------ the pipeline
@@ -82,7 +83,7 @@ def test_subcommands_are_registered(capsys):
 
 def test_prepare_caches_every_object_and_the_model_reuses_the_cache(run_dir, dataset, capsys):
     files = _object_files(run_dir / "model", dataset)
-    assert [f.parent.name for f in files] == ["obj_000001", "obj_000002", "obj_000003"]
+    assert [f.parent.parent.name for f in files] == ["obj_000001", "obj_000002", "obj_000003"]
     stamps = [f.stat().st_mtime_ns for f in files]
     # Preparing again into the trained model's folder takes its config.json: every object is a
     # cache hit, nothing is rewritten.
@@ -248,6 +249,27 @@ def test_predict_checks_that_out_is_writable_before_any_work(
     argv = ["predict", str(dataset), "--method", "baseline", "--out", str(blocker / "r.csv")]
     assert main([*argv, "--no-progress"]) == 1
     assert "cannot write in" in capsys.readouterr().err
+
+
+def test_predict_names_the_apt_package_of_a_missing_open3d_library(
+    dataset, tmp_path, capsys, monkeypatch
+):
+    from poseflow.render import backend
+
+    def import_module(name, package=None):
+        raise ImportError("libGL.so.1: cannot open shared object file: No such file or directory")
+
+    monkeypatch.setattr(backend, "importlib", types.SimpleNamespace(import_module=import_module))
+    monkeypatch.setattr("poseflow.baselines.ClassicBaseline.prepare", _never)
+    monkeypatch.setattr("poseflow.eval.predict.predict_dataset", _never)
+    argv = ["predict", str(dataset), "--method", "baseline", "--out", str(tmp_path / "r.csv")]
+    assert main([*argv, "--no-progress"]) == 1
+    err = capsys.readouterr().err
+    assert "libGL.so.1" in err and "sudo apt-get install libgl1" in err and "Traceback" not in err
+
+
+def _never(*args, **kwargs):
+    raise AssertionError("ran although Open3D cannot be imported")
 
 
 @pytest.mark.parametrize("command", ["prepare", "train", "predict"])

@@ -51,6 +51,13 @@ def test_a_pose_behind_the_camera_is_never_valid():
     assert out.sources == ["mask0.png", "mask1.png", "mask2.png", "mask3.png"]
 
 
+def test_a_pose_the_estimator_already_rejected_keeps_its_reason():
+    out = estimate_frame(_Fixed([-0.6, 0.0], [False, False]), _frame(2))
+    assert out.valid.tolist() == [False, False]
+    assert "behind the camera (t_z = -0.6 m)" in out.notes[0]
+    assert out.notes[1].startswith("no pose found")  # the identity of no estimate
+
+
 def test_zero_instances_give_an_empty_result_without_calling_the_estimator():
     est = _Fixed([], [])
     out = estimate_frame(est, _frame(0))

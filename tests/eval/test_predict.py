@@ -1,10 +1,18 @@
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from poseflow.data.bop import BOPDataset, Detection
 from poseflow.data.rle import rle_encode
 from poseflow.data.synthetic import generate_dataset
-from poseflow.eval import PoseEstimate, StageTimer, evaluate_bop, predict_dataset
+from poseflow.eval import (
+    PoseEstimate,
+    StageTimer,
+    evaluate_bop,
+    invalidate_implausible,
+    predict_dataset,
+)
 from poseflow.eval.timing import active_timer, stage
 
 
@@ -124,3 +132,23 @@ def test_before_image_runs_before_each_image_and_can_stop_the_loop(dataset):
     with pytest.raises(RuntimeError, match="another process failed"):
         predict_dataset(estimate, dataset, before_image=stop)
     assert len(calls) == 1  # the first image only
+
+
+@settings(max_examples=25)
+@given(seed=st.integers(0, 2**31 - 1), B=st.integers(0, 12), nan_ratio=st.floats(0.0, 0.5))
+def test_invalidate_implausible_keeps_exactly_the_finite_poses_in_front(seed, B, nan_ratio):
+    g = torch.Generator().manual_seed(seed)
+    for dtype in (torch.float32, torch.float64):
+        poses = torch.eye(4, dtype=dtype).repeat(B, 1, 1)
+        poses[:, :3, 3] = torch.randn(B, 3, generator=g, dtype=dtype)
+        poses[torch.rand(B, generator=g) < 0.2, 2, 3] = 0.0  # exactly on the camera plane
+        poses[torch.rand(B, generator=g) < nan_ratio, 0, 1] = float("nan")
+        scores = torch.rand(B, generator=g, dtype=dtype)
+        valid = torch.rand(B, generator=g) < 0.7
+        out = invalidate_implausible(PoseEstimate(poses, scores, valid))
+        for b in range(B):
+            plausible = bool(torch.isfinite(poses[b]).all()) and float(poses[b, 2, 3]) > 0
+            assert bool(out.valid[b]) == (bool(valid[b]) and plausible)
+            assert float(out.scores[b]) == (float(scores[b]) if out.valid[b] else 0.0)
+        assert torch.equal(out.poses.nan_to_num(7.0), poses.nan_to_num(7.0))  # kept as they are
+        assert out.scores.dtype == dtype and out.valid.dtype == torch.bool

@@ -4,8 +4,9 @@ import pytest
 import torch
 
 from poseflow.assets import DEMO_CHECKPOINT
-from poseflow.data.objects import sample_surface
-from poseflow.errors import MissingWeightsError, ShapeError, ValueRangeError
+from poseflow.data.objects import ObjectModel, sample_surface
+from poseflow.errors import CheckpointError, MissingWeightsError, ShapeError, ValueRangeError
+from poseflow.eval.predict import PoseEstimate
 from poseflow.eval.timing import StageTimer
 from poseflow.geometry.se3 import rotation_angle_error, transform_points, translation_error
 from poseflow.models import FunFlow6D, FunFlow6DConfig
@@ -89,6 +90,58 @@ def test_bad_input(tiny_model, scene):
     assert not est.valid.any() and torch.isfinite(est.poses).all()
 
 
+def test_intrinsics_as_lists_or_arrays_and_their_shape(tiny_model, scene):
+    args = (scene["rgb"], scene["depth"])
+    masks, ids = scene["masks"], [1, 1]
+
+    def estimate(K):
+        return tiny_model.estimate(*args, K, masks, ids, generator=torch.Generator().manual_seed(0))
+
+    ref = estimate(scene["K"])
+    for K in (scene["K"].tolist(), scene["K"].double().numpy(), scene["K"].reshape(9).tolist()):
+        est = estimate(K)
+        assert torch.equal(est.poses, ref.poses) and torch.equal(est.valid, ref.valid)
+        obs = tiny_model.observe(*args, K, masks, ids)
+        assert obs.points.shape == (2, tiny_model.config.num_points, 3)
+    for bad in (torch.eye(2), [[300.0, 0], [0, 300.0]], "K", [[1, 2, 3]] * 3 + [[4, 5, 6]]):
+        with pytest.raises(ShapeError, match="K must be 9 numbers"):
+            tiny_model.estimate(*args, bad, masks, ids)
+        with pytest.raises(ShapeError, match="K must be 9 numbers"):
+            tiny_model.observe(*args, bad, masks, ids)
+    with pytest.raises(ValueRangeError, match="transposed"):
+        tiny_model.estimate(*args, scene["K"].T, masks, ids)
+
+
+def test_no_masks_give_an_empty_estimate(tiny_model, scene):
+    none = scene["masks"][:0]
+    for K in (scene["K"], scene["K"].tolist()):
+        est = tiny_model.estimate(scene["rgb"], scene["depth"], K, none, [])
+        assert est.poses.shape == (0, 4, 4) and est.scores.shape == (0,)
+        assert est.valid.shape == (0,) and est.valid.dtype == torch.bool
+    obs = tiny_model.observe(scene["rgb"], scene["depth"], scene["K"], none, torch.tensor([]))
+    n = tiny_model.config.num_points
+    assert obs.points.shape == (0, n, 3) and obs.mask.shape == (0, n) and obs.valid.shape == (0,)
+    assert obs.geometric.shape == (0, n, tiny_model.geometric_encoder.dim)
+    assert obs.appearance.shape == (0, n, tiny_model.appearance_encoder.dim)
+
+
+@pytest.mark.parametrize("verification", [False, True])
+def test_a_pose_behind_the_camera_is_never_valid(tiny_model, scene, monkeypatch, verification):
+    import poseflow.models.funflow6d as funflow6d
+
+    behind = torch.eye(4).repeat(2, 1, 1)
+    behind[:, 2, 3] = torch.tensor([0.5, -0.5])
+    flagged = PoseEstimate(behind, torch.full((2,), 0.9), torch.ones(2, dtype=torch.bool))
+    if verification:
+        monkeypatch.setattr(funflow6d, "verify_estimate", lambda *a, **k: flagged)
+    else:
+        monkeypatch.setattr(funflow6d, "select_hypotheses", lambda *a, **k: flagged)
+    model = FunFlow6D(tiny_model.config.replace(verification=verification))
+    model.objects, model.verifier = tiny_model.objects, tiny_model.verifier
+    est = model.estimate(scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 1])
+    assert est.valid.tolist() == [True, False] and est.scores.tolist() == pytest.approx([0.9, 0])
+
+
 def test_save_load_round_trip(tiny_model, tmp_path):
     tiny_model.save(tmp_path / "ckpt")
     loaded = FunFlow6D.load(tmp_path / "ckpt")
@@ -97,6 +150,31 @@ def test_save_load_round_trip(tiny_model, tmp_path):
         assert torch.equal(a, b)
     with pytest.raises(MissingWeightsError):
         FunFlow6D.load(tmp_path / "nothing")
+
+
+def test_a_damaged_checkpoint_is_a_checkpoint_error_naming_the_file(tiny_model, tmp_path):
+    folder = tiny_model.save(tmp_path / "ckpt")
+    weights = folder / "model.safetensors"
+    whole = weights.read_bytes()
+    for damaged in (whole[: len(whole) // 2], whole[:-1], b"\xff" * 64, b""):
+        weights.write_bytes(damaged)
+        with pytest.raises(CheckpointError, match=r"model\.safetensors is truncated") as err:
+            FunFlow6D.load(folder)
+        assert str(weights) in str(err.value)
+    weights.write_bytes(whole)
+    config = json.loads((folder / "config.json").read_text())
+    for text in ("{", "[1, 2]", json.dumps({**config, "num_points": "many"})):
+        (folder / "config.json").write_text(text)
+        with pytest.raises(CheckpointError, match=r"config\.json"):
+            FunFlow6D.load(folder)
+    # weights of another network than the configuration describes
+    (folder / "config.json").write_text(json.dumps(config))
+    assert FunFlow6D.load(folder).config == tiny_model.config
+    other = FunFlow6D(tiny_model.config.replace(feature_dim=16))
+    other.save(tmp_path / "other")
+    weights.write_bytes((tmp_path / "other" / "model.safetensors").read_bytes())
+    with pytest.raises(CheckpointError, match=r"does not fit its config\.json"):
+        FunFlow6D.load(folder)
 
 
 def test_prepared_objects_are_cached(tiny_model, box, tmp_path):
@@ -108,10 +186,29 @@ def test_prepared_objects_are_cached(tiny_model, box, tmp_path):
     assert torch.equal(a.points, b.points) and torch.allclose(a.geometric, b.geometric)
     x = a.bank.pooled()
     assert torch.allclose(a.reducer.transform(x), b.reducer.transform(x), atol=1e-4)
-    # the verifier's preparation sits beside the object's and is read back too
-    assert (tmp_path / "obj_000001" / "verifier.json").is_file()
+    # the verifier's preparation sits beside the object's, in its own entry, and is read back
+    (verifier_entry,) = (tmp_path / "obj_000001").glob("*/verifier.json")
+    (object_entry,) = (tmp_path / "obj_000001").glob("*/object.json")
+    assert verifier_entry.parent != object_entry.parent
     va, vb = model.verifier.objects[1], again.verifier.objects[1]
     assert torch.equal(va.points, vb.points) and torch.equal(va.candidates, vb.candidates)
+
+
+def test_preparing_another_mesh_under_the_same_id_replaces_it_everywhere(tiny_model, box, tmp_path):
+    larger = ObjectModel.from_mesh(box.mesh.scaled(1.5), num_points=1000)
+    model = FunFlow6D(tiny_model.config)
+    model.prepare_objects({1: box}, cache_dir=tmp_path, progress=False)
+    model.prepare_objects({1: larger}, cache_dir=tmp_path, progress=False)
+    assert model.objects[1].diameter == pytest.approx(larger.diameter)
+    assert model.verifier.objects[1].diameter == pytest.approx(larger.diameter)
+    folder = tmp_path / "obj_000001"
+    assert len(list(folder.glob("*/object.json"))) == len(list(folder.glob("*/verifier.json"))) == 2
+    # both meshes read their own entries back, the verifier's too
+    again = FunFlow6D(tiny_model.config)
+    again.prepare_objects({1: box}, cache_dir=tmp_path, progress=False)
+    assert again.verifier.objects[1].diameter == pytest.approx(box.diameter)
+    assert torch.equal(again.verifier.objects[1].points, tiny_model.verifier.objects[1].points)
+    assert len(list(folder.glob("*/verifier.json"))) == 2
 
 
 def test_noise_conditioning_can_be_switched_off(tiny_model, scene):

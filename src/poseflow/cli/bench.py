@@ -30,8 +30,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from poseflow.assets import DEMO_CHECKPOINT
-from poseflow.cli.common import add_device_argument
+from poseflow.cli.common import LOG, add_device_argument, add_output_arguments
 
 __all__ = [
     "add_parser",
@@ -61,7 +60,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     parser.add_argument(
         "dataset", nargs="?", default=None, help="BOP dataset folder (default: generate one)"
     )
-    parser.add_argument("--model", default=str(DEMO_CHECKPOINT), help="FunFlow6D model folder")
+    parser.add_argument(
+        "--model",
+        default=None,
+        help="FunFlow6D model folder, or demo (default: the demo model shipped with poseflow)",
+    )
     parser.add_argument("--out", default="bench_output", help="folder for everything written")
     parser.add_argument("--split", default="test", help="split folder (default: test)")
     parser.add_argument("--images", type=int, default=10, help="images to time (default: 10)")
@@ -101,8 +104,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     parser.add_argument("--threads", type=int, default=None, help="torch CPU threads")
     parser.add_argument("--no-eval", action="store_true", help="write the CSVs, skip the AR")
     parser.add_argument("--seed", type=int, default=7, help="seed of the data, noise and RANSAC")
-    parser.add_argument("--no-progress", action="store_true", help="hide the progress bars")
     add_device_argument(parser)
+    add_output_arguments(parser)
     parser.set_defaults(run=run)
     return parser
 
@@ -232,9 +235,9 @@ def generated_split(
     options = {"images": images, "instances": instances, "seed": seed}
     record = root / "bench_options.json"
     if record.is_file() and json.loads(record.read_text()) == options:
-        print(f"reusing the generated split in {root}")
+        LOG.info(f"reusing the generated split in {root}")
         return root
-    print(f"generating {images} test images with {instances} objects each in {root}")
+    LOG.info(f"generating {images} test images with {instances} objects each in {root}")
     generate_dataset(
         root,
         num_train_images=0,
@@ -248,7 +251,7 @@ def generated_split(
     return root
 
 
-def _dataset(args: argparse.Namespace, out: Path) -> Path:
+def _dataset(args: argparse.Namespace, out: Path, progress: bool) -> Path:
     """The dataset to time: ``args.dataset``, or a generated split in ``out/data``."""
     from poseflow.cli.common import check_dataset
     from poseflow.errors import ValueRangeError
@@ -262,7 +265,7 @@ def _dataset(args: argparse.Namespace, out: Path) -> Path:
         images=args.images,
         instances=args.instances,
         seed=args.seed,
-        progress=not args.no_progress,
+        progress=progress,
     )
 
 
@@ -274,13 +277,16 @@ def run(args: argparse.Namespace) -> int:
     import torch
 
     from poseflow.cli.common import (
+        load_model,
         load_object_models,
         object_cache_dir,
         parse_set,
         resolve_device,
+        resolve_model,
+        show_progress,
     )
     from poseflow.errors import ValueRangeError
-    from poseflow.models import INFERENCE_FIELDS, FunFlow6D
+    from poseflow.models import INFERENCE_FIELDS
 
     for name in ("images", "instances"):
         if getattr(args, name) < 1:
@@ -302,19 +308,21 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     device = resolve_device(args.device)
-    root = _dataset(args, out)
-    model = FunFlow6D.load(args.model, device=device)
+    show = show_progress(args)
+    model_dir = resolve_model(args.model)
+    root = _dataset(args, out, show)
+    model = load_model(model_dir, device=device)
     model.config = model.config.replace(**changes)
-    show = not args.no_progress
-    cache = object_cache_dir(args.model, root)
+    cache = object_cache_dir(model_dir, root)
     objects = load_object_models(root, progress=show)
-    model.prepare_objects(objects, cache_dir=cache if cache.is_dir() else out / "objects")
+    cache = cache if cache.is_dir() else out / "objects"
+    model.prepare_objects(objects, cache_dir=cache, progress=show)
     targets_file = (root / "test_targets_bop19.json").is_file()
     can_render = importlib.util.find_spec("open3d") is not None
     evaluate = not args.no_eval and targets_file and can_render
     if not args.no_eval and not evaluate:
         why = "no test_targets_bop19.json" if not targets_file else "Open3D is not installed"
-        print(f"note: AR not computed ({why}); score the CSVs with `poseflow eval` elsewhere")
+        LOG.info(f"note: AR not computed ({why}); score the CSVs with `poseflow eval` elsewhere")
     rows = benchmark_settings(
         model,
         root,
@@ -364,7 +372,7 @@ def run(args: argparse.Namespace) -> int:
         )
     report = {
         "device": where,
-        "model": str(args.model),
+        "model": str(model_dir),
         "dataset": str(root),
         "config": model.config.to_json(),
         "settings": rows,

@@ -298,9 +298,8 @@ def load_model(folder: str | Path, *, device: Any = "cpu") -> Any:
         CheckpointError: ``config.json`` is not valid JSON or holds a value of the wrong type,
             or ``model.safetensors`` is truncated or corrupt.
     """
-    from poseflow.errors import CheckpointError, MissingWeightsError, PoseflowError
-    from poseflow.flows.checkpoint import check_safetensors
-    from poseflow.models import FunFlow6D, FunFlow6DConfig
+    from poseflow.errors import MissingWeightsError
+    from poseflow.models import FunFlow6D
     from poseflow.models.checkpoint import is_checkpoint
 
     folder = Path(folder)
@@ -309,18 +308,6 @@ def load_model(folder: str | Path, *, device: Any = "cpu") -> Any:
             f"{folder} holds no FunFlow6D checkpoint (config.json + model.safetensors); train "
             "one with `poseflow train`, or pass --model demo for the shipped demo model"
         )
-    config_path = folder / "config.json"
-    try:
-        FunFlow6DConfig.from_json(json.loads(config_path.read_text()))
-    except json.JSONDecodeError as exc:
-        raise CheckpointError(f"{config_path} is not valid JSON ({exc}); restore it") from None
-    except (TypeError, KeyError, AttributeError) as exc:
-        raise CheckpointError(
-            f"{config_path} holds a value of the wrong type ({exc}); restore it or train again"
-        ) from None
-    except PoseflowError as exc:
-        raise CheckpointError(f"{config_path}: {exc}") from None
-    check_safetensors(folder / "model.safetensors")
     return FunFlow6D.load(folder, device=device)
 
 
@@ -610,6 +597,7 @@ def object_cache_dir(base: str | Path, root: str | Path) -> Path:
     """Where the prepared objects of dataset ``root`` are cached under ``base``.
 
     ``base/objects/<hash of root/models>``; :meth:`~poseflow.models.FunFlow6D.prepare_objects`
-    then keys each object by the configuration fields it depends on.
+    then keys each object's entry by its mesh (content and scale) and the configuration fields
+    it depends on (``obj_XXXXXX/<key>/``).
     """
     return Path(base) / "objects" / models_fingerprint(root)

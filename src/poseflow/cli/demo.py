@@ -122,6 +122,7 @@ def run(args: argparse.Namespace) -> int:
         LOG,
         check_writable,
         load_model,
+        load_object_models,
         object_cache_dir,
         resolve_device,
         resolve_model,
@@ -129,7 +130,6 @@ def run(args: argparse.Namespace) -> int:
     )
     from poseflow.cli.eval import format_table
     from poseflow.data.bop import BOPDataset
-    from poseflow.data.demo_objects import demo_objects
     from poseflow.data.synthetic import generate_dataset
     from poseflow.eval import StageTimer, evaluate_bop, write_results
     from poseflow.features import FPFHEncoder
@@ -152,7 +152,9 @@ def run(args: argparse.Namespace) -> int:
         seed=args.seed,
         progress=progress,
     )
-    models = dict(enumerate(demo_objects(), start=1))
+    # the objects as the dataset's models/ hold them, as `poseflow predict` reads them: the
+    # prepared objects shipped with the model are keyed by these meshes
+    models = load_object_models(root, progress=progress)
     shipped = object_cache_dir(model_dir, root)
     cache = shipped if shipped.is_dir() else out / "objects"
     model.prepare_objects(models, cache_dir=cache, progress=progress)

@@ -223,14 +223,9 @@ def _estimator(args: argparse.Namespace, objects: dict[int, Any], progress: bool
         )
         baseline = ClassicBaseline(objects, seed=args.seed)
         return baseline.estimator(), "classic baseline"
-    from poseflow._cache import json_key
-
     folder = resolve_model(args.model)
     model = load_model(folder, device=resolve_device(args.device))
-    cache = None
-    if args.cache is not None:
-        key = json_key(sorted((o, m.content_key()) for o, m in objects.items()))
-        cache = Path(args.cache) / "objects" / key
+    cache = None if args.cache is None else Path(args.cache) / "objects"  # keyed by each mesh
     LOG.info(f"preparing {len(objects)} object(s) for FunFlow6D from {folder}")
     model.prepare_objects(objects, cache_dir=cache, progress=progress)
     return model.estimator(seed=args.seed), f"FunFlow6D ({folder})"

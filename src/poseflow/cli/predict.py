@@ -38,7 +38,7 @@ Example::
 from __future__ import annotations
 
 import argparse
-import contextlib
+import importlib.util
 import json
 import warnings
 from collections.abc import Sequence
@@ -374,8 +374,10 @@ def _predict(
     if missing:
         warnings.warn(f"objects {missing} have no model; their instances are skipped", stacklevel=1)
     objects = load_object_models(root, obj_ids=[o for o in needed if o in infos], progress=show)
-    with contextlib.suppress(ImportError):  # import it (when there) before any clock starts
-        import open3d  # noqa: F401
+    from poseflow.render import import_open3d
+
+    if importlib.util.find_spec("open3d") is not None:  # import it before any clock starts
+        import_open3d("prediction")  # a missing system library: the error names its package
 
     estimator: Estimator
     # Every image's draws are seeded from --seed and its ids: its estimate does not depend on the

@@ -5,8 +5,9 @@
 - the recall protocol (:func:`assign`, :func:`match`) and the dataset-level
   :func:`evaluate_bop` returning AR, AR_VSD, AR_MSSD, AR_MSPD, per object and per threshold;
 - :func:`predict_dataset`, the loop that runs any estimator over a BOP split (ground-truth or
-  detected masks) into results, and :func:`estimate_frame` for one frame (poses behind the
-  camera are never valid), written by :func:`write_poses_json`;
+  detected masks) into results, and :func:`estimate_frame` for one frame, written by
+  :func:`write_poses_json`; a pose behind the camera is never valid
+  (:func:`invalidate_implausible`);
 - the same loop split over the processes of a ``torchrun`` job (:func:`join_ranks`,
   :class:`Ranks`, :func:`shard_images`, :func:`merge_parts`), merged into one process's results;
 - BOP 2019 results CSV files (:func:`read_results`, :func:`write_results`);
@@ -42,7 +43,13 @@ from poseflow.eval.evaluate import METRICS, EvalModel, evaluate_bop, gt_results,
 from poseflow.eval.frame import FramePoses, estimate_frame, write_poses_json
 from poseflow.eval.inliers import InlierResult, correspondence_inliers, mutual_nearest_neighbors
 from poseflow.eval.overlay import ESTIMATE_COLOR, GT_COLOR, overlay_poses, write_overlay
-from poseflow.eval.predict import Estimator, PoseEstimate, on_device, predict_dataset
+from poseflow.eval.predict import (
+    Estimator,
+    PoseEstimate,
+    invalidate_implausible,
+    on_device,
+    predict_dataset,
+)
 from poseflow.eval.recall import Assignment, Recall, Target, assign, match, targets_from_gt
 from poseflow.eval.results import HEADER, PoseResults, read_results, write_results
 from poseflow.eval.symmetry import (
@@ -96,6 +103,7 @@ __all__ = [
     "evaluate_bop",
     "gt_results",
     "image_seed",
+    "invalidate_implausible",
     "join_ranks",
     "load_eval_models",
     "match",

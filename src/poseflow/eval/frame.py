@@ -23,7 +23,7 @@ import torch
 from poseflow._units import check_size_against_depth, in_front_of_camera
 from poseflow.data.frame import Frame
 from poseflow.errors import ShapeError
-from poseflow.eval.predict import Estimator
+from poseflow.eval.predict import Estimator, PoseEstimate, invalidate_implausible
 
 __all__ = ["FramePoses", "estimate_frame", "write_poses_json"]
 
@@ -139,25 +139,32 @@ def estimate_frame(
     poses = est.poses.detach().to("cpu", torch.float64)
     if poses.shape != (B, 4, 4):
         raise ShapeError(f"the estimator returned poses of shape {tuple(poses.shape)} for {B}")
-    finite = torch.isfinite(poses).flatten(1).all(1)
-    front = in_front_of_camera(poses)
     found = est.valid.detach().cpu().bool()
-    valid = found & finite & front
+    checked = invalidate_implausible(
+        PoseEstimate(poses, est.scores.detach().to("cpu", torch.float64), found)
+    )
+    finite = torch.isfinite(poses).flatten(1).all(1)
+    z = poses[:, 2, 3]
+    # an estimator that applied the rule itself returns a rejected pose flagged invalid
+    behind = finite & ~in_front_of_camera(poses) & (found | (z < 0))
     notes = []
     for i in range(B):
-        if not bool(found[i]):
+        if bool(behind[i]):
+            notes.append(f"the pose puts the object behind the camera (t_z = {float(z[i]):g} m)")
+        elif not bool(found[i]):
             notes.append("no pose found (too few depth points or no consensus)")
         elif not bool(finite[i]):
             notes.append("the pose is not finite")
-        elif not bool(front[i]):
-            notes.append(
-                f"the pose puts the object behind the camera (t_z = {float(poses[i, 2, 3]):g} m)"
-            )
         else:
             notes.append("")
-    scores = torch.where(valid, est.scores.detach().to("cpu", torch.float64), 0.0)
     return FramePoses(
-        frame.obj_ids.clone(), poses, scores, valid, notes, list(frame.sources), seconds
+        frame.obj_ids.clone(),
+        poses,
+        checked.scores,
+        checked.valid,
+        notes,
+        list(frame.sources),
+        seconds,
     )
 
 

@@ -21,7 +21,7 @@ from poseflow.eval.recall import Target
 from poseflow.eval.results import PoseResults
 from poseflow.eval.timing import StageTimer
 
-__all__ = ["Estimator", "PoseEstimate", "on_device", "predict_dataset"]
+__all__ = ["Estimator", "PoseEstimate", "invalidate_implausible", "on_device", "predict_dataset"]
 
 
 @dataclass
@@ -29,14 +29,62 @@ class PoseEstimate:
     """Poses of the instances of one image, as every estimator in poseflow returns them.
 
     Attributes:
-        poses: model-to-camera transforms ``(B, 4, 4)``, metres (identity where invalid).
+        poses: model-to-camera transforms ``(B, 4, 4)``, metres (identity where no pose was
+            found; a pose :func:`invalidate_implausible` rejected is kept, flagged invalid).
         scores: confidences in ``[0, 1]`` ``(B,)``, used to rank estimates (0 where invalid).
-        valid: ``(B,)`` False where no pose could be estimated (too few points, no consensus).
+        valid: ``(B,)`` False where no pose could be estimated (too few points, no consensus)
+            or the pose cannot be right (not finite, or behind the camera).
     """
 
     poses: torch.Tensor
     scores: torch.Tensor
     valid: torch.Tensor
+
+    @classmethod
+    def empty(
+        cls, *, dtype: torch.dtype = torch.float32, device: torch.device | str | None = None
+    ) -> PoseEstimate:
+        """The estimate of an image without instances (``B = 0``).
+
+        Example:
+            >>> e = PoseEstimate.empty(dtype=torch.float64)
+            >>> e.poses.shape, e.scores.dtype, e.valid.shape
+            (torch.Size([0, 4, 4]), torch.float64, torch.Size([0]))
+        """
+        kw = {"dtype": dtype, "device": device}
+        return cls(
+            torch.zeros(0, 4, 4, **kw),
+            torch.zeros(0, **kw),
+            torch.zeros(0, dtype=torch.bool, device=device),
+        )
+
+
+def invalidate_implausible(estimate: PoseEstimate) -> PoseEstimate:
+    """Flag invalid (score 0) every pose that cannot be right: not finite, or behind the camera.
+
+    The one rule every estimator's output goes through (FunFlow6D, the classic baseline,
+    :func:`predict_dataset` for any other estimator): a pose with ``t_z <= 0`` puts the object's
+    origin behind the camera (e.g. depth in the wrong unit), so it is never valid. The rejected
+    poses are kept as they are, so that a caller can say why they were rejected.
+
+    Args:
+        estimate: the poses ``(B, 4, 4)``, scores ``(B,)`` and validity ``(B,)`` of an image.
+
+    Returns:
+        A new :class:`PoseEstimate` on the same device and dtype.
+
+    Example:
+        >>> T = torch.eye(4).repeat(3, 1, 1); T[0, 2, 3] = 0.5; T[1, 2, 3] = -0.5
+        >>> T[2, 0, 0] = float("nan")
+        >>> out = invalidate_implausible(PoseEstimate(T, torch.ones(3), torch.ones(3).bool()))
+        >>> out.valid.tolist(), out.scores.tolist()
+        ([True, False, False], [1.0, 0.0, 0.0])
+    """
+    poses = estimate.poses
+    finite = torch.isfinite(poses).flatten(1).all(1)
+    valid = estimate.valid.bool() & finite & in_front_of_camera(poses)
+    scores = torch.where(valid, estimate.scores, torch.zeros_like(estimate.scores))
+    return PoseEstimate(poses, scores, valid)
 
 
 #: ``estimator(rgb (3,H,W) | None, depth (H,W) m, K (3,3), masks (B,H,W), obj_ids (B,))``.
@@ -110,7 +158,8 @@ def predict_dataset(
             of a split run failed (:meth:`~poseflow.eval.distributed.Ranks.check_peers`).
 
     Returns:
-        One row per valid estimate; a pose behind the camera (``t_z <= 0``) is never valid.
+        One row per valid estimate; a pose behind the camera (``t_z <= 0``) is never valid
+        (:func:`invalidate_implausible`).
     """
     from tqdm.auto import tqdm
 
@@ -158,7 +207,8 @@ def predict_dataset(
             with timer.active(), timer.image():
                 est = estimator(rgb, depth, K, torch.stack(masks), obj_ids)
         elapsed = time.perf_counter() - start
-        ok = est.valid.cpu() & in_front_of_camera(est.poses.detach().cpu())
+        est = invalidate_implausible(est)
+        ok = est.valid.cpu()
         if not bool(ok.any()):
             continue
         k = int(ok.sum())

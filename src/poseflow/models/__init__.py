@@ -21,7 +21,12 @@ from poseflow.models.config import (
 from poseflow.models.funflow6d import FunFlow6D
 from poseflow.models.inputs import TRAINING_FIELDS, FlowInputs, reduce_appearance
 from poseflow.models.network import FunFlow6DNet, NetInputs
-from poseflow.models.objects import PreparedObject, object_fingerprint, prepare_objects
+from poseflow.models.objects import (
+    PreparedObject,
+    load_prepared_object,
+    object_fingerprint,
+    prepare_objects,
+)
 from poseflow.models.observe import Observation, observe
 from poseflow.models.pose import agreement_score, solve_pose
 from poseflow.models.training import FlowTrainingSet, augment, build_training_set, train
@@ -45,6 +50,7 @@ __all__ = [
     "agreement_score",
     "augment",
     "build_training_set",
+    "load_prepared_object",
     "object_fingerprint",
     "observe",
     "other_hypotheses",

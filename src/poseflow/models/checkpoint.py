@@ -15,7 +15,7 @@ from typing import Any
 
 import torch
 
-from poseflow.errors import MissingWeightsError, ValueRangeError
+from poseflow.errors import CheckpointError, MissingWeightsError, PoseflowError
 from poseflow.models.config import FunFlow6DConfig
 
 __all__ = [
@@ -66,13 +66,31 @@ def read_checkpoint(folder: str | Path) -> tuple[FunFlow6DConfig, dict[str, torc
     """The configuration and the network's ``state_dict`` written by :func:`write_checkpoint`.
 
     Fields the ``config.json`` lacks take the values of :data:`CHECKPOINT_FIELDS_ADDED`, then the
-    configuration's defaults.
+    configuration's defaults. Both files are checked before any weight is read, and every
+    problem is a :class:`~poseflow.errors.CheckpointError` that names the file.
 
     Raises:
         MissingWeightsError: ``folder`` holds no checkpoint.
-        ValueRangeError: its ``config.json`` is not a valid configuration.
+        CheckpointError: ``config.json`` is not valid JSON, not a JSON object, or holds a field
+            of the wrong type or value; ``model.safetensors`` is truncated or corrupt.
+
+    Example:
+        >>> import tempfile
+        >>> folder = write_checkpoint(tempfile.mkdtemp(), FunFlow6DConfig(), {"w": torch.ones(3)})
+        >>> read_checkpoint(folder)[1]["w"].tolist()
+        [1.0, 1.0, 1.0]
+        >>> path = folder / "model.safetensors"
+        >>> _ = path.write_bytes(path.read_bytes()[:-4])  # a copy cut short
+        >>> try:
+        ...     read_checkpoint(folder)
+        ... except CheckpointError as e:
+        ...     print(str(e).split(" (")[0])
+        model.safetensors is truncated or corrupt
     """
+    from safetensors import SafetensorError
     from safetensors.torch import load_file
+
+    from poseflow.flows.checkpoint import check_safetensors
 
     folder = Path(folder)
     if not is_checkpoint(folder):
@@ -80,8 +98,31 @@ def read_checkpoint(folder: str | Path) -> tuple[FunFlow6DConfig, dict[str, torc
             f"{folder} holds no FunFlow6D checkpoint (config.json + model.safetensors); "
             "train one with `poseflow train`"
         )
-    data = json.loads((folder / "config.json").read_text())
+    config = _read_config(folder / "config.json")
+    weights = check_safetensors(folder / "model.safetensors")
+    try:
+        state = load_file(str(weights))
+    except (SafetensorError, ValueError, OSError) as exc:
+        raise CheckpointError(
+            f"{weights.name} is truncated or corrupt ({exc}): {weights}; restore it or write it "
+            "again"
+        ) from None
+    return config, state
+
+
+def _read_config(path: Path) -> FunFlow6DConfig:
+    """The configuration of a checkpoint's ``config.json``, every problem a CheckpointError."""
+    try:
+        data = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise CheckpointError(f"{path} is not valid JSON ({exc}); restore it") from None
     if not isinstance(data, dict):
-        raise ValueRangeError(f"{folder / 'config.json'} must hold a JSON object of config fields")
-    config = FunFlow6DConfig.from_json({**CHECKPOINT_FIELDS_ADDED, **data})
-    return config, load_file(str(folder / "model.safetensors"))
+        raise CheckpointError(f"{path} must hold a JSON object of config fields; restore it")
+    try:
+        return FunFlow6DConfig.from_json({**CHECKPOINT_FIELDS_ADDED, **data})
+    except PoseflowError as exc:
+        raise CheckpointError(f"{path}: {exc}") from None
+    except (TypeError, KeyError, AttributeError, ValueError) as exc:
+        raise CheckpointError(
+            f"{path} holds a value of the wrong type ({exc}); restore it or train again"
+        ) from None

@@ -22,9 +22,17 @@ from typing import Any
 import torch
 from torch import nn
 
+from poseflow._checks import check_tensor
+from poseflow._units import check_intrinsics
 from poseflow.data.objects import ObjectModel
-from poseflow.errors import ValueRangeError
-from poseflow.eval.predict import Estimator, PoseEstimate, on_device, predict_dataset
+from poseflow.errors import CheckpointError, ValueRangeError
+from poseflow.eval.predict import (
+    Estimator,
+    PoseEstimate,
+    invalidate_implausible,
+    on_device,
+    predict_dataset,
+)
 from poseflow.eval.results import PoseResults
 from poseflow.eval.timing import StageTimer
 from poseflow.flows import get_sampler
@@ -89,13 +97,15 @@ class FunFlow6D(nn.Module):
         """Prepare every object (:func:`~poseflow.models.objects.prepare_objects`) for inference.
 
         With ``config.verification`` on, the objects are prepared for the verifier too
-        (:func:`~poseflow.models.verification.prepare_verification`, cached in the same
-        folders); a verifier of another configuration than ``config.verifier`` is replaced.
+        (:func:`~poseflow.models.verification.prepare_verification`, cached beside them); a
+        verifier of another configuration than ``config.verifier`` is replaced.
 
         Args:
             models: ``{obj_id: ObjectModel}`` (metres, textured meshes for appearance).
-            cache_dir: where prepared objects are stored and looked up (safetensors + JSON);
-                None computes everything in memory.
+            cache_dir: where prepared objects are stored and looked up (safetensors + JSON), one
+                entry per object, mesh content (and scale) and configuration
+                (:func:`~poseflow.models.objects.object_cache_entry`), each written whole; None
+                computes everything in memory.
             progress: show a progress bar.
         """
         self.objects.update(
@@ -127,8 +137,13 @@ class FunFlow6D(nn.Module):
     ) -> Observation:
         """The target clouds of an image; see :func:`~poseflow.models.observe.observe`.
 
+        ``K`` may be a tensor, an array, nested lists or 9 numbers; without masks (``B = 0``)
+        the observation is empty.
+
         Raises:
-            ValueRangeError: an object id that is not prepared.
+            ShapeError: inconsistent shapes, or ``K`` not 9 numbers.
+            ValueRangeError: an object id that is not prepared, or a ``K`` that is not a pinhole
+                matrix of this image.
         """
         diameters = [o.diameter for o in select_objects(self.objects, obj_ids)]
         return observe(
@@ -179,17 +194,21 @@ class FunFlow6D(nn.Module):
         Args:
             rgb: the image ``(3, H, W)``, uint8 or float in ``[0, 1]``.
             depth: depth ``(H, W)`` in metres.
-            K: intrinsics ``(3, 3)``.
-            masks: instance masks ``(B, H, W)`` bool.
+            K: intrinsics ``(3, 3)``: a tensor, an array, nested lists or 9 numbers.
+            masks: instance masks ``(B, H, W)`` bool (``B`` may be 0).
             obj_ids: object id of each mask ``(B,)``; every id must be prepared.
             generator: seeds the noise, the sampling of the clouds and RANSAC.
 
         Returns:
-            A :class:`PoseEstimate`.
+            A :class:`PoseEstimate` (of ``B`` instances, float32 on the depth's device); a pose
+            that is not finite or puts the object behind the camera is flagged invalid
+            (:func:`~poseflow.eval.predict.invalidate_implausible`).
 
         Raises:
+            ShapeError: inconsistent shapes, or ``K`` not 9 numbers.
             ValueRangeError: an object id that is not prepared (for verification too, when on),
-                or a verifier prepared for another ``config.verifier``.
+                a verifier prepared for another ``config.verifier``, or a ``K`` that is not a
+                pinhole matrix of this image.
         """
         cfg = self.config
         if cfg.verification and self.verifier.config != cfg.verifier:
@@ -197,10 +216,14 @@ class FunFlow6D(nn.Module):
                 "config.verifier changed after the objects were prepared for verification; "
                 "call prepare_objects again"
             )
+        sizes = check_tensor(depth, "depth", ("H", "W"), floating=False)
+        K = check_intrinsics(K, sizes["W"], sizes["H"], dtype=torch.float32, device=depth.device)
         was_training = self.training
         self.eval()
         try:
             obs = self.observe(rgb, depth, K, masks, obj_ids, generator=generator)
+            if obs.points.shape[0] == 0:
+                return PoseEstimate.empty(device=depth.device)
             rep = self.flow_inputs(obs).repeat_interleave(cfg.num_hypotheses)
             x_1 = self.net.sample(
                 rep,
@@ -213,15 +236,17 @@ class FunFlow6D(nn.Module):
             n = rep.points.shape[1] // 2
             solved = solve_pose(rep, x_1[:, n:], dense, cfg, generator=generator)
             est = select_hypotheses(*solved, obs.valid, cfg.num_hypotheses)
+            est = invalidate_implausible(est)  # nothing behind the camera is verified
             if not cfg.verification:
                 return est
             extra = extra_mask = None
             if cfg.verify_hypotheses and cfg.num_hypotheses > 1:
                 extra, extra_mask = other_hypotheses(*solved, cfg.num_hypotheses)
-            return verify_estimate(
+            verified = verify_estimate(
                 self.verifier, est, rgb, depth, K, masks, obs.obj_ids, obs.cloud, obs.cloud_mask,
                 extra=extra, extra_mask=extra_mask,
             )  # fmt: skip
+            return invalidate_implausible(verified)
         finally:
             self.train(was_training)
 
@@ -294,8 +319,22 @@ class FunFlow6D(nn.Module):
 
     @classmethod
     def load(cls, folder: str | Path, *, device: str | torch.device = "cpu") -> FunFlow6D:
-        """Load a model written by :meth:`save` (no pickle is ever read)."""
+        """Load a model written by :meth:`save` (no pickle is ever read).
+
+        Raises:
+            MissingWeightsError: ``folder`` holds no checkpoint.
+            CheckpointError: a file of the checkpoint is truncated, corrupt or of the wrong
+                type, or the weights do not fit the configuration (the file is named).
+        """
         config, state = read_checkpoint(folder)
         model = cls(config)
-        model.net.load_state_dict(state)
+        try:
+            model.net.load_state_dict(state)
+        except RuntimeError as exc:
+            lines = str(exc).strip().splitlines()  # a title, then one line per problem
+            detail = (lines[1] if len(lines) > 1 else lines[0]).strip()[:200]
+            raise CheckpointError(
+                f"{Path(folder) / 'model.safetensors'} does not fit its config.json ({detail}); "
+                "restore the pair or train again"
+            ) from None
         return model.to(device)

@@ -4,13 +4,22 @@ Preparing an object samples its query cloud ``Q`` (farthest-point sampling of th
 surface, seeded), describes it with the frozen encoders (``Φ(Q)`` and the multi-view appearance
 bank) and fits the reducer on the bank. A prepared object is stored as ``object.safetensors``
 plus ``object.json`` (its diameter and the :func:`object_fingerprint` of the configuration that
-made it) and a reducer folder; a cached object whose fingerprint differs is prepared again.
+made it) and a reducer folder.
+
+The on-disk cache holds one folder per object id and, in it, one entry per key
+(:func:`object_cache_entry`: ``CACHE/obj_XXXXXX/<key>/``), the key hashing the mesh's content in
+metres (so its scale too, :meth:`~poseflow.data.objects.ObjectModel.content_key`) and the
+fingerprint: another mesh, scale or configuration never reads an entry it did not make, and
+entries of several meshes or configurations sit side by side. Each entry is written aside and
+renamed into place when complete (:func:`poseflow._cache.write_entry`); the render-and-compare
+verifier keeps its own entries beside them (:mod:`~poseflow.models.verification`).
 
 Shape letters: ``N`` query points, ``Nd`` dense surface points, ``Dg`` geometric channels.
 """
 
 from __future__ import annotations
 
+import functools
 import json
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -19,6 +28,7 @@ from typing import Any
 
 import torch
 
+from poseflow._cache import cache_entry, json_key, read_entry, write_entry
 from poseflow.data.objects import ObjectModel, sample_surface
 from poseflow.errors import ValueRangeError
 from poseflow.features import (
@@ -36,6 +46,8 @@ from poseflow.models.config import FunFlow6DConfig
 
 __all__ = [
     "PreparedObject",
+    "load_prepared_object",
+    "object_cache_entry",
     "object_fingerprint",
     "prepare_object",
     "prepare_objects",
@@ -143,6 +155,58 @@ def object_fingerprint(config: FunFlow6DConfig) -> dict[str, Any]:
     return out
 
 
+def object_cache_entry(
+    cache_dir: str | Path, obj_id: int, model: ObjectModel, fingerprint: Mapping[str, Any]
+) -> Path:
+    """The cache entry of one object: ``cache_dir/obj_XXXXXX/<key>``.
+
+    Args:
+        cache_dir: the cache folder.
+        obj_id: the object's id.
+        model: the object; its :meth:`~poseflow.data.objects.ObjectModel.content_key` (mesh and
+            scale) is part of the key.
+        fingerprint: what the prepared data depends on besides the mesh (e.g.
+            :func:`object_fingerprint`, or the verifier's fingerprint).
+
+    Returns:
+        The entry's folder (it may not exist).
+
+    Example:
+        >>> import open3d as o3d
+        >>> box = o3d.geometry.TriangleMesh.create_box(0.1, 0.2, 0.3)
+        >>> small = ObjectModel.from_mesh(box, num_points=16)
+        >>> large = ObjectModel.from_mesh(box.scale(2.0, [0, 0, 0]), num_points=16)
+        >>> fp = object_fingerprint(FunFlow6DConfig())
+        >>> a, b = (object_cache_entry("cache", 1, m, fp) for m in (small, large))
+        >>> a != b, a.parent == b.parent, a.parent.name
+        (True, True, 'obj_000001')
+    """
+    return cache_entry(
+        cache_dir, f"obj_{int(obj_id):06d}", model.content_key(), json_key(dict(fingerprint))
+    )
+
+
+def load_prepared_object(
+    cache_dir: str | Path, obj_id: int, model: ObjectModel, config: FunFlow6DConfig
+) -> PreparedObject | None:
+    """The cached preparation of ``model`` for ``config``, or None; never prepares.
+
+    Args:
+        cache_dir: the cache folder of :func:`prepare_objects`.
+        obj_id: the object's id.
+        model: the object.
+        config: the model configuration.
+
+    Returns:
+        The :class:`PreparedObject`, or None when the cache holds none for this mesh, scale and
+        configuration (a damaged entry is removed with a warning).
+    """
+    fingerprint = object_fingerprint(config)
+    entry = object_cache_entry(cache_dir, obj_id, model, fingerprint)
+    read = functools.partial(PreparedObject.load, fingerprint=fingerprint)
+    return read_entry(entry, read, what=f"object {obj_id}")
+
+
 def prepare_object(
     model: ObjectModel,
     config: FunFlow6DConfig,
@@ -232,8 +296,9 @@ def prepare_objects(
         config: the model configuration.
         geometric_encoder: the frozen geometric encoder, or None.
         appearance_encoder: the frozen appearance encoder, or None.
-        cache_dir: where prepared objects are stored and looked up (``obj_XXXXXX`` folders);
-            None computes everything in memory.
+        cache_dir: where prepared objects are stored and looked up (one entry per object, mesh,
+            scale and configuration: :func:`object_cache_entry`); None computes everything in
+            memory. A cache folder that cannot be written gives a warning.
         progress: show a progress bar.
 
     Returns:
@@ -244,10 +309,9 @@ def prepare_objects(
     fingerprint = object_fingerprint(config)
     out: dict[int, PreparedObject] = {}
     for obj_id, model in tqdm(sorted(models.items()), desc="prepare objects", disable=not progress):
-        folder = None if cache_dir is None else Path(cache_dir) / f"obj_{obj_id:06d}"
         prepared = None
-        if folder is not None:
-            prepared = PreparedObject.load(folder, fingerprint=fingerprint)
+        if cache_dir is not None:
+            prepared = load_prepared_object(cache_dir, obj_id, model, config)
         if prepared is None:
             prepared = prepare_object(
                 model,
@@ -255,8 +319,12 @@ def prepare_objects(
                 geometric_encoder=geometric_encoder,
                 appearance_encoder=appearance_encoder,
             )
-            if folder is not None:
-                prepared.save(folder, fingerprint=fingerprint)
+            if cache_dir is not None:
+                write_entry(
+                    object_cache_entry(cache_dir, obj_id, model, fingerprint),
+                    functools.partial(prepared.save, fingerprint=fingerprint),
+                    what=f"object {obj_id}",
+                )
         out[int(obj_id)] = prepared
     return out
 

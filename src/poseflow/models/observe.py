@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import torch
 
 from poseflow._checks import check_tensor
+from poseflow._units import check_intrinsics
 from poseflow.errors import ShapeError
 from poseflow.eval.timing import stage
 from poseflow.features import (
@@ -112,9 +113,12 @@ def observe(
     Returns:
         The :class:`Observation`; instances with fewer than :data:`MIN_POINTS` valid points are
         flagged invalid (their features are computed on padding and ignored downstream).
+        Without masks (``B = 0``) every field has a batch size of 0.
 
     Raises:
-        ShapeError: inconsistent shapes, or as many ids as masks.
+        ShapeError: inconsistent shapes, not as many ids as masks, or ``K`` not 9 numbers.
+        ValueRangeError: ``K`` is not a pinhole matrix of this image (see
+            :func:`~poseflow._units.check_intrinsics`).
     """
     obj_ids = torch.as_tensor(obj_ids, dtype=torch.long).reshape(-1)
     sizes = check_tensor(masks, "masks", ("B", "H", "W"), floating=False)
@@ -122,10 +126,14 @@ def observe(
     check_tensor(rgb, "rgb", (3, "H", "W"), sizes=sizes, floating=False)
     if len(obj_ids) != sizes["B"]:
         raise ShapeError(f"got {sizes['B']} masks but {len(obj_ids)} object ids")
+    K = check_intrinsics(K, sizes["W"], sizes["H"], dtype=torch.float32, device=depth.device)
     B, n = sizes["B"], num_points
+    if B == 0:
+        return _empty_observation(
+            obj_ids.to(depth.device), n, geometric_encoder, appearance_encoder
+        )
     image = rgb.float() / 255.0 if not rgb.is_floating_point() else rgb.float()
     depth = torch.nan_to_num(depth.float(), nan=0.0, posinf=0.0)
-    K = K.float()
     with stage("other"):
         cloud = backproject_depth(depth.expand(B, *depth.shape), K, masks.bool())
         cloud_points, cloud_pixels, keep = cloud.points, cloud.pixels, cloud.mask
@@ -184,6 +192,32 @@ def observe(
                 )
     return Observation(
         obj_ids, points, normals, valid_pts, valid, geometric, appearance, cloud_points, keep
+    )
+
+
+def _empty_observation(
+    obj_ids: torch.Tensor,
+    n: int,
+    geometric_encoder: GeometricEncoder | None,
+    appearance_encoder: AppearanceEncoder | None,
+) -> Observation:
+    """The :class:`Observation` of no instance: every field with a batch size of 0."""
+    points = torch.zeros(0, n, 3, device=obj_ids.device)
+    none = torch.zeros(0, n, dtype=torch.bool, device=obj_ids.device)
+    return Observation(
+        obj_ids=obj_ids,
+        points=points,
+        normals=points.clone(),
+        mask=none,
+        valid=none[:, 0],
+        geometric=None
+        if geometric_encoder is None
+        else points.new_zeros(0, n, geometric_encoder.dim),
+        appearance=None
+        if appearance_encoder is None
+        else points.new_zeros(0, n, appearance_encoder.dim),
+        cloud=points.new_zeros(0, 1, 3),
+        cloud_mask=none[:, :1],
     )
 
 

@@ -2,30 +2,35 @@
 
 The :class:`~poseflow.verify.PoseVerifier` is training-free: :func:`prepare_verification` gives
 it every object (surface samples with colour and the near-symmetries, cached on disk beside the
-object's other prepared data), and :func:`verify_estimate` checks the poses of one image after
-the best hypothesis of each instance was selected: each pose is expanded with its object's
-near-symmetric candidates (and, optionally, the instance's other hypotheses,
-:func:`other_hypotheses`), the best candidates are refined by ICP of the observed cloud, all are
-rendered and compared with the image, and a candidate replaces the pose only where it explains
-the image clearly better. The verifier's score becomes the estimate's score. The stage is
-reported to the active timer as ``verification``.
+object's other prepared data, in an entry keyed by the mesh and the verifier's fingerprint),
+and :func:`verify_estimate` checks the poses of one image after the best hypothesis of each
+instance was selected: each pose is expanded with its object's near-symmetric candidates (and,
+optionally, the instance's other hypotheses, :func:`other_hypotheses`), the best candidates are
+refined by ICP of the observed cloud, all are rendered and compared with the image, and a
+candidate replaces the pose only where it explains the image clearly better. The verifier's
+score becomes the estimate's score. The stage is reported to the active timer as
+``verification``.
 
 Shape letters: ``B`` instances, ``H`` hypotheses per instance, ``N`` observed points.
 """
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import torch
 
+from poseflow._cache import read_entry, write_entry
 from poseflow.data.objects import ObjectModel
 from poseflow.errors import ValueRangeError
 from poseflow.eval.predict import PoseEstimate
 from poseflow.eval.timing import stage
 from poseflow.geometry.se3 import inverse_transform
+from poseflow.models.objects import object_cache_entry
 from poseflow.verify import PoseVerifier
+from poseflow.verify import PreparedObject as VerifierObject
 
 __all__ = ["other_hypotheses", "prepare_verification", "verify_estimate"]
 
@@ -39,20 +44,39 @@ def prepare_verification(
 ) -> None:
     """Prepare every object for ``verifier``, through the on-disk cache.
 
+    An object the verifier already holds under the same id is prepared again from ``models``
+    (or read from the cache), so that it always matches the mesh given last.
+
     Args:
         verifier: the verifier.
         models: ``{obj_id: ObjectModel}`` (metres, with colours).
-        cache_dir: the prepared objects' folder (``obj_XXXXXX`` subfolders, shared with
-            :func:`~poseflow.models.objects.prepare_objects`); None keeps them in memory only.
+        cache_dir: the prepared objects' folder (shared with
+            :func:`~poseflow.models.objects.prepare_objects`: the verifier's entries
+            ``obj_XXXXXX/<key>/`` are keyed by the mesh and :meth:`PoseVerifier.fingerprint
+            <poseflow.verify.PoseVerifier.fingerprint>` and sit beside the objects' own); None
+            keeps them in memory only. A cache folder that cannot be written gives a warning.
         progress: show a progress bar.
     """
     from tqdm.auto import tqdm
 
+    fingerprint = verifier.fingerprint()
+    read = functools.partial(VerifierObject.load, fingerprint=fingerprint)
     for obj_id, model in tqdm(
         sorted(models.items()), desc="prepare verifier", disable=not progress
     ):
-        folder = None if cache_dir is None else Path(cache_dir) / f"obj_{obj_id:06d}"
-        verifier.prepare(int(obj_id), model, folder=folder)
+        obj_id = int(obj_id)
+        verifier.objects.pop(obj_id, None)
+        entry = (
+            None if cache_dir is None else object_cache_entry(cache_dir, obj_id, model, fingerprint)
+        )
+        cached = None if entry is None else read_entry(entry, read, what=f"object {obj_id}")
+        if cached is not None:
+            verifier.objects[obj_id] = cached
+            continue
+        prepared = verifier.prepare(obj_id, model)
+        if entry is not None:
+            save = functools.partial(prepared.save, fingerprint=fingerprint)
+            write_entry(entry, save, what=f"object {obj_id}'s verifier data")
 
 
 def other_hypotheses(
