@@ -37,6 +37,7 @@ from typing import Any, TypeVar
 import torch
 import torch.distributed as dist
 
+from poseflow._env import env_int
 from poseflow.errors import PoseflowError, RankFailedError, ValueRangeError
 from poseflow.eval.recall import Target
 from poseflow.eval.results import PoseResults
@@ -449,7 +450,7 @@ def join_ranks(device: torch.device | str, *, timeout: timedelta = WAIT_TIMEOUT)
         >>> "WORLD_SIZE" in os.environ or join_ranks("cpu") is None
         True
     """
-    world = _env_int("WORLD_SIZE", 1)
+    world = env_int("WORLD_SIZE", 1)
     if world <= 1:
         return None
     missing = [v for v in LAUNCH_VARIABLES if not os.environ.get(v)]
@@ -457,14 +458,14 @@ def join_ranks(device: torch.device | str, *, timeout: timedelta = WAIT_TIMEOUT)
         raise ValueRangeError(
             f"WORLD_SIZE={world} but {', '.join(missing)} not set: start the job with torchrun"
         )
-    rank, local_rank = _env_int("RANK", 0), _env_int("LOCAL_RANK", 0)
+    rank, local_rank = env_int("RANK", 0), env_int("LOCAL_RANK", 0)
     if not 0 <= rank < world:
         raise ValueRangeError(f"RANK={rank} is outside 0..{world - 1}")
     device = torch.device(device)
     if device.type == "cuda":
         torch.cuda.set_device(device)
     else:
-        share = max(1, _cores() // max(1, _env_int("LOCAL_WORLD_SIZE", world)))
+        share = max(1, _cores() // max(1, env_int("LOCAL_WORLD_SIZE", world)))
         torch.set_num_threads(min(torch.get_num_threads(), share))
     if dist.is_initialized():
         backend = str(dist.get_backend())
@@ -518,13 +519,3 @@ def _cores() -> int:
         return len(os.sched_getaffinity(0))
     except AttributeError:  # not on Linux
         return os.cpu_count() or 1
-
-
-def _env_int(name: str, default: int) -> int:
-    raw = os.environ.get(name)
-    if raw is None or raw == "":
-        return default
-    try:
-        return int(raw)
-    except ValueError as exc:
-        raise ValueRangeError(f"environment variable {name}={raw!r} is not an integer") from exc

@@ -10,12 +10,12 @@ initialises nothing, so the same script runs both ways.
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass, field
 
 import torch
 import torch.distributed as dist
 
+from poseflow._env import env_int
 from poseflow.errors import ValueRangeError
 
 __all__ = [
@@ -79,8 +79,8 @@ def init_distributed(
         >>> ctx.world_size, ctx.is_main
         (1, True)
     """
-    env_world = _env_int("WORLD_SIZE", 1)
-    local_rank = _env_int("LOCAL_RANK", 0)
+    env_world = env_int("WORLD_SIZE", 1)
+    local_rank = env_int("LOCAL_RANK", 0)
     if device is None:
         device = f"cuda:{local_rank}" if torch.cuda.is_available() else "cpu"
     device = torch.device(device)
@@ -98,7 +98,7 @@ def init_distributed(
         )
     if env_world <= 1:
         return DistributedContext(device=device)
-    rank = _env_int("RANK", 0)
+    rank = env_int("RANK", 0)
     if not 0 <= rank < env_world:
         raise ValueRangeError(f"RANK={rank} is outside 0..{env_world - 1}")
     backend = backend or ("nccl" if device.type == "cuda" else "gloo")
@@ -155,13 +155,3 @@ def all_reduce_mean(value: torch.Tensor, ctx: DistributedContext) -> torch.Tenso
         dist.all_reduce(out, op=dist.ReduceOp.SUM)
         out /= ctx.world_size
     return out
-
-
-def _env_int(name: str, default: int) -> int:
-    raw = os.environ.get(name)
-    if raw is None or raw == "":
-        return default
-    try:
-        return int(raw)
-    except ValueError as exc:
-        raise ValueRangeError(f"environment variable {name}={raw!r} is not an integer") from exc
