@@ -359,3 +359,31 @@ def test_the_descriptor_support_changes_the_geometric_features_only(tiny_model, 
     assert torch.isfinite(dense.geometric).all()
     assert torch.allclose(dense.geometric[rows].norm(dim=-1), torch.ones(int(rows.sum())))
     assert not torch.allclose(sparse.geometric[rows], dense.geometric[rows], atol=1e-2)
+
+
+def test_predict_gives_an_image_the_same_poses_whatever_came_before(tiny_model, tmp_path):
+    from poseflow.data.bop import BOPDataset
+    from poseflow.data.synthetic import generate_dataset
+    from poseflow.eval.recall import Target
+
+    root = generate_dataset(
+        tmp_path / "ds", num_train_images=0, num_test_images=2, width=160, height=120,
+        seed=5, progress=False,
+    )  # fmt: skip
+    ds = BOPDataset(root, "test")
+    scene_id = ds.scene_ids[-1]
+    scene = ds.scene(scene_id)
+    last = max(scene.im_ids)
+    count = sum(gt.obj_id == 1 for gt in scene.gt_of(last))
+    assert count > 0
+    config = tiny_model.config
+    try:
+        tiny_model.config = config.replace(verification=False, pose_solver="svd")
+        both = tiny_model.predict(root, seed=3)
+        target = Target(scene_id, last, 1, count)
+        alone = tiny_model.predict(root, seed=3, targets=[target])
+    finally:
+        tiny_model.config = config
+    rows = (both.scene_ids == scene_id) & (both.im_ids == last)
+    assert bool((~rows).any()) and len(alone) == int(rows.sum()) > 0
+    assert torch.equal(alone.poses, both.poses[rows])
