@@ -78,7 +78,10 @@ METRICS = ("AR", "AR_VSD", "AR_MSSD", "AR_MSPD")
 PHASES = ("all", "features", "train", "score")
 TEST_SEED = 7
 #: The tensors of an :class:`~poseflow.models.Observation`, in its field order.
-OBSERVATION_FIELDS = tuple(f.name for f in dataclasses.fields(Observation))
+#: The recorded fields of an observation: all but the dense cloud, which only verification reads.
+OBSERVATION_FIELDS = tuple(
+    f.name for f in dataclasses.fields(Observation) if f.name not in ("cloud", "cloud_mask")
+)
 
 
 def feature_key(cfg: FunFlow6DConfig) -> str:
@@ -105,8 +108,8 @@ def observations_path(work: Path, cfg: FunFlow6DConfig) -> Path:
 
 
 def row_config(base: FunFlow6DConfig, name: str, *, quick: bool) -> FunFlow6DConfig:
-    """The configuration of one ablation row."""
-    cfg = base.replace(**ABLATIONS[name])
+    """The configuration of one ablation row (without verification, which the paper has not)."""
+    cfg = base.replace(**ABLATIONS[name], verification=False)
     if quick and cfg.reducer == "umap":
         cfg = cfg.replace(reducer="pca")  # umap-learn needs more points than TINY has
     return cfg
@@ -167,14 +170,17 @@ def record_observations(model: FunFlow6D, test_root: Path, path: Path) -> int:
 
     g = torch.Generator().manual_seed(TEST_SEED)
     recorded: list[Observation] = []
+    cameras: list[tuple[torch.Tensor, tuple[int, int]]] = []  # K and (H, W) of each image
 
     def record(rgb, depth, K, masks, obj_ids) -> PoseEstimate:
         recorded.append(model.observe(rgb, depth, K, masks, obj_ids, generator=g))
+        cameras.append((torch.as_tensor(K, dtype=torch.float32), tuple(depth.shape)))
         B = len(obj_ids)
-        # every instance "valid", so that the results list each call's image, in call order
-        return PoseEstimate(
-            torch.eye(4).expand(B, 4, 4), torch.zeros(B), torch.ones(B, dtype=torch.bool)
-        )
+        # every instance "valid" (a pose in front of the camera), so that the results list each
+        # call's image, in call order
+        poses = torch.eye(4).repeat(B, 1, 1)
+        poses[:, 2, 3] = 1.0
+        return PoseEstimate(poses, torch.zeros(B), torch.ones(B, dtype=torch.bool))
 
     listing = predict_dataset(record, test_root, object_ids=sorted(model.objects))
     if not recorded:
@@ -185,6 +191,8 @@ def record_observations(model: FunFlow6D, test_root: Path, path: Path) -> int:
         "sizes": sizes,
         "scene_ids": listing.scene_ids[first],
         "im_ids": listing.im_ids[first],
+        "K": torch.stack([K for K, _ in cameras]),
+        "image_size": torch.tensor([hw for _, hw in cameras]),
     }
     for field in OBSERVATION_FIELDS:
         if getattr(recorded[0], field) is not None:
@@ -214,7 +222,8 @@ def predict_recorded(model: FunFlow6D, path: Path) -> PoseResults:
     device = next(model.net.parameters()).device
     g = torch.Generator(device=device).manual_seed(TEST_SEED)
     parts, start = [], 0
-    for s, i, n in zip(t["scene_ids"].tolist(), t["im_ids"].tolist(), t["sizes"].tolist()):
+    images = zip(t["scene_ids"].tolist(), t["im_ids"].tolist(), t["sizes"].tolist(), t["K"])
+    for (s, i, n, K), (h, w) in zip(images, t["image_size"].tolist()):
         fields = {
             f: t[f][start : start + n].to(device) if f in t else None for f in OBSERVATION_FIELDS
         }
@@ -223,7 +232,8 @@ def predict_recorded(model: FunFlow6D, path: Path) -> PoseResults:
         model.observe = lambda *args, obs=obs, **kwargs: obs  # the encoders' work, done already
         try:
             tic = time.perf_counter()
-            est = model.estimate(None, None, None, None, obs.obj_ids, generator=g)
+            depth = torch.zeros(h, w, device=device)  # for the checks only: observe is replaced
+            est = model.estimate(None, depth, K.to(device), None, obs.obj_ids, generator=g)
             ok = est.valid.cpu()
             elapsed = time.perf_counter() - tic
         finally:
