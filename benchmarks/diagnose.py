@@ -8,7 +8,15 @@ the BOP 2019 AR per object, the estimator as it is next to oracle replacements o
   what a perfect selection would give (generation is the limit where this stays low);
 - ``oracle_flow``: the predicted canonical points replaced by the ground truth ``Tʳ``, then the
   same RANSAC + ICP: the ceiling of the pose solver on this observation;
-- ``no_icp``: the model without ICP (what refinement adds).
+- ``no_icp``: the model without ICP (what refinement adds);
+- ``verified``: the model with its render-and-compare verification (as the estimators ship);
+- ``oracle_verified``: among the poses the verifier finally scored (the estimate and its best
+  candidates, ICP-refined), the one closest to the ground truth: what a perfect final choice of
+  the verifier would give;
+- ``oracle_candidates``: every hypothesis with every near-symmetric candidate of it, each refined
+  by the verifier's ICP, the closest kept: the ceiling of verification over these hypotheses
+  (generation is the limit where this stays low, the verifier's ranking where ``verified`` stays
+  far below it).
 
 It also reports, per object, the flow's endpoint error (median over instances and hypotheses of
 the mean distance between predicted and true canonical points, symmetry-aware, as a fraction of
@@ -36,19 +44,30 @@ from pathlib import Path
 import torch
 
 from poseflow.assets import DEMO_CHECKPOINT
-from poseflow.cli.common import load_object_models, object_cache_dir
+from poseflow.cli.common import load_object_models, object_cache_dir, parse_set
 from poseflow.data.bop import BOPDataset
 from poseflow.eval import evaluate_bop
 from poseflow.eval.errors import mssd
 from poseflow.eval.inliers import correspondence_inliers
+from poseflow.eval.predict import PoseEstimate, invalidate_implausible
 from poseflow.eval.recall import Target
 from poseflow.eval.results import PoseResults, write_results
 from poseflow.flows import get_sampler
-from poseflow.models import FunFlow6D
+from poseflow.models import INFERENCE_FIELDS, FunFlow6D
 from poseflow.models.objects import select_objects
 from poseflow.models.pose import select_hypotheses, solve_pose
+from poseflow.models.verification import other_hypotheses
+from poseflow.verify import VerifierConfig
 
-VARIANTS = ("model", "oracle_choice", "oracle_flow", "no_icp")
+VARIANTS = (
+    "model",
+    "oracle_choice",
+    "oracle_flow",
+    "no_icp",
+    "verified",
+    "oracle_verified",
+    "oracle_candidates",
+)
 
 
 def _targets(ds: BOPDataset, max_images: int | None) -> list[Target]:
@@ -91,6 +110,15 @@ def main() -> None:
     parser.add_argument("--model", default=str(DEMO_CHECKPOINT), help="FunFlow6D model folder")
     parser.add_argument("--out", default=None, help="folder of the variants' CSVs and reports")
     parser.add_argument("--hypotheses", type=int, default=None, help="H (default: model's)")
+    parser.add_argument("--steps", type=int, default=None, help="Euler steps (default: model's)")
+    parser.add_argument(
+        "--set",
+        dest="set_fields",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="an inference field of the model's config, as in poseflow predict; repeatable",
+    )
     parser.add_argument("--max-images", type=int, default=None)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument(
@@ -115,12 +143,69 @@ def main() -> None:
     print("command:", " ".join([sys.executable, *sys.argv]))
 
 
+def _config_changes(args: argparse.Namespace, config) -> dict:
+    """The inference fields ``--set``, ``--hypotheses`` and ``--steps`` change."""
+    changes = parse_set(args.set_fields)
+    other = sorted(set(changes) - set(INFERENCE_FIELDS))
+    if other:
+        raise SystemExit(f"--set can change only {', '.join(INFERENCE_FIELDS)}; got {other}")
+    if isinstance(changes.get("verifier"), dict):
+        changes["verifier"] = VerifierConfig.from_dict(
+            {**config.verifier.to_dict(), **changes["verifier"]}
+        )
+    for name, value in (("num_hypotheses", args.hypotheses), ("steps", args.steps)):
+        if value is not None:
+            changes[name] = value
+    changes["verification"] = True  # the verified variants need the verifier prepared
+    return changes
+
+
+def _closest(poses, mask, gt, objects, obj_ids) -> torch.Tensor:
+    """Index ``(B,)`` of each instance's candidate closest to the ground truth by MSSD.
+
+    Args:
+        poses: candidates ``(B, C, 4, 4)``, model to camera.
+        mask: ``(B, C)`` bool, the real candidates.
+        gt: ground-truth poses ``(B, 4, 4)``.
+        objects: ``{obj_id: ObjectModel}``.
+        obj_ids: object id of each instance.
+    """
+    B, C = mask.shape
+    err = torch.empty(B, C)
+    for b in range(B):
+        o = objects[obj_ids[b]]
+        err[b] = mssd(poses[b].float(), gt[b].expand(C, 4, 4), o.points, o.symmetries.float())
+    return torch.where(mask.cpu(), err, torch.inf).argmin(1)
+
+
+def _refined_candidates(model, solved, obj_ids, obs) -> tuple[torch.Tensor, torch.Tensor]:
+    """Every hypothesis with its near-symmetric candidates, each refined by the verifier's ICP.
+
+    Returns:
+        ``(poses (B, H·C, 4, 4), mask (B, H·C))``.
+    """
+    H = model.config.num_hypotheses
+    T, _, valid = solved
+    B = len(T) // H
+    ok = valid & torch.isfinite(T).flatten(-2).all(-1)
+    poses = torch.linalg.inv(torch.where(ok[:, None, None], T, torch.eye(4)))
+    hyp = model.verifier.expand(poses, [o for o in obj_ids for _ in range(H)])
+    C = hyp.poses.shape[1]
+    cand = hyp.poses.reshape(B, H * C, 4, 4)
+    mask = (hyp.mask & ok[:, None]).reshape(B, H * C)
+    refined = torch.stack([
+        model.verifier.refine(cand[b : b + 1], [obj_ids[b]], obs.cloud[b : b + 1],
+                              obs.cloud_mask[b : b + 1])[0]
+        for b in range(B)
+    ])  # fmt: skip
+    return refined, mask
+
+
 def diagnose(args: argparse.Namespace, out: Path) -> dict:
     """Run the variants over the split; returns the report (also printed as a table)."""
     root = Path(args.dataset)
     model = FunFlow6D.load(args.model)
-    if args.hypotheses is not None:
-        model.config = model.config.replace(num_hypotheses=args.hypotheses)
+    model.config = model.config.replace(**_config_changes(args, model.config))
     cfg = model.config
     H = cfg.num_hypotheses
     ds = BOPDataset(root, "test")
@@ -164,12 +249,8 @@ def diagnose(args: argparse.Namespace, out: Path) -> dict:
             # Oracle choice: the hypothesis with the smallest MSSD to the ground truth.
             poses_h = torch.linalg.inv(solved[0].double()).float()  # camera->canonical inverted
             B = len(sel)
-            err = torch.empty(B, H)
-            for b in range(B):
-                o = objects[obj_ids[b]]
-                err[b] = mssd(poses_h[b * H:(b + 1) * H], gt[b].expand(H, 4, 4),
-                              o.points, o.symmetries.float())  # fmt: skip
-            pick = err.argmin(1)
+            pick = _closest(poses_h.reshape(B, H, 4, 4), torch.ones(B, H, dtype=torch.bool), gt,
+                            objects, obj_ids)  # fmt: skip
             onehot = torch.zeros(B, H)
             onehot[torch.arange(B), pick] = 1.0
             est["oracle_choice"] = select_hypotheses(
@@ -180,6 +261,24 @@ def diagnose(args: argparse.Namespace, out: Path) -> dict:
             est["oracle_flow"] = select_hypotheses(*oracle, obs.valid, 1)
             est["no_icp"] = select_hypotheses(
                 *solve_pose(rep, x[:, n:], dense, no_icp, generator=g), obs.valid, H
+            )
+            shipped = invalidate_implausible(est["model"])
+            extra, extra_mask = other_hypotheses(*solved, H)
+            ver = model.verifier.verify(
+                rgb, depth, K, masks, obj_ids, shipped.poses, obs.cloud, obs.cloud_mask,
+                extra=extra, extra_mask=extra_mask, estimated=shipped.valid,
+            )  # fmt: skip
+            est["verified"] = PoseEstimate(ver.poses, ver.scores, shipped.valid)
+            rows_b = torch.arange(B)
+            kept = ver.score.valid & shipped.valid[:, None]
+            best = _closest(ver.hypotheses, kept, gt, objects, obj_ids)
+            est["oracle_verified"] = PoseEstimate(
+                ver.hypotheses[rows_b, best], torch.ones(B), shipped.valid
+            )
+            cand, cand_mask = _refined_candidates(model, solved, obj_ids, obs)
+            best = _closest(cand, cand_mask, gt, objects, obj_ids)
+            est["oracle_candidates"] = PoseEstimate(
+                cand[rows_b, best], torch.ones(B), cand_mask.any(1) & obs.valid
             )
             truth = rep.x_1[:, n:]
             syms = [objects[o].symmetries for o in rep.obj_ids.tolist()]

@@ -221,12 +221,14 @@ def test_predict_options_are_checked_before_any_work(run_dir, dataset, tmp_path,
 
 def test_predict_verifies_unless_told_not_to(run_dir, dataset, tmp_path, capsys):
     runs = {}
-    for flags in ([], ["--no-verify"], ["--set", "verify_hypotheses=false", "--hypotheses", "2"]):
+    no_verify = ["--no-verify", "--clock", "cpu"]
+    for flags in ([], no_verify, ["--set", "verify_hypotheses=false", "--hypotheses", "2"]):
         csv, timing = tmp_path / f"{len(flags)}.csv", tmp_path / f"{len(flags)}.json"
         argv = ["predict", str(dataset), "--model", str(run_dir / "model"), "--out", str(csv)]
         assert main([*argv, "--timing", str(timing), "--no-progress", *flags]) == 0
         runs[len(flags)] = (read_results(csv), json.loads(timing.read_text()))
-    (verified, on), (plain, off) = runs[0], runs[1]
+    (verified, on), (plain, off) = runs[0], runs[3]
+    assert on["clock"] == "wall" and off["clock"] == "cpu" and off["total_ms"] > 0
     assert on["verification"] is True and on["config"]["verification"] is True
     assert on["stages_ms"]["verification"] > 0
     assert off["verification"] is False and off["config"]["verification"] is False

@@ -112,3 +112,25 @@ def test_dense_sift_grid_follows_the_image(device: torch.device, dtype: torch.dt
     assert DenseSIFTEncoder(input_size=32, color="rgb").encode(img).shape == (1, 384, 32, 32)
     with pytest.raises(ValueRangeError):
         DenseSIFTEncoder(color="hsv")
+
+
+@pytest.mark.parametrize("color", ["gray", "rgb"])
+def test_dense_sift_equals_kornia_with_its_own_weights(color: str) -> None:
+    """The channels-last weights change the memory layout only, not the descriptors."""
+    import torch.nn.functional as F
+    from kornia.feature import DenseSIFTDescriptor
+
+    g = torch.Generator().manual_seed(1)
+    img = torch.rand(2, 3, 40, 40, generator=g)
+    enc = DenseSIFTEncoder(input_size=40, color=color)
+    assert enc._sift.PoolingConv.weight.is_contiguous(memory_format=torch.channels_last)
+    reference = DenseSIFTDescriptor(spatial_bin_size=4, padding=0)
+    weights = torch.tensor([0.299, 0.587, 0.114])[:, None, None]
+    if color == "gray":
+        channels = (img * weights).sum(1, keepdim=True)
+    else:
+        channels = img.reshape(-1, 1, 40, 40)
+    lo, hi = enc._pad
+    plain = reference(F.pad(channels, (lo, hi, lo, hi), mode="reflect"))
+    expected = F.normalize(plain.reshape(2, -1, 40, 40), dim=1)
+    torch.testing.assert_close(enc.encode(img), expected, rtol=0, atol=1e-6)

@@ -305,6 +305,11 @@ class DenseSIFTEncoder:
         self.spatial_bin_size = int(spatial_bin_size)
         self._pad = ((span + 1) // 2, span // 2)
         self._sift = DenseSIFTDescriptor(spatial_bin_size=spatial_bin_size, padding=0)
+        # Channels-last pooling weights make the descriptor map channels-last, so that the
+        # normalisations over its 128 channels read contiguous memory (the same values, about
+        # 20 % less time on the CPU).
+        pooling = self._sift.PoolingConv.weight
+        pooling.data = pooling.data.contiguous(memory_format=torch.channels_last)
         self.dim = 128 * (3 if color == "rgb" else 1)
 
     def __repr__(self) -> str:
