@@ -10,6 +10,7 @@ from poseflow.eval.predict import PoseEstimate
 from poseflow.eval.timing import StageTimer
 from poseflow.geometry.se3 import rotation_angle_error, transform_points, translation_error
 from poseflow.models import FunFlow6D, FunFlow6DConfig
+from poseflow.models.verification import rank_hypotheses
 from poseflow.verify import rotation_distance
 
 
@@ -293,6 +294,32 @@ def test_other_hypotheses_reach_the_verifier(tiny_model, scene):
         assert seen["extra"] is None
     finally:
         del model.verifier.verify
+
+
+def test_the_verifier_ranks_the_hypotheses_before_expanding_the_best(tiny_model, scene):
+    """The estimator's pick is 3 cm off; the true pose among the others becomes the estimate."""
+    verifier = tiny_model.verifier
+    truth = scene["poses"]
+    off = truth.clone()
+    off[:, 0, 3] += 0.03
+    turned = truth.clone()
+    turned[:, 1, 3] -= 0.02
+    extra = torch.stack((turned, truth), dim=1)  # (2, 2, 4, 4): the truth second
+    extra_mask = torch.tensor([[True, True], [True, False]])  # instance 1: the truth is padding
+    estimate = PoseEstimate(off, torch.tensor([0.9, 0.8]), torch.tensor([True, True]))
+    args = (scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 1])
+    ranked, rest, rest_mask = rank_hypotheses(verifier, estimate, extra, extra_mask, *args)
+    assert torch.equal(ranked.poses[0], truth[0])  # swapped in
+    assert torch.equal(rest[0, 1], off[0]) and rest_mask[0].all()  # the pick is a candidate
+    assert not torch.equal(ranked.poses[1], truth[1])  # padding never wins
+    assert torch.equal(ranked.valid, estimate.valid) and torch.equal(ranked.scores, estimate.scores)
+    # the set of hypotheses is the same, in another order
+    before = torch.cat((off[:, None], extra), 1).flatten(-2).sort(1).values
+    after = torch.cat((ranked.poses[:, None], rest), 1).flatten(-2).sort(1).values
+    assert torch.equal(before, after)
+    invalid = PoseEstimate(off, estimate.scores, torch.tensor([False, True]))
+    kept, _, _ = rank_hypotheses(verifier, invalid, extra, extra_mask, *args)
+    assert torch.equal(kept.poses[0], off[0])  # an instance without an estimate is left alone
 
 
 def test_verification_needs_the_objects_prepared_for_it(tiny_model, box, scene):

@@ -34,7 +34,7 @@ from poseflow.eval.predict import (
     predict_dataset,
 )
 from poseflow.eval.results import PoseResults
-from poseflow.eval.timing import StageTimer
+from poseflow.eval.timing import StageTimer, stage
 from poseflow.flows import get_sampler
 from poseflow.models.checkpoint import read_checkpoint, write_checkpoint
 from poseflow.models.components import build_appearance_encoder, build_geometric_encoder
@@ -44,7 +44,12 @@ from poseflow.models.network import FunFlow6DNet, NetInputs
 from poseflow.models.objects import PreparedObject, prepare_objects, select_objects
 from poseflow.models.observe import Observation, observe
 from poseflow.models.pose import select_hypotheses, solve_pose
-from poseflow.models.verification import other_hypotheses, prepare_verification, verify_estimate
+from poseflow.models.verification import (
+    other_hypotheses,
+    prepare_verification,
+    rank_hypotheses,
+    verify_estimate,
+)
 from poseflow.verify import PoseVerifier
 
 __all__ = ["FunFlow6D"]
@@ -188,7 +193,9 @@ class FunFlow6D(nn.Module):
 
         With ``config.verification`` on, the selected poses are verified
         (:func:`~poseflow.models.verification.verify_estimate`, its ICP registering the
-        observation's cleaned cloud) and the scores are the verifier's. Stages are charged to
+        observation's cleaned cloud) and the scores are the verifier's; with
+        ``config.verify_hypotheses`` the verifier also picks which hypothesis is verified
+        (:func:`~poseflow.models.verification.rank_hypotheses`). Stages are charged to
         the active :class:`~poseflow.eval.timing.StageTimer`, if any.
 
         Args:
@@ -242,6 +249,10 @@ class FunFlow6D(nn.Module):
             extra = extra_mask = None
             if cfg.verify_hypotheses and cfg.num_hypotheses > 1:
                 extra, extra_mask = other_hypotheses(*solved, cfg.num_hypotheses)
+                with stage("verification"):
+                    est, extra, extra_mask = rank_hypotheses(
+                        self.verifier, est, extra, extra_mask, rgb, depth, K, masks, obs.obj_ids
+                    )
             verified = verify_estimate(
                 self.verifier, est, rgb, depth, K, masks, obs.obj_ids, obs.cloud, obs.cloud_mask,
                 extra=extra, extra_mask=extra_mask,

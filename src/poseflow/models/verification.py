@@ -4,8 +4,9 @@ The :class:`~poseflow.verify.PoseVerifier` is training-free: :func:`prepare_veri
 it every object (surface samples with colour and the near-symmetries, cached on disk beside the
 object's other prepared data, in an entry keyed by the mesh and the verifier's fingerprint),
 and :func:`verify_estimate` checks the poses of one image after the best hypothesis of each
-instance was selected: each pose is expanded with its object's near-symmetric candidates (and,
-optionally, the instance's other hypotheses, :func:`other_hypotheses`), the best candidates are
+instance was selected (optionally by the verifier itself, :func:`rank_hypotheses`): each pose is
+expanded with its object's near-symmetric candidates (and, optionally, the instance's other
+hypotheses, :func:`other_hypotheses`), the best candidates are
 refined by ICP of the observed cloud, all are rendered and compared with the image, and a
 candidate replaces the pose only where it explains the image clearly better. The verifier's
 score becomes the estimate's score. The stage is reported to the active timer as
@@ -32,7 +33,7 @@ from poseflow.models.objects import object_cache_entry
 from poseflow.verify import PoseVerifier
 from poseflow.verify import PreparedObject as VerifierObject
 
-__all__ = ["other_hypotheses", "prepare_verification", "verify_estimate"]
+__all__ = ["other_hypotheses", "prepare_verification", "rank_hypotheses", "verify_estimate"]
 
 
 def prepare_verification(
@@ -113,6 +114,62 @@ def other_hypotheses(
     eye = torch.eye(4, dtype=transform.dtype, device=dev)
     poses = inverse_transform(torch.where(ok[..., None, None], transform[rows], eye))
     return poses, ok
+
+
+def rank_hypotheses(
+    verifier: PoseVerifier,
+    estimate: PoseEstimate,
+    extra: torch.Tensor,
+    extra_mask: torch.Tensor,
+    rgb: torch.Tensor,
+    depth: torch.Tensor,
+    K: torch.Tensor,
+    masks: torch.Tensor,
+    obj_ids: torch.Tensor | Sequence[int],
+) -> tuple[PoseEstimate, torch.Tensor, torch.Tensor]:
+    """Make each instance's best hypothesis by the verifier's coarse score its estimate.
+
+    The estimator's own score (geometric agreement of a few points) ranks hypotheses that
+    differ by a near-symmetry poorly; the verifier's depth, silhouette and appearance terms,
+    on the coarse grid of :meth:`~poseflow.verify.PoseVerifier.verify`'s first pass, rank them
+    on what the image shows. The chosen one is then expanded with its near-symmetric
+    candidates and is the incumbent of the verifier's test.
+
+    Args:
+        verifier: a verifier with every object of ``obj_ids`` prepared.
+        estimate: the estimator's choice ``(B, 4, 4)`` with its validity.
+        extra: the other hypotheses ``(B, E, 4, 4)`` (:func:`other_hypotheses`).
+        extra_mask: ``(B, E)`` bool.
+        rgb: the image ``(3, Hi, Wi)``.
+        depth: depth ``(Hi, Wi)`` in metres.
+        K: intrinsics ``(3, 3)``.
+        masks: instance masks ``(B, Hi, Wi)`` bool.
+        obj_ids: object id of each instance ``(B,)``.
+
+    Returns:
+        ``(estimate, extra, extra_mask)`` with each instance's best hypothesis swapped into
+        the estimate (an instance whose estimate is invalid is left as it is).
+    """
+    B = len(estimate.poses)
+    if B == 0 or extra.shape[1] == 0:
+        return estimate, extra, extra_mask
+    ids = [int(o) for o in torch.as_tensor(obj_ids).reshape(-1).tolist()]
+    poses = torch.cat((estimate.poses[:, None], extra), dim=1)  # (B, 1 + E, 4, 4)
+    mask = torch.cat((estimate.valid[:, None], extra_mask), dim=1)
+    boxes = verifier.crop_boxes(estimate.poses, ids, K.to(poses.dtype), masks)
+    score = verifier.score(
+        rgb, depth, K, masks, ids, poses, mask, boxes=boxes,
+        crop_size=verifier.config.coarse_crop_size,
+    )  # fmt: skip
+    total = torch.where(score.valid & mask, score.total, -torch.inf)
+    best = torch.where(estimate.valid, total.argmax(1), 0)
+    rows = torch.arange(B, device=poses.device)
+    swapped = poses.clone()
+    swapped[rows, 0], swapped[rows, best] = poses[rows, best], poses[rows, 0]
+    flags = mask.clone()
+    flags[rows, 0], flags[rows, best] = mask[rows, best], mask[rows, 0]
+    chosen = PoseEstimate(swapped[:, 0], estimate.scores, estimate.valid)
+    return chosen, swapped[:, 1:], flags[:, 1:]
 
 
 def verify_estimate(
