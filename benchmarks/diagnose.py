@@ -9,7 +9,8 @@ the BOP 2019 AR per object, the estimator as it is next to oracle replacements o
 - ``oracle_flow``: the predicted canonical points replaced by the ground truth ``Tʳ``, then the
   same RANSAC + ICP: the ceiling of the pose solver on this observation;
 - ``no_icp``: the model without ICP (what refinement adds);
-- ``verified``: the model with its render-and-compare verification (as the estimators ship);
+- ``verified``: the model with its render-and-compare verification, the verifier ranking the
+  hypotheses (as the estimators ship);
 - ``oracle_verified``: among the poses the verifier finally scored (the estimate and its best
   candidates, ICP-refined), the one closest to the ground truth: what a perfect final choice of
   the verifier would give;
@@ -56,7 +57,7 @@ from poseflow.flows import get_sampler
 from poseflow.models import INFERENCE_FIELDS, FunFlow6D
 from poseflow.models.objects import select_objects
 from poseflow.models.pose import select_hypotheses, solve_pose
-from poseflow.models.verification import other_hypotheses
+from poseflow.models.verification import other_hypotheses, rank_hypotheses
 from poseflow.verify import VerifierConfig
 
 VARIANTS = (
@@ -263,7 +264,12 @@ def diagnose(args: argparse.Namespace, out: Path) -> dict:
                 *solve_pose(rep, x[:, n:], dense, no_icp, generator=g), obs.valid, H
             )
             shipped = invalidate_implausible(est["model"])
-            extra, extra_mask = other_hypotheses(*solved, H)
+            extra = extra_mask = None
+            if cfg.verify_hypotheses:  # as FunFlow6D.estimate
+                extra, extra_mask = other_hypotheses(*solved, H)
+                shipped, extra, extra_mask = rank_hypotheses(
+                    model.verifier, shipped, extra, extra_mask, rgb, depth, K, masks, obj_ids
+                )
             ver = model.verifier.verify(
                 rgb, depth, K, masks, obj_ids, shipped.poses, obs.cloud, obs.cloud_mask,
                 extra=extra, extra_mask=extra_mask, estimated=shipped.valid,
