@@ -364,7 +364,6 @@ def test_checkpoints_from_before_the_descriptor_support_describe_the_sampled_poi
     (folder / "config.json").write_text(json.dumps(raw))
     old = FunFlow6D.load(folder).config
     assert old.geometric_support_voxel == 0.0
-    assert FunFlow6D.load(DEMO_CHECKPOINT).config.geometric_support_voxel == 0.0
     # caches of objects prepared before the field keep their key; new ones get another
     assert "geometric_support_voxel" not in object_fingerprint(old)
     assert object_fingerprint(tiny_model.config)["geometric_support_voxel"] == 0.04
