@@ -8,11 +8,7 @@ gloo ranks in ``make test`` by ``tests/eval/test_distributed_prediction.py``.
 from __future__ import annotations
 
 import json
-import os
 import shutil
-import signal
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -24,8 +20,6 @@ from poseflow.data.bop import BOPDataset
 from poseflow.data.synthetic import generate_dataset
 from poseflow.eval.distributed import shard_images
 from poseflow.eval.results import HEADER, read_results
-
-SRC = Path(__file__).resolve().parents[2] / "src"
 
 
 @pytest.fixture(scope="module")
@@ -51,28 +45,6 @@ def one_thread():
     torch.set_num_threads(threads)
 
 
-def _torchrun(argv: list[str]) -> subprocess.CompletedProcess:
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(SRC)}
-    for key in ("RANK", "WORLD_SIZE", "LOCAL_RANK", "MASTER_ADDR", "MASTER_PORT"):
-        env.pop(key, None)
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2"]
-    proc = subprocess.Popen(
-        [*cmd, "-m", "poseflow.cli", *argv],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        env=env,
-        start_new_session=True,
-    )
-    try:
-        stdout, stderr = proc.communicate(timeout=400)
-    finally:
-        if proc.poll() is None:  # timed out: stop torchrun and its workers
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
-    return subprocess.CompletedProcess(proc.args, proc.returncode, stdout, stderr)
-
-
 def _rows(path: Path) -> list[list[str]]:
     """The CSV's fields but the time, as written (scene, image, object, score, R, t)."""
     lines = path.read_text().splitlines()
@@ -94,13 +66,15 @@ def test_an_image_has_the_same_estimate_whatever_images_precede_it(dataset, tmp_
 
 @pytest.mark.slow
 @pytest.mark.parametrize("method", ["baseline", "funflow6d"])
-def test_two_ranks_write_the_csv_of_one_process(dataset, tmp_path, capsys, one_thread, method):
+def test_two_ranks_write_the_csv_of_one_process(
+    dataset, tmp_path, capsys, one_thread, method, torchrun
+):
     chosen = ["--method", "baseline"] if method == "baseline" else ["--model", "demo"]
     argv = ["predict", str(dataset), *chosen, "--no-progress"]
     one, split = tmp_path / "one" / "r.csv", tmp_path / "split" / "r.csv"
     assert main([*argv, "--out", str(one), "--timing", str(one.with_suffix(".json"))]) == 0
     capsys.readouterr()
-    proc = _torchrun([*argv, "--out", str(split), "--timing", str(split.with_suffix(".json"))])
+    proc = torchrun([*argv, "--out", str(split), "--timing", str(split.with_suffix(".json"))])
     assert proc.returncode == 0, proc.stderr[-4000:]
     assert proc.stdout.count("poses (") == 1 and "by 2 processes" in proc.stdout
     assert "rank 0 of 2: " in proc.stderr and "rank 1 of 2: " in proc.stderr
@@ -125,7 +99,7 @@ def test_two_ranks_write_the_csv_of_one_process(dataset, tmp_path, capsys, one_t
 
 
 @pytest.mark.slow
-def test_a_failing_rank_stops_every_rank_and_writes_no_csv(dataset, tmp_path):
+def test_a_failing_rank_stops_every_rank_and_writes_no_csv(dataset, tmp_path, torchrun):
     bad = tmp_path / "bad"
     shutil.copytree(dataset, bad)
     ds = BOPDataset(bad, "test")
@@ -137,7 +111,7 @@ def test_a_failing_rank_stops_every_rank_and_writes_no_csv(dataset, tmp_path):
     depth.write_bytes(b"not an image")  # rank 1 cannot read one of its images
     out = tmp_path / "out" / "r.csv"
     argv = ["predict", str(bad), "--model", "demo", "--out", str(out), "--no-progress"]
-    proc = _torchrun(argv)
+    proc = torchrun(argv)
     assert proc.returncode != 0
     cause = f"rank 1 of 2 failed: cannot identify image file '{depth}'"
     assert f"poseflow predict: error: rank 0 of 2 stopped: {cause}" in proc.stderr

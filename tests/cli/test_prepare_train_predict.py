@@ -4,12 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import shutil
-import signal
-import socket
-import subprocess
-import sys
 import types
 
 import numpy as np
@@ -308,35 +303,13 @@ def test_baseline_predicts_without_a_model(dataset, tmp_path, capsys):
 
 
 @pytest.mark.slow
-def test_train_under_torchrun(dataset, tmp_path):
-    torchrun = shutil.which("torchrun", path=os.path.dirname(sys.executable))
-    if torchrun is None:
-        pytest.skip("torchrun is not installed")
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        port = sock.getsockname()[1]
+def test_train_under_torchrun(dataset, tmp_path, torchrun):
     out = tmp_path / "ddp"
-    cmd = [torchrun, "--nproc_per_node=2", f"--master_port={port}", "-m", "poseflow.cli"]
-    cmd += ["train", str(dataset), "--out", str(out), "--steps", "2", "--batch-size", "2"]
-    cmd += [*TINY, "--device", "cpu", "--no-progress"]
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    proc = subprocess.Popen(
-        cmd,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        env=env,
-        start_new_session=True,
-    )
-    try:
-        stdout, stderr = proc.communicate(timeout=300)
-    finally:
-        if proc.poll() is None:  # timed out: stop torchrun and its workers
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
-    assert proc.returncode == 0, stderr[-3000:]
-    assert "on 2 processes" in stdout
-    assert stdout.count("model saved to") == 1  # only rank 0 writes and reports
+    argv = ["train", str(dataset), "--out", str(out), "--steps", "2", "--batch-size", "2"]
+    proc = torchrun([*argv, *TINY, "--device", "cpu", "--no-progress"], timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "on 2 processes" in proc.stdout
+    assert proc.stdout.count("model saved to") == 1  # only rank 0 writes and reports
     assert FunFlow6D.load(out / "model").config.num_points == 32
 
 
