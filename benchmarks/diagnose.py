@@ -45,7 +45,12 @@ from pathlib import Path
 import torch
 
 from poseflow.assets import DEMO_CHECKPOINT
-from poseflow.cli.common import load_object_models, object_cache_dir, parse_set
+from poseflow.cli.common import (
+    add_set_argument,
+    load_object_models,
+    object_cache_dir,
+    parse_set,
+)
 from poseflow.data.bop import BOPDataset
 from poseflow.eval import evaluate_bop
 from poseflow.eval.errors import mssd
@@ -112,13 +117,9 @@ def main() -> None:
     parser.add_argument("--out", default=None, help="folder of the variants' CSVs and reports")
     parser.add_argument("--hypotheses", type=int, default=None, help="H (default: model's)")
     parser.add_argument("--steps", type=int, default=None, help="Euler steps (default: model's)")
-    parser.add_argument(
-        "--set",
-        dest="set_fields",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="an inference field of the model's config, as in poseflow predict; repeatable",
+    add_set_argument(
+        parser,
+        "an inference field of the model's config, as in poseflow predict; repeatable",
     )
     parser.add_argument("--max-images", type=int, default=None)
     parser.add_argument("--seed", type=int, default=0)

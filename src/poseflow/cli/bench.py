@@ -30,7 +30,12 @@ import time
 from pathlib import Path
 from typing import Any
 
-from poseflow.cli.common import LOG, add_device_argument, add_output_arguments
+from poseflow.cli.common import (
+    LOG,
+    add_device_argument,
+    add_output_arguments,
+    add_set_argument,
+)
 
 __all__ = [
     "add_parser",
@@ -81,13 +86,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     parser.add_argument(
         "--hypotheses", type=int, default=None, metavar="H", help="noise samples per instance"
     )
-    parser.add_argument(
-        "--set",
-        dest="set_fields",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="change an inference-time config field (num_hypotheses, dense_points, pose_solver, "
+    add_set_argument(
+        parser,
+        "change an inference-time config field (num_hypotheses, dense_points, pose_solver, "
         "ransac_*, icp_*, verify_hypotheses, verifier; the sampler comes from --samplers); "
         "VALUE read as JSON, repeatable",
     )

@@ -398,14 +398,22 @@ def add_config_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--fusion", default=None, help="gated, cross, concat_mlp or sum")
     group.add_argument("--crop-size", type=int, default=None, help="appearance crop side, px")
     group.add_argument("--query-views", type=int, default=None, help="views rendered per object")
-    group.add_argument(
-        "--set",
-        dest="set_fields",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="any config field, VALUE read as JSON when it parses (e.g. --set steps=10 --set "
+    add_set_argument(
+        group,
+        "any config field, VALUE read as JSON when it parses (e.g. --set steps=10 --set "
         "'net={\"fusion_heads\": 2}' --set icp_thresholds=[]); repeatable",
+    )
+
+
+def add_set_argument(parser: Any, help: str) -> None:
+    """Add the repeatable ``--set KEY=VALUE`` option, stored in ``set_fields``.
+
+    Args:
+        parser: a parser or an argument group.
+        help: what the option changes in this command (:func:`parse_set` reads the items).
+    """
+    parser.add_argument(
+        "--set", dest="set_fields", action="append", default=[], metavar="KEY=VALUE", help=help
     )
 
 

@@ -46,7 +46,12 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from poseflow.cli.common import add_device_argument, add_output_arguments, solver_name
+from poseflow.cli.common import (
+    add_device_argument,
+    add_output_arguments,
+    add_set_argument,
+    solver_name,
+)
 
 if TYPE_CHECKING:
     from poseflow.eval.distributed import PredictionPart, Ranks
@@ -131,13 +136,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         default=True,
         help="check every pose by rendering and comparing, and score it so (default: on)",
     )
-    parser.add_argument(
-        "--set",
-        dest="set_fields",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="change an inference-time config field of the model (num_hypotheses, pose_solver, "
+    add_set_argument(
+        parser,
+        "change an inference-time config field of the model (num_hypotheses, pose_solver, "
         "ransac_*, icp_*, verify_hypotheses, verifier, ...; with --method baseline: verifier "
         "only, its fields changing the baseline's defaults); VALUE read as JSON, repeatable",
     )
