@@ -109,6 +109,33 @@ def test_early_stop_and_full_run():
     assert 40 <= mid.num_iterations.item() <= 60
 
 
+def test_instances_that_reached_the_confidence_draw_no_more(monkeypatch):
+    """An easy instance beside a hard one is not solved for the hard one's hypotheses."""
+    import poseflow.registration.ransac as ransac
+
+    solved = torch.zeros(2, dtype=torch.long)
+    original = ransac._hypotheses
+
+    def counting(src, dst, samples):
+        if samples.shape[0] == 2:
+            solved.add_(samples.shape[1])
+        else:  # only the hard instance is still drawing
+            solved[1] += samples.shape[1]
+        return original(src, dst, samples)
+
+    monkeypatch.setattr(ransac, "_hypotheses", counting)
+    easy, easy_dst, *_ = _pairs(0, 1, 200, 0.0, 0.0005)
+    hard, hard_dst, *_ = _pairs(1, 1, 200, 0.9, 0.0005)
+    src, dst = torch.cat([easy, hard]), torch.cat([easy_dst, hard_dst])
+    kw = {"max_correspondence_distance": 0.005, "max_iterations": 1000}
+    batched = ransac_procrustes(src, dst, generator=torch.Generator().manual_seed(0), **kw)
+    assert batched.num_iterations[1] == 1000
+    assert solved[1] >= 1000  # every hypothesis of the hard instance, plus the final fit
+    assert solved[0] <= 64 + 1  # the first chunk and the final fit
+    alone = ransac_procrustes(easy, easy_dst, generator=torch.Generator().manual_seed(0), **kw)
+    torch.testing.assert_close(alone.transformation[0], batched.transformation[0])
+
+
 def test_masked_pairs_are_ignored_and_may_hold_nan():
     src, dst, T, _, g = _pairs(2, 2, 200, 0.3, 0.0005)
     mask = torch.rand(2, 200, generator=g) < 0.7

@@ -1,7 +1,7 @@
 """RANSAC over minimal Procrustes solves, batched over instances and hypotheses.
 
-All hypotheses of all instances are solved at once (one batched SVD per chunk of hypotheses) and
-scored with one matrix multiply: the squared residual of pair ``n`` under hypothesis ``(R, t)``,
+The hypotheses of all instances are solved together (one batched SVD per chunk of hypotheses, over
+the instances that have not yet reached the confidence) and scored with one matrix multiply: the squared residual of pair ``n`` under hypothesis ``(R, t)``,
 
     |R s + t - d|^2 = |s|^2 + |d|^2 + |t|^2 + 2 (R^T t).s - 2 <R, d s^T> - 2 t.d,
 
@@ -50,8 +50,8 @@ def ransac_procrustes(
     Each hypothesis is the Procrustes solution of ``sample_size`` distinct valid pairs drawn at
     random (samples whose points are collinear in the source or the target are rejected, not
     solved); it scores the number of pairs whose residual ``|R s + t - d|`` is below
-    ``max_correspondence_distance``. All hypotheses of all instances are solved in one batched
-    SVD and scored in one matrix multiply per chunk. With ``confidence < 1`` an instance stops
+    ``max_correspondence_distance``. Each chunk of hypotheses is solved in one batched SVD and
+    scored in one matrix multiply, over the instances still drawing. With ``confidence < 1`` an instance stops
     after the first hypothesis ``h`` for which ``h >= log(1 - confidence) / log(1 - w^s)``,
     ``w`` being the best inlier ratio so far (Open3D's rule); ``confidence = 1`` draws all
     ``max_iterations``. The best hypothesis (first among ties) is then refitted on its inliers,
@@ -175,28 +175,17 @@ def _register(
     stop = torch.where(possible, H, 0)
     done, chunk = 0, min(_FIRST_CHUNK, H)
     max_chunk = max(_FIRST_CHUNK, _CHUNK_ELEMENTS // max(1, B * N))
-    while done < H:
+    drawing = possible.nonzero()[:, 0]  # instances that still draw hypotheses
+    while done < H and len(drawing):
         hc = min(chunk, H - done)
-        R, t, ok = _hypotheses(src, dst, samples[:, done : done + hc])
-        coeffs = torch.cat(
-            (
-                -2 * R.reshape(B, hc, 9),
-                -2 * t,
-                2 * (R.transpose(-1, -2) @ t.unsqueeze(-1)).squeeze(-1),
-                torch.ones(B, hc, 1, dtype=dtype, device=device),
-                t.square().sum(-1, keepdim=True),
-            ),
-            -1,
-        )  # (B, hc, 17)
-        residual2 = coeffs @ features  # (B, hc, N)
-        count = (residual2 < tau2).sum(-1, dtype=torch.int32)
-        counts[:, done : done + hc] = torch.where(ok & possible[:, None], count, -1)
+        counts[drawing, done : done + hc] = _count_inliers(
+            src[drawing], dst[drawing], features[drawing], samples[drawing, done : done + hc], tau2
+        )
         done += hc
         chunk = min(2 * chunk, max_chunk)
         if confidence < 1:
             stop = _stopping_points(counts[:, :done], n_valid, s, confidence, possible, H)
-            if bool((stop <= done).all()):
-                break
+            drawing = (stop > done).nonzero()[:, 0]
 
     drawn = torch.arange(H, device=device).expand(B, H)
     best = torch.where(drawn < stop[:, None], counts, -1).argmax(1)  # first of the maxima
@@ -295,6 +284,31 @@ def _hypotheses(
     pd = dst.gather(1, flat).reshape(B * H, s, 3)
     T, ok = solve_procrustes(ps, pd, torch.ones(B * H, s, dtype=src.dtype, device=src.device))
     return T[:, :3, :3].reshape(B, H, 3, 3), T[:, :3, 3].reshape(B, H, 3), ok.reshape(B, H)
+
+
+def _count_inliers(
+    src: torch.Tensor, dst: torch.Tensor, features: torch.Tensor, samples: torch.Tensor, tau2: float
+) -> torch.Tensor:
+    """Inlier counts ``(B, H)`` int32 of the hypotheses of minimal samples ``(B, H, s)``.
+
+    ``features`` ``(B, 17, N)`` are the pairs' residual features (see the module docstring);
+    degenerate samples count -1.
+    """
+    B, hc = samples.shape[:2]
+    R, t, ok = _hypotheses(src, dst, samples)
+    coeffs = torch.cat(
+        (
+            -2 * R.reshape(B, hc, 9),
+            -2 * t,
+            2 * (R.transpose(-1, -2) @ t.unsqueeze(-1)).squeeze(-1),
+            torch.ones(B, hc, 1, dtype=src.dtype, device=src.device),
+            t.square().sum(-1, keepdim=True),
+        ),
+        -1,
+    )  # (B, hc, 17)
+    residual2 = coeffs @ features  # (B, hc, N)
+    count = (residual2 < tau2).sum(-1, dtype=torch.int32)
+    return torch.where(ok, count, -1)
 
 
 def _stopping_points(
