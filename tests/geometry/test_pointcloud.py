@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 
 from poseflow.errors import DegenerateInputError, ShapeError, ValueRangeError
 from poseflow.geometry.pointcloud import (
+    _lexicographic_codes,
     _smallest_eigenvector,
     backproject_depth,
     cloud_diameter,
@@ -370,6 +371,31 @@ def test_voxel_downsample_one_point_per_voxel(seed, voxel) -> None:
             members = p[(cells == torch.tensor(c)).all(1)]
             d = (members - members.mean(0)).norm(dim=1)
             assert (pts[b, i] - members.mean(0)).norm() <= d.min() + 1e-12
+
+
+@given(
+    rows=st.lists(
+        st.tuples(*[st.integers(-(2**40), 2**40)] * 3) | st.tuples(*[st.integers(-3, 3)] * 3),
+        min_size=1,
+        max_size=30,
+    )
+)
+def test_lexicographic_codes_order_as_the_rows(rows) -> None:
+    keys = torch.tensor(rows, dtype=torch.long)
+    codes = _lexicographic_codes(keys)
+    for i in range(len(rows)):
+        for j in range(len(rows)):
+            assert (codes[i] < codes[j]) == (rows[i] < rows[j])
+            assert (codes[i] == codes[j]) == (rows[i] == rows[j])
+
+
+def test_voxel_downsample_keeps_lexicographic_voxel_order() -> None:
+    g = torch.Generator().manual_seed(0)
+    pts = torch.rand(2, 300, 3, generator=g, dtype=torch.float64) * 2 - 1
+    idx, valid = voxel_downsample(pts, 0.25)
+    for b in range(2):
+        cells = torch.floor(pts[b, idx[b][valid[b]]] / 0.25).long().tolist()
+        assert cells == sorted(cells) and len(cells) == len({tuple(c) for c in cells})
 
 
 def test_voxel_downsample_empty() -> None:

@@ -335,6 +335,24 @@ def crop_resize(
     )
 
 
+def _lexicographic_codes(keys: torch.Tensor) -> torch.Tensor:
+    """One int64 per row of integer ``keys`` ``(M, K)`` that orders as the rows do.
+
+    Sorting these codes sorts the rows lexicographically, and equal rows get equal codes, so one
+    1-D :func:`torch.unique` replaces ``torch.unique(keys, dim=0)`` (several times faster). Rows
+    whose extents do not fit in 63 bits keep the row-wise unique's order through their ranks.
+    """
+    low = keys.min(0).values
+    span = keys.max(0).values - low + 1
+    if float(torch.prod(span.double())) >= 2.0**62:
+        _, ranks = torch.unique(keys, dim=0, return_inverse=True)
+        return ranks
+    code = torch.zeros(len(keys), dtype=torch.long, device=keys.device)
+    for column, size in zip((keys - low).unbind(1), span.tolist()):
+        code = code * size + column
+    return code
+
+
 def voxel_downsample(
     points: torch.Tensor, voxel_size: float, mask: torch.Tensor | None = None
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -375,8 +393,11 @@ def voxel_downsample(
     p = points[b_idx, n_idx]
     cell = torch.floor(p / voxel_size).long()
     keys = torch.cat([b_idx[:, None], cell], dim=1)
-    uniq, inverse = torch.unique(keys, dim=0, return_inverse=True)
-    V = uniq.shape[0]
+    _, inverse = torch.unique(_lexicographic_codes(keys), return_inverse=True)
+    V = int(inverse.max()) + 1
+    first = torch.full((V,), len(keys), dtype=torch.long, device=device)
+    first = first.scatter_reduce(0, inverse, torch.arange(len(keys), device=device), reduce="amin")
+    uniq = keys[first]
     ones = torch.ones(p.shape[0], dtype=p.dtype, device=device)
     count = torch.zeros(V, dtype=p.dtype, device=device).index_add_(0, inverse, ones)
     centroid = torch.zeros(V, 3, dtype=p.dtype, device=device).index_add_(0, inverse, p)
