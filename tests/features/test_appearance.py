@@ -2,7 +2,7 @@ from __future__ import annotations
 
 import pytest
 import torch
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 from transformers import Dinov2Config, Dinov2Model
 
@@ -11,6 +11,7 @@ from poseflow.features.appearance import (
     AppearanceEncoder,
     DenseSIFTEncoder,
     DINOv2Encoder,
+    features_at,
     sample_features,
     upsample_features,
 )
@@ -116,7 +117,7 @@ def test_dense_sift_grid_follows_the_image(device: torch.device, dtype: torch.dt
 
 @pytest.mark.parametrize("color", ["gray", "rgb"])
 def test_dense_sift_equals_kornia_with_its_own_weights(color: str) -> None:
-    """The channels-last weights change the memory layout only, not the descriptors."""
+    """The pieces (kornia's histograms and pooling, RootSIFT) give kornia's descriptors."""
     import torch.nn.functional as F
     from kornia.feature import DenseSIFTDescriptor
 
@@ -134,3 +135,30 @@ def test_dense_sift_equals_kornia_with_its_own_weights(color: str) -> None:
     plain = reference(F.pad(channels, (lo, hi, lo, hi), mode="reflect"))
     expected = F.normalize(plain.reshape(2, -1, 40, 40), dim=1)
     torch.testing.assert_close(enc.encode(img), expected, rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("color", ["gray", "rgb"])
+@given(seed=st.integers(0, 2**31 - 1))
+@settings(max_examples=10, deadline=None)
+def test_dense_sift_at_points_equals_sampling_the_dense_map(color: str, seed: int) -> None:
+    g = torch.Generator().manual_seed(seed)
+    enc = DenseSIFTEncoder(input_size=32, color=color)
+    img = torch.rand(2, 3, 32, 32, generator=g)
+    uv = torch.rand(2, 40, 2, generator=g) * 36 - 2  # some outside the image (border reads)
+    uv[:, :10] = uv[:, :10].round()  # on pixel centres, where one neighbour has zero weight
+    expected = sample_features(enc.encode(img), uv, (32, 32))
+    torch.testing.assert_close(enc.encode_at(img, uv), expected, rtol=0, atol=1e-6)
+    torch.testing.assert_close(features_at(enc, img, uv), expected, rtol=0, atol=1e-6)
+
+
+def test_features_at_samples_the_map_of_an_encoder_without_encode_at() -> None:
+    class Colours:
+        dim, input_size, query_pooling = 3, 8, "mean"
+
+        def encode(self, images: torch.Tensor) -> torch.Tensor:
+            return images
+
+    img = torch.rand(1, 3, 8, 8, generator=torch.Generator().manual_seed(0))
+    out = features_at(Colours(), img, torch.tensor([[[2.0, 5.0], [3.5, 1.0]]]))
+    torch.testing.assert_close(out[0, 0], img[0, :, 5, 2])
+    torch.testing.assert_close(out[0, 1], (img[0, :, 1, 3] + img[0, :, 1, 4]) / 2)

@@ -22,6 +22,7 @@ from poseflow.features.appearance import (
     AppearanceEncoder,
     DenseSIFTEncoder,
     DINOv2Encoder,
+    features_at,
     sample_features,
     upsample_features,
 )
@@ -74,6 +75,7 @@ __all__ = [
     "lift_query_features",
     "lift_target_features",
     "load_reducer",
+    "features_at",
     "sample_features",
     "upsample_features",
     "viewpoint_poses",

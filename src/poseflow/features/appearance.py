@@ -34,6 +34,7 @@ __all__ = [
     "AppearanceEncoder",
     "DINOv2Encoder",
     "DenseSIFTEncoder",
+    "features_at",
     "sample_features",
     "upsample_features",
 ]
@@ -329,6 +330,45 @@ class DenseSIFTEncoder:
             Features ``(B, G, input_size, input_size)`` with unit norm per pixel, on the images'
             device and in their dtype.
         """
+        pooled = self._pooled(images)  # (B, C, 128, S, S)
+        B, C, D, S, _ = pooled.shape
+        desc = self._normalise(pooled.permute(0, 3, 4, 1, 2).reshape(B, S, S, C, D))
+        return desc.permute(0, 3, 1, 2)
+
+    @torch.no_grad()
+    def encode_at(self, images: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+        """``sample_features(self.encode(images), uv, size)``, normalising only what it reads.
+
+        The gradient histograms and their pooling are computed densely (convolutions); the
+        RootSIFT normalisations, most of the cost of :meth:`encode`, only at the pixels around
+        ``uv`` that the bilinear sampling reads.
+
+        Args:
+            images: RGB images ``(B, 3, H, W)`` with values in ``[0, 1]``.
+            uv: pixel positions ``(B, P, 2)`` in the ``input_size`` image.
+
+        Returns:
+            Features ``(B, P, G)`` in the images' dtype.
+        """
+        check_tensor(uv, "uv", (len(images), "P", 2))
+        pooled = self._pooled(images)
+        B, C, D, S, _ = pooled.shape
+        # The 3 × 3 pixels around each position cover the bilinear reads whatever the rounding.
+        base = uv.to(pooled.dtype).clamp(0, S - 1).floor().long()
+        step = torch.tensor([-1, 0, 1], device=uv.device)
+        cols = (base[..., 0, None] + step).clamp(0, S - 1)  # (B, P, 3)
+        rows = (base[..., 1, None] + step).clamp(0, S - 1)
+        read = (rows[..., :, None] * S + cols[..., None, :]).reshape(B, -1)  # (B, 9P)
+        flat = pooled.reshape(B, C * D, S * S)
+        picked = flat.gather(2, read[:, None].expand(B, C * D, read.shape[1]))
+        desc = self._normalise(picked.transpose(1, 2).reshape(B, -1, C, D))  # (B, 9P, G)
+        sparse = desc.new_zeros(B, S * S, desc.shape[-1])
+        sparse.scatter_(1, read[..., None].expand_as(desc), desc)
+        sparse = sparse.transpose(1, 2).reshape(B, -1, S, S)
+        return sample_features(sparse, uv, (S, S))
+
+    def _pooled(self, images: torch.Tensor) -> torch.Tensor:
+        """Spatially pooled gradient histograms before normalisation ``(B, C, 128, S, S)``."""
         _check_images(images)
         x = images
         if x.shape[-2:] != (self.input_size, self.input_size):
@@ -342,6 +382,56 @@ class DenseSIFTEncoder:
             channels = x.reshape(-1, 1, *x.shape[-2:])
         lo, hi = self._pad
         channels = F.pad(channels, (lo, hi, lo, hi), mode="reflect")
-        desc = self._sift.to(x.device)(channels)
-        desc = desc.reshape(len(x), -1, *desc.shape[-2:])
-        return F.normalize(desc, dim=1)
+        sift = self._sift.to(x.device)
+        histograms = sift.get_gradient_histograms(channels)  # (B·C, 8, H', W')
+        n, bins = histograms.shape[:2]
+        binning = sift.bin_pooling_kernel
+        spread = F.conv2d(
+            histograms.reshape(n * bins, 1, *histograms.shape[-2:]),
+            binning.weight.to(x.dtype),
+            None,
+            padding=binning.padding,
+        )
+        spread = spread.reshape(n, bins, *spread.shape[-2:])
+        pooling = sift.PoolingConv
+        pooled = F.conv2d(  # (B·C, 128, S, S)
+            spread,
+            pooling.weight.to(x.dtype),
+            None,
+            pooling.stride,
+            pooling.padding,
+            pooling.dilation,
+        )
+        return pooled.reshape(len(x), -1, *pooled.shape[1:])
+
+    def _normalise(self, desc: torch.Tensor) -> torch.Tensor:
+        """RootSIFT of each channel's 128 bins, the channels concatenated and L2-normalised.
+
+        Args:
+            desc: pooled histograms ``(..., C, 128)``.
+
+        Returns:
+            Unit descriptors ``(..., C · 128)``.
+        """
+        eps = self._sift.eps
+        desc = F.normalize(desc, dim=-1).clamp(0, float(self._sift.clipval))
+        desc = F.normalize(desc, dim=-1)
+        desc = torch.sqrt(F.normalize(desc, p=1, dim=-1, eps=1e-12) + eps)
+        return F.normalize(desc.flatten(-2), dim=-1)
+
+
+def features_at(encoder: AppearanceEncoder, images: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+    """An encoder's features at pixel positions of its input images ``(B, P, G)``.
+
+    The same as :func:`sample_features` of ``encoder.encode(images)``; an encoder with an
+    ``encode_at(images, uv)`` method (:class:`DenseSIFTEncoder`) computes only what is read.
+
+    Args:
+        encoder: the appearance encoder.
+        images: ``(B, 3, S, S)`` at the encoder's ``input_size`` ``S``, values in ``[0, 1]``.
+        uv: pixel positions ``(B, P, 2)``.
+    """
+    encode_at = getattr(encoder, "encode_at", None)
+    if encode_at is not None:
+        return encode_at(images, uv)
+    return sample_features(encoder.encode(images), uv, tuple(images.shape[-2:]))

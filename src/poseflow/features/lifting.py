@@ -39,7 +39,7 @@ from torch.nn import functional as F
 
 from poseflow._checks import check_mask, check_tensor
 from poseflow.errors import DegenerateInputError, ShapeError, ValueRangeError
-from poseflow.features.appearance import AppearanceEncoder, sample_features
+from poseflow.features.appearance import AppearanceEncoder, features_at
 from poseflow.geometry.neighbors import nearest_neighbors
 from poseflow.geometry.pointcloud import (
     crop_box_around,
@@ -110,10 +110,9 @@ def lift_target_features(
         box = jitter_boxes(box, jitter, generator=generator)
     size = encoder.input_size
     crops = crop_resize(images, box.to(images.dtype), size)
-    feats = encoder.encode(crops)
     uv = project_points(points, K, mask) if pixels is None else pixels
-    crop_uv = pixels_to_crop(uv, box, size).to(feats.dtype)
-    out = sample_features(feats, crop_uv, (size, size))
+    crop_uv = pixels_to_crop(uv, box, size).to(crops.dtype)
+    out = features_at(encoder, crops, crop_uv)
     return torch.where(mask[..., None], out, torch.zeros((), dtype=out.dtype, device=out.device))
 
 
@@ -457,10 +456,10 @@ def lift_query_features(
             boxes.append(box)
             uvs.append(uv)
             seen.append(vis)
-        feats = encoder.encode(torch.cat(crops))
+        crop_uv = torch.cat([pixels_to_crop(uv[None], box, size) for uv, box in zip(uvs, boxes)])
+        feats = features_at(encoder, torch.cat(crops), crop_uv.float()).float()
         for j, k in enumerate(chunk):
-            crop_uv = pixels_to_crop(uvs[j][None], boxes[j], size).float()
-            sampled = sample_features(feats[j : j + 1].float(), crop_uv, (size, size))[0]
+            sampled = feats[j]
             if features is None:
                 features = torch.zeros(len(pts), n_views, sampled.shape[-1])
             features[:, k] = torch.where(seen[j][:, None], sampled, torch.zeros(()))
