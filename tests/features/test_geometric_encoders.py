@@ -54,6 +54,23 @@ def test_fpfh_batched_with_mask_equals_loop(device: torch.device, dtype: torch.d
     )
 
 
+@pytest.mark.parametrize("backend", ["open3d", "torch"])
+def test_fpfh_of_the_first_points_equals_describing_all(backend: str) -> None:
+    """Masked rows among the first ones stay zero; the others equal encode's."""
+    pts = _sphere(400, 3)[None].expand(2, -1, -1).clone()
+    mask = torch.ones(2, 400, dtype=torch.bool)
+    mask[0, 5:9] = False  # gaps among the first points
+    mask[1, :40] = False  # none of the first points of this cloud is valid
+    enc = FPFHEncoder(backend=backend)
+    every = enc.encode(pts, None, mask, 0.12)
+    first = enc.encode_first(pts, None, mask, 0.12, 30)
+    assert first.shape == (2, 30, 66)
+    torch.testing.assert_close(first, every[:, :30], rtol=0, atol=1e-12)
+    assert bool((first[0, 5:9] == 0).all()) and bool((first[1] == 0).all())
+    with pytest.raises(ValueRangeError):
+        enc.encode_first(pts, None, mask, 0.12, 401)
+
+
 def test_fpfh_is_rotation_invariant() -> None:
     pts = _sphere(400, 3)
     normals = torch.nn.functional.normalize(pts / torch.tensor([0.05, 0.04, 0.03]) ** 2, dim=1)
