@@ -241,10 +241,10 @@ def diagnose(args: argparse.Namespace, out: Path) -> dict:
             obs = model.observe(rgb, depth, K, masks, obj_ids, generator=g)
             inputs = model.flow_inputs(obs, poses=gt)
             n = inputs.points.shape[1] // 2
+            x = model.net.sample(inputs, sampler, frozen_mask=inputs.frozen_mask,
+                                 x_frozen=inputs.anchor if cfg.anchor == "pinned" else None,
+                                 generator=g, num_samples=H)  # fmt: skip
             rep = inputs.repeat_interleave(H)
-            x = model.net.sample(rep, sampler, frozen_mask=rep.frozen_mask,
-                                 x_frozen=rep.anchor if cfg.anchor == "pinned" else None,
-                                 generator=g)  # fmt: skip
             dense = [o.dense_points for o in select_objects(model.objects, rep.obj_ids)]
             solved = solve_pose(rep, x[:, n:], dense, cfg, generator=g)
             est = {"model": select_hypotheses(*solved, obs.valid, H)}

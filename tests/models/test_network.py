@@ -85,3 +85,31 @@ def test_autocast_with_one_identity_adapter(fusion):
     with torch.autocast("cpu", dtype=torch.bfloat16):
         v = FunFlow6DNet(cfg)(x=torch.randn(2, 10, 3), t=torch.rand(2), inputs=inputs, x_0=x_0)
     assert v.shape == (2, 10, 3) and torch.isfinite(v).all()
+
+
+@pytest.mark.parametrize("noise_conditioning", [False, True])
+def test_samples_per_instance_equal_sampling_the_repeated_instances(noise_conditioning):
+    from poseflow.flows.samplers import get_sampler
+
+    torch.manual_seed(0)
+    net = FunFlow6DNet(dataclasses.replace(CFG, noise_conditioning=noise_conditioning)).eval()
+    for p in net.parameters():
+        torch.nn.init.normal_(p, std=0.1)
+    inputs, _ = _inputs()
+    inputs.mask = torch.ones(2, 10, dtype=torch.bool)
+    inputs.mask[1, 8:] = False
+    frozen = torch.zeros(2, 10, dtype=torch.bool)
+    frozen[:, :5] = True
+    anchor = torch.where(frozen[..., None], inputs.points, 0.0)
+    sampler = get_sampler("euler", steps=3)
+    once = net.sample(inputs, sampler, frozen_mask=frozen, x_frozen=anchor, num_samples=3,
+                      generator=torch.Generator().manual_seed(1))  # fmt: skip
+    rep = inputs.repeat_interleave(3)
+    every = net.sample(rep, sampler, frozen_mask=frozen.repeat_interleave(3, 0),
+                       x_frozen=anchor.repeat_interleave(3, 0),
+                       generator=torch.Generator().manual_seed(1))  # fmt: skip
+    assert once.shape == (6, 10, 3)
+    torch.testing.assert_close(once, every, rtol=0, atol=1e-5)
+    assert not torch.allclose(once[0], once[1])  # each sample has its own noise
+    with pytest.raises(ValueError):
+        net.sample(inputs, sampler, frozen_mask=frozen, num_samples=0)

@@ -355,8 +355,7 @@ class FPFHEncoder(Hyperparameters):
         diameter: torch.Tensor,
         count: int,
     ) -> torch.Tensor:
-        """Raw float64 CPU histograms of the first ``count`` points ``(B, count, D)`` by Open3D,
-        cloud by cloud."""
+        """Raw float64 CPU histograms of the first ``count`` points ``(B, count, D)``, by Open3D."""
         from poseflow.render.backend import import_open3d
 
         o3d = import_open3d("Open3D's normals and FPFH")

@@ -231,14 +231,16 @@ class FunFlow6D(nn.Module):
             obs = self.observe(rgb, depth, K, masks, obj_ids, generator=generator)
             if obs.points.shape[0] == 0:
                 return PoseEstimate.empty(device=depth.device)
-            rep = self.flow_inputs(obs).repeat_interleave(cfg.num_hypotheses)
+            inputs = self.flow_inputs(obs)
             x_1 = self.net.sample(
-                rep,
+                inputs,
                 get_sampler(cfg.solver, steps=cfg.steps),
-                frozen_mask=rep.frozen_mask,
-                x_frozen=rep.anchor if cfg.anchor == "pinned" else None,
+                frozen_mask=inputs.frozen_mask,
+                x_frozen=inputs.anchor if cfg.anchor == "pinned" else None,
                 generator=generator,
+                num_samples=cfg.num_hypotheses,
             )
+            rep = inputs.repeat_interleave(cfg.num_hypotheses)
             dense = [o.dense_points for o in select_objects(self.objects, rep.obj_ids)]
             n = rep.points.shape[1] // 2
             solved = solve_pose(rep, x_1[:, n:], dense, cfg, generator=generator)

@@ -15,7 +15,6 @@ Shape letters: ``B`` instances, ``N`` points per cloud (``2N`` tokens ``[Q ; T]`
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -131,15 +130,6 @@ class FlowInputs(NetInputs):
             obj_ids=obs.obj_ids.to(dev),
             x_1=x_1,
         )
-
-    def repeat_interleave(self, repeats: int) -> FlowInputs:
-        """Every instance ``repeats`` times in a row (``B → B·repeats``), e.g. for hypotheses."""
-        changes = {
-            f.name: value.repeat_interleave(repeats, dim=0)
-            for f in dataclasses.fields(self)
-            if (value := getattr(self, f.name)) is not None
-        }
-        return dataclasses.replace(self, **changes)
 
 
 #: The tensors a training set keeps per instance: the flow's end state and anchor mask, under

@@ -13,9 +13,10 @@ cloud attend to the other. Fusion and positional encoding do not depend on the f
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Self
 
 import torch
 from torch import nn
@@ -78,6 +79,15 @@ class NetInputs:
                 f"the network takes {', '.join(names)}; got unknown {unknown}, missing {missing}"
             )
         return NetInputs(**tensors)
+
+    def repeat_interleave(self, repeats: int) -> Self:
+        """Every tensor field (a subclass's too) ``repeats`` times in a row: ``B → B·repeats``."""
+        changes = {
+            f.name: value.repeat_interleave(repeats, dim=0)
+            for f in dataclasses.fields(self)
+            if isinstance(value := getattr(self, f.name), torch.Tensor)
+        }
+        return dataclasses.replace(self, **changes)
 
     def net_kwargs(self) -> dict[str, torch.Tensor]:
         """The fields of :class:`NetInputs` as keyword tensors (inverse of :meth:`from_kwargs`)."""
@@ -165,36 +175,46 @@ class FunFlow6DNet(nn.Module):
         frozen_mask: torch.Tensor,
         x_frozen: torch.Tensor | None = None,
         generator: torch.Generator | None = None,
+        num_samples: int = 1,
     ) -> torch.Tensor:
         """Integrate the flow from fresh noise ``X(0)`` to ``X(1)``, the condition computed once.
 
-        The stages are reported to the active timer: ``fusion`` (the condition),
-        ``integration`` (the sampler) and ``flow_net`` (each DiT call).
+        Without ``config.noise_conditioning`` the condition does not depend on the noise, so
+        it is computed once per instance for all its samples. The stages are reported to the
+        active timer: ``fusion`` (the condition), ``integration`` (the sampler) and
+        ``flow_net`` (each DiT call).
 
         Args:
-            inputs: as in :meth:`condition`.
+            inputs: as in :meth:`condition`, of ``B`` instances.
             sampler: the ODE solver.
             frozen_mask: ``(B, 2N)`` bool, True at the anchor's points (velocity zero).
             x_frozen: where the anchor sits when it is pinned ``(B, 2N, 3)``, or None.
-            generator: draws ``X(0) ~ N(0, I)``.
+            generator: draws ``X(0) ~ N(0, I)``, all ``B · num_samples`` rows at once.
+            num_samples: samples ``S`` per instance (e.g. pose hypotheses).
 
         Returns:
-            ``X(1)`` ``(B, 2N, 3)``.
+            ``X(1)`` ``(B·S, 2N, 3)``, the samples of an instance in consecutive rows.
         """
+        if num_samples < 1:
+            raise ValueRangeError(f"num_samples must be positive, got {num_samples}")
         points = inputs.points
-        x_0 = initial_noise(
-            points.shape, generator=generator, device=points.device, dtype=points.dtype
-        )
+        shape = (len(points) * num_samples, *points.shape[1:])
+        x_0 = initial_noise(shape, generator=generator, device=points.device, dtype=points.dtype)
         with stage("fusion"):
-            cond = self.condition(inputs, x_0=x_0)
+            if self.config.noise_conditioning:
+                cond = self.condition(inputs.repeat_interleave(num_samples), x_0=x_0)
+            else:
+                cond = self.condition(inputs, x_0=x_0[::num_samples])
+                cond = cond.repeat_interleave(num_samples, dim=0)
+        repeat = functools.partial(torch.repeat_interleave, repeats=num_samples, dim=0)
         with stage("integration"):
             return sampler.sample(
                 timed("flow_net", self.dit),
                 x_0,
-                frozen_mask=frozen_mask,
-                x_frozen=x_frozen,
+                frozen_mask=repeat(frozen_mask),
+                x_frozen=None if x_frozen is None else repeat(x_frozen),
                 condition=cond,
-                mask=inputs.mask,
+                mask=None if inputs.mask is None else repeat(inputs.mask),
                 num_query=points.shape[1] // 2,
             )
 

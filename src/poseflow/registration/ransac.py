@@ -1,7 +1,8 @@
 """RANSAC over minimal Procrustes solves, batched over instances and hypotheses.
 
-The hypotheses of all instances are solved together (one batched SVD per chunk of hypotheses, over
-the instances that have not yet reached the confidence) and scored with one matrix multiply: the squared residual of pair ``n`` under hypothesis ``(R, t)``,
+The hypotheses of all instances are solved together (one batched SVD per chunk of hypotheses,
+over the instances that have not yet reached the confidence) and scored with one matrix multiply:
+the squared residual of pair ``n`` under hypothesis ``(R, t)``,
 
     |R s + t - d|^2 = |s|^2 + |d|^2 + |t|^2 + 2 (R^T t).s - 2 <R, d s^T> - 2 t.d,
 
@@ -51,12 +52,13 @@ def ransac_procrustes(
     random (samples whose points are collinear in the source or the target are rejected, not
     solved); it scores the number of pairs whose residual ``|R s + t - d|`` is below
     ``max_correspondence_distance``. Each chunk of hypotheses is solved in one batched SVD and
-    scored in one matrix multiply, over the instances still drawing. With ``confidence < 1`` an instance stops
-    after the first hypothesis ``h`` for which ``h >= log(1 - confidence) / log(1 - w^s)``,
-    ``w`` being the best inlier ratio so far (Open3D's rule); ``confidence = 1`` draws all
-    ``max_iterations``. The best hypothesis (first among ties) is then refitted on its inliers,
-    and again on the refit's inliers, until the inlier set stops changing (at most 10 rounds;
-    each round lowers ``sum min(r^2, threshold^2)``).
+    scored in one matrix multiply, over the instances still drawing. With ``confidence < 1`` an
+    instance stops after the first hypothesis ``h`` for which
+    ``h >= log(1 - confidence) / log(1 - w^s)``, ``w`` being the best inlier ratio so far
+    (Open3D's rule); ``confidence = 1`` draws all ``max_iterations``. The best hypothesis
+    (first among ties) is then refitted on its inliers, and again on the refit's inliers, until
+    the inlier set stops changing (at most 10 rounds; each round lowers
+    ``sum min(r^2, threshold^2)``).
 
     An instance's result depends only on its own data and the generator's draws, not on the rest
     of the batch: registering instances one by one with the same seed gives the same results.
