@@ -359,9 +359,9 @@ class DenseSIFTEncoder:
         cols = (base[..., 0, None] + step).clamp(0, S - 1)  # (B, P, 3)
         rows = (base[..., 1, None] + step).clamp(0, S - 1)
         read = (rows[..., :, None] * S + cols[..., None, :]).reshape(B, -1)  # (B, 9P)
-        flat = pooled.reshape(B, C * D, S * S)
-        picked = flat.gather(2, read[:, None].expand(B, C * D, read.shape[1]))
-        desc = self._normalise(picked.transpose(1, 2).reshape(B, -1, C, D))  # (B, 9P, G)
+        per_pixel = pooled.permute(0, 3, 4, 1, 2).reshape(B, S * S, C * D)  # a view for grey
+        picked = per_pixel.gather(1, read[..., None].expand(B, read.shape[1], C * D))
+        desc = self._normalise(picked.reshape(B, -1, C, D))  # (B, 9P, G)
         sparse = desc.new_zeros(B, S * S, desc.shape[-1])
         sparse.scatter_(1, read[..., None].expand_as(desc), desc)
         sparse = sparse.transpose(1, 2).reshape(B, -1, S, S)

@@ -395,9 +395,6 @@ def voxel_downsample(
     keys = torch.cat([b_idx[:, None], cell], dim=1)
     _, inverse = torch.unique(_lexicographic_codes(keys), return_inverse=True)
     V = int(inverse.max()) + 1
-    first = torch.full((V,), len(keys), dtype=torch.long, device=device)
-    first = first.scatter_reduce(0, inverse, torch.arange(len(keys), device=device), reduce="amin")
-    uniq = keys[first]
     ones = torch.ones(p.shape[0], dtype=p.dtype, device=device)
     count = torch.zeros(V, dtype=p.dtype, device=device).index_add_(0, inverse, ones)
     centroid = torch.zeros(V, 3, dtype=p.dtype, device=device).index_add_(0, inverse, p)
@@ -408,7 +405,7 @@ def voxel_downsample(
     cand = torch.where(dist == best[inverse], n_idx, torch.full_like(n_idx, N))
     chosen = torch.full((V,), N, dtype=torch.long, device=device)
     chosen = chosen.scatter_reduce(0, inverse, cand, reduce="amin")
-    vb = uniq[:, 0]
+    vb = torch.zeros(V, dtype=torch.long, device=device).scatter_(0, inverse, b_idx)  # batch
     per_batch = torch.bincount(vb, minlength=B)
     M = int(per_batch.max())
     starts = torch.cumsum(per_batch, 0) - per_batch

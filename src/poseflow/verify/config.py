@@ -68,7 +68,7 @@ class VerifierConfig:
 
     The refinement's defaults (20 iterations per scale on 600 observed points; they were 10 on
     200) raised FunFlow6D's AR on devbench from 0.840 to 0.854 and the classic baseline's from
-    0.837 to 0.842 (three seeds), for about 50 ms more per image of four instances.
+    0.837 to 0.842 (three seeds), for about 60 ms more per image of four instances.
     """
 
     num_points: int = 4096
