@@ -1,3 +1,4 @@
+import dataclasses
 import json
 
 import pytest
@@ -11,7 +12,7 @@ from poseflow.eval.timing import StageTimer
 from poseflow.geometry.se3 import rotation_angle_error, transform_points, translation_error
 from poseflow.models import FunFlow6D, FunFlow6DConfig
 from poseflow.models.verification import rank_hypotheses
-from poseflow.verify import rotation_distance
+from poseflow.verify import PoseVerifier, rotation_distance
 
 
 def test_observe_lifts_valid_clouds_with_features(tiny_model, scene):
@@ -320,6 +321,31 @@ def test_the_verifier_ranks_the_hypotheses_before_expanding_the_best(tiny_model,
     invalid = PoseEstimate(off, estimate.scores, torch.tensor([False, True]))
     kept, _, _ = rank_hypotheses(verifier, invalid, extra, extra_mask, *args)
     assert torch.equal(kept.poses[0], off[0])  # an instance without an estimate is left alone
+
+
+@pytest.mark.parametrize("top", [0, 1, 2, 4])
+def test_the_ranking_rescores_its_coarse_best_on_the_full_grid(tiny_model, scene, top):
+    """rank_top_k = 0 ranks by the coarse score; k > 0 by the full score among the coarse top k."""
+    verifier = PoseVerifier(dataclasses.replace(tiny_model.verifier.config, rank_top_k=top))
+    verifier.objects = tiny_model.verifier.objects
+    truth = scene["poses"]
+    shifts = torch.tensor([0.012, 0.004, -0.008, 0.002, 0.0])  # metres along x
+    poses = truth[:, None].repeat(1, len(shifts), 1, 1)
+    poses[..., 0, 3] += shifts
+    mask = torch.ones(2, len(shifts), dtype=torch.bool)
+    images = (scene["rgb"], scene["depth"], scene["K"], scene["masks"])
+    estimate = PoseEstimate(poses[:, 0], torch.ones(2), torch.ones(2, dtype=torch.bool))
+    ranked, _, _ = rank_hypotheses(verifier, estimate, poses[:, 1:], mask[:, 1:], *images, [1, 1])
+    boxes = verifier.crop_boxes(poses[:, 0], [1, 1], scene["K"], scene["masks"])
+    coarse = verifier.score(*images, [1, 1], poses, mask, boxes=boxes,
+                            crop_size=verifier.config.coarse_crop_size).total  # fmt: skip
+    full = verifier.score(*images, [1, 1], poses, mask, boxes=boxes).total
+    if top == 0:
+        expected = coarse.argmax(1)
+    else:
+        idx = coarse.topk(top, dim=1).indices
+        expected = idx.gather(1, full.gather(1, idx).argmax(1, keepdim=True))[:, 0]
+    assert torch.equal(ranked.poses, poses[torch.arange(2), expected])
 
 
 def test_verification_needs_the_objects_prepared_for_it(tiny_model, box, scene):

@@ -127,13 +127,15 @@ def rank_hypotheses(
     masks: torch.Tensor,
     obj_ids: torch.Tensor | Sequence[int],
 ) -> tuple[PoseEstimate, torch.Tensor, torch.Tensor]:
-    """Make each instance's best hypothesis by the verifier's coarse score its estimate.
+    """Make each instance's best hypothesis by the verifier's score its estimate.
 
     The estimator's own score (geometric agreement of a few points) ranks hypotheses that
-    differ by a near-symmetry poorly; the verifier's depth, silhouette and appearance terms,
-    on the coarse grid of :meth:`~poseflow.verify.PoseVerifier.verify`'s first pass, rank them
-    on what the image shows. The chosen one is then expanded with its near-symmetric
-    candidates and is the incumbent of the verifier's test.
+    differ by a near-symmetry poorly; the verifier's depth, silhouette and appearance terms
+    rank them on what the image shows: all on the coarse grid of
+    :meth:`~poseflow.verify.PoseVerifier.verify`'s first pass, then the best
+    ``config.rank_top_k`` of them again on the full grid, which resolves thin parts (a
+    handle) that decide between turns of a nearly symmetric object. The chosen one is then
+    expanded with its near-symmetric candidates and is the incumbent of the verifier's test.
 
     Args:
         verifier: a verifier with every object of ``obj_ids`` prepared.
@@ -162,6 +164,16 @@ def rank_hypotheses(
         crop_size=verifier.config.coarse_crop_size,
     )  # fmt: skip
     total = torch.where(score.valid & mask, score.total, -torch.inf)
+    top = min(verifier.config.rank_top_k, total.shape[1])
+    if top:
+        idx = total.topk(top, dim=1).indices  # (B, top)
+        kept = torch.isfinite(total.gather(1, idx))
+        fine = verifier.score(
+            rgb, depth, K, masks, ids, poses.gather(1, idx[..., None, None].expand(-1, -1, 4, 4)),
+            kept, boxes=boxes,
+        )  # fmt: skip
+        fine_total = torch.where(fine.valid & kept, fine.total, -torch.inf)
+        total = torch.full_like(total, -torch.inf).scatter(1, idx, fine_total)
     best = torch.where(estimate.valid, total.argmax(1), 0)
     rows = torch.arange(B, device=poses.device)
     swapped = poses.clone()

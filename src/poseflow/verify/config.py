@@ -55,6 +55,10 @@ class VerifierConfig:
         turn_steps: turns about each principal axis tried as near-symmetry seeds (every
             ``360 / turn_steps`` degrees); half-turns about axes perpendicular to each principal
             axis are tried every ``360 / turn_steps`` degrees too.
+        rank_top_k: hypotheses of an instance that
+            :func:`~poseflow.models.verification.rank_hypotheses` scores again on the full grid,
+            the best of its coarse scoring (the coarse grid barely resolves a thin part such as
+            a mug's handle); 0 ranks on the coarse grid alone.
         refine_top_k: candidates (besides the estimate) refined by ICP and scored again, the best
             of the first, unrefined scoring.
         refine_estimate: refine the estimate by the same ICP as the candidates before they are
@@ -90,6 +94,7 @@ class VerifierConfig:
     self_overlap_distance: float = 0.03
     min_candidate_angle: float = 15.0
     turn_steps: int = 12
+    rank_top_k: int = 4
     refine_top_k: int = 2
     refine_estimate: bool = True
     icp_distances: tuple[float, ...] = (0.1, 0.05, 0.02)
@@ -106,6 +111,7 @@ class VerifierConfig:
             "block_size": (self.block_size, 1),
             "max_candidates": (self.max_candidates, 0),
             "turn_steps": (self.turn_steps, 2),
+            "rank_top_k": (self.rank_top_k, 0),
             "refine_top_k": (self.refine_top_k, 0),
             "icp_iterations": (self.icp_iterations, 1),
             "max_observed_points": (self.max_observed_points, 3),
