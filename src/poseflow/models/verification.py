@@ -132,9 +132,10 @@ def rank_hypotheses(
     The estimator's own score (geometric agreement of a few points) ranks hypotheses that
     differ by a near-symmetry poorly; the verifier's depth, silhouette and appearance terms
     rank them on what the image shows: all on the coarse grid of
-    :meth:`~poseflow.verify.PoseVerifier.verify`'s first pass, then the best
-    ``config.rank_top_k`` of them again on the full grid, which resolves thin parts (a
-    handle) that decide between turns of a nearly symmetric object. The chosen one is then
+    :meth:`~poseflow.verify.PoseVerifier.verify`'s first pass and, where
+    ``config.rank_top_k`` is positive, the best ``rank_top_k`` of them again on the full grid,
+    which resolves thin parts (a handle) that decide between turns of a nearly symmetric
+    object. The chosen one is then
     expanded with its near-symmetric candidates and is the incumbent of the verifier's test.
 
     Args:
