@@ -15,6 +15,7 @@ from poseflow.flows.dit import (
     DiTBlock,
     PointDiT,
     PointDiTConfig,
+    TanhGELU,
     sinusoidal_time_embedding,
 )
 from poseflow.flows.positional import PointPositionalEncoder
@@ -292,3 +293,31 @@ def test_torch_compile_matches_eager_on_cpu():
         for kwargs in ({"num_query": 5}, {"num_query": 5, "mask": mask}):
             expected = m(x, t, condition=c, **kwargs)
             assert torch.allclose(compiled(x, t, condition=c, **kwargs), expected, atol=1e-5)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@settings(max_examples=30, deadline=None)
+@given(scale=st.floats(0.01, 30.0), seed=st.integers(0, 2**31 - 1))
+def test_tanh_gelu_is_pytorchs_tanh_gelu(dtype, scale, seed):
+    """The sigmoid form equals F.gelu(approximate="tanh") to rounding; with gradients it is F.gelu."""
+    g = torch.Generator().manual_seed(seed)
+    x = torch.randn(3, 5, 64, generator=g, dtype=dtype) * scale
+    expected = torch.nn.functional.gelu(x, approximate="tanh")
+    with torch.no_grad():
+        fast = TanhGELU()(x)
+    tol = 1e-6 if dtype == torch.float32 else 1e-12
+    assert fast.dtype == dtype and torch.allclose(fast, expected, rtol=tol, atol=tol)
+    leaf = x.clone().requires_grad_(True)
+    out = TanhGELU()(leaf)
+    assert torch.equal(out, torch.nn.functional.gelu(leaf, approximate="tanh"))
+    out.sum().backward()
+    assert leaf.grad is not None and torch.isfinite(leaf.grad).all()
+
+
+def test_dit_blocks_load_weights_saved_with_nn_gelu():
+    """Replacing nn.GELU(approximate="tanh") left the state dict's keys as they were."""
+    block = DiTBlock(16, num_heads=2)
+    assert isinstance(block.mlp[1], TanhGELU)
+    assert sorted(k for k in block.state_dict() if k.startswith("mlp.")) == [
+        "mlp.0.bias", "mlp.0.weight", "mlp.2.bias", "mlp.2.weight",
+    ]
