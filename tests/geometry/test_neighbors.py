@@ -170,3 +170,34 @@ def test_bad_inputs():
         NeighborIndex(ref).query(torch.rand(2, 4, 3), max_distance=0.0)
     with pytest.raises(ShapeError):
         NeighborTracker(NeighborIndex(ref), max_distance=0.1).query(torch.rand(1, 4, 3))
+
+
+@FIXTURES
+@given(seed=seeds, k=st.integers(1, 4))
+def test_repeated_batch_items_share_a_tree_and_answer_as_their_own(seed, k, dtype):
+    """One cloud repeated (one hypothesis per row): each row answers with its own indices."""
+    g = torch.Generator().manual_seed(seed)
+    M, N = 700, 300
+    cloud = _cloud(g, 1, M, dtype) + 1.0
+    other = _cloud(g, 1, M, dtype) + 1.0
+    # rows 0, 2, 3 the same cloud and mask; row 4 the same cloud with another mask; row 1 another
+    reference = torch.cat((cloud, other, cloud, cloud, cloud))
+    mask = (torch.rand(1, M, generator=g) < 0.8).repeat(5, 1)
+    mask[4] = torch.rand(M, generator=g) < 0.5
+    index = NeighborIndex(reference, mask, backend="kdtree")
+    roots = index._tracker_tree()[2]
+    assert roots[0] == roots[2] == roots[3] and len({int(roots[i]) for i in (0, 1, 4)}) == 3
+    query = _cloud(g, 5, N, dtype) + 1.0
+    dist, idx = index.query(query, k=k, max_distance=0.2)
+    expected = _brute(query, reference, k, mask, 0.2)
+    _check(dist, idx, query, reference, expected, mask, 1e-6 if dtype == torch.float32 else 1e-12)
+    tracker = NeighborTracker(NeighborIndex(reference, mask), max_distance=0.05)
+    for items in (None, torch.tensor([3, 4, 1])):
+        sub = query if items is None else query[items]
+        dist, idx = tracker.query(sub, items)
+        fresh = NeighborIndex(reference if items is None else reference[items],
+                              mask if items is None else mask[items], backend="brute")  # fmt: skip
+        expected_dist, expected_idx = fresh.query(sub, k=1, max_distance=0.05)
+        found = torch.isfinite(expected_dist)
+        assert torch.equal(torch.isfinite(dist), found)
+        assert (idx == expected_idx)[found].float().mean() > 0.999  # ties aside

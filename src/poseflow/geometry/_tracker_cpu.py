@@ -288,7 +288,8 @@ def knn(tree, root, q, items, bound2, M, out_d, out_i):  # type: ignore[no-untyp
         bound2: only points at a squared distance below this are returned.
         M: reference points per batch item.
         out_d: float64 ``(B', N, k)``, out: ascending distances, ``inf`` where missing.
-        out_i: int64 ``(B', N, k)``, out: indices into the item's ``M`` points, 0 where missing.
+        out_i: int64 ``(B', N, k)``, out: indices into the item's ``M`` points, 0 where missing
+            (an item may search the tree of an earlier item with the same points).
     """
     k = out_d.shape[2]
     best_d2 = np.empty(k)
@@ -306,7 +307,7 @@ def knn(tree, root, q, items, bound2, M, out_d, out_i):  # type: ignore[no-untyp
             for r in range(k):
                 if best_d2[r] < math.inf:
                     out_d[j, n, r] = math.sqrt(best_d2[r])
-                    out_i[j, n, r] = best_i[r] - b * M
+                    out_i[j, n, r] = best_i[r] % M  # the item's own tree or a twin's
                 else:
                     out_d[j, n, r] = math.inf
                     out_i[j, n, r] = 0

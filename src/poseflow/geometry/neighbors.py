@@ -193,6 +193,9 @@ class NeighborIndex:
     def _tracker_tree(self) -> tuple[np.ndarray, tuple[np.ndarray, ...], np.ndarray]:
         """The reference as float64 columns and the compiled tracker's k-d trees, built once.
 
+        Batch items with the same points and mask (one model cloud repeated for each
+        hypothesis) share one tree, whose answers are the columns of the first such item.
+
         Returns ``(columns, tree, root)`` as :func:`poseflow.geometry._tracker_cpu.track`
         takes them.
         """
@@ -206,8 +209,15 @@ class NeighborIndex:
                 if self.reference_mask is None
                 else self.reference_mask.cpu().numpy()
             )
-            perm, points, root, nodes = build_trees(columns, valid, M, LEAF_SIZE)
-            self._tracker = (columns, (perm, points, *nodes), root)
+            ref = self._reference64()
+            first: dict[bytes, int] = {}
+            owner = np.array(
+                [first.setdefault(ref[b].tobytes() + valid[b].tobytes(), b) for b in range(B)],
+                dtype=np.int64,
+            )
+            own = valid & (owner == np.arange(B))[:, None]  # trees of the first items only
+            perm, points, root, nodes = build_trees(columns, own, M, LEAF_SIZE)
+            self._tracker = (columns, (perm, points, *nodes), root[owner])
         return self._tracker
 
     def _query_kdtree(
@@ -384,7 +394,7 @@ class NeighborTracker:
         item_ids = np.arange(B) if items is None else items.cpu().numpy().astype(np.int64)
         dist, nearest = self.query_columns(q, item_ids)
         out = torch.from_numpy(dist).to(points.dtype).unsqueeze(-1)
-        idx = np.where(np.isfinite(dist), nearest - item_ids[:, None] * M, 0)
+        idx = np.where(np.isfinite(dist), nearest % M, 0)  # a column of this item or a twin
         return out, torch.from_numpy(idx).unsqueeze(-1)
 
     def query_columns(self, q: np.ndarray, items: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -392,7 +402,9 @@ class NeighborTracker:
 
         Always searches the compiled k-d tree (whatever the backend and the size), and answers
         with columns of :meth:`NeighborIndex.columns`: item ``b``'s reference point ``m`` is
-        column ``b * M + m``, the last column (at infinity) stands for none.
+        column ``b * M + m``, the last column (at infinity) stands for none. An item whose
+        points and mask equal those of an earlier item is answered with that item's columns
+        (the same coordinates; point ``m`` is the column modulo ``M``).
 
         Args:
             q: finite query points, coordinates first: C-contiguous ``(3, B', N)``, float32 or
