@@ -299,7 +299,7 @@ def test_torch_compile_matches_eager_on_cpu():
 @settings(max_examples=30, deadline=None)
 @given(scale=st.floats(0.01, 30.0), seed=st.integers(0, 2**31 - 1))
 def test_tanh_gelu_is_pytorchs_tanh_gelu(dtype, scale, seed):
-    """The sigmoid form equals F.gelu(approximate="tanh") to rounding; with gradients it is F.gelu."""
+    """The sigmoid form equals F.gelu(approximate="tanh") to rounding; F.gelu with gradients."""
     g = torch.Generator().manual_seed(seed)
     x = torch.randn(3, 5, 64, generator=g, dtype=dtype) * scale
     expected = torch.nn.functional.gelu(x, approximate="tanh")
@@ -319,5 +319,8 @@ def test_dit_blocks_load_weights_saved_with_nn_gelu():
     block = DiTBlock(16, num_heads=2)
     assert isinstance(block.mlp[1], TanhGELU)
     assert sorted(k for k in block.state_dict() if k.startswith("mlp.")) == [
-        "mlp.0.bias", "mlp.0.weight", "mlp.2.bias", "mlp.2.weight",
+        "mlp.0.bias",
+        "mlp.0.weight",
+        "mlp.2.bias",
+        "mlp.2.weight",
     ]

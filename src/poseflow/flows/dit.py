@@ -201,12 +201,11 @@ class TanhGELU(nn.Module):
     _SLOPE = 2 * math.sqrt(2 / math.pi)  # 2 √(2/π)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """``GELU_tanh(x)``, the shape and dtype of ``x``."""
         if x.device.type != "cpu" or (torch.is_grad_enabled() and x.requires_grad):
             return F.gelu(x, approximate="tanh")
         # 2z = x (2√(2/π) + 2√(2/π) 0.044715 x²), built in place from one new tensor
-        two_z = torch.addcmul(
-            x.new_tensor(self._SLOPE), x, x, value=self._SLOPE * 0.044715
-        ).mul_(x)
+        two_z = torch.addcmul(x.new_tensor(self._SLOPE), x, x, value=self._SLOPE * 0.044715).mul_(x)
         return two_z.sigmoid_().mul_(x)
 
 
