@@ -165,17 +165,24 @@ def rank_hypotheses(
         crop_size=verifier.config.coarse_crop_size,
     )  # fmt: skip
     total = torch.where(score.valid & mask, score.total, -torch.inf)
+    best = total.argmax(1)
     top = min(verifier.config.rank_top_k, total.shape[1])
-    if top:
+    if top > 1:
         idx = total.topk(top, dim=1).indices  # (B, top)
-        kept = torch.isfinite(total.gather(1, idx))
+        kept = torch.isfinite(total.gather(1, idx)) & estimate.valid[:, None]
+        # the estimate leads the batch, unscored, so that the tolerances scaled by the first
+        # hypothesis' depth are those of the coarse pass
         fine = verifier.score(
-            rgb, depth, K, masks, ids, poses.gather(1, idx[..., None, None].expand(-1, -1, 4, 4)),
-            kept, boxes=boxes,
+            rgb, depth, K, masks, ids,
+            torch.cat((estimate.poses[:, None],
+                       poses.gather(1, idx[..., None, None].expand(-1, -1, 4, 4))), dim=1),
+            torch.cat((torch.zeros_like(kept[:, :1]), kept), dim=1), boxes=boxes,
         )  # fmt: skip
-        fine_total = torch.where(fine.valid & kept, fine.total, -torch.inf)
-        total = torch.full_like(total, -torch.inf).scatter(1, idx, fine_total)
-    best = torch.where(estimate.valid, total.argmax(1), 0)
+        fine_total = torch.where(fine.valid[:, 1:] & kept, fine.total[:, 1:], -torch.inf)
+        fine_best = idx.gather(1, fine_total.argmax(1, keepdim=True))[:, 0]
+        # where the full grid sees none of them, the coarse choice stands
+        best = torch.where(torch.isfinite(fine_total).any(1), fine_best, best)
+    best = torch.where(estimate.valid, best, 0)
     rows = torch.arange(B, device=poses.device)
     swapped = poses.clone()
     swapped[rows, 0], swapped[rows, best] = poses[rows, best], poses[rows, 0]

@@ -58,7 +58,7 @@ class VerifierConfig:
         rank_top_k: hypotheses of an instance that
             :func:`~poseflow.models.verification.rank_hypotheses` scores again on the full grid,
             the best of its coarse scoring (the coarse grid barely resolves a thin part such as
-            a mug's handle); 0 ranks on the coarse grid alone. 4 raised devbench's mug by 0.03
+            a mug's handle); 0 or 1 ranks on the coarse grid alone. 4 raised devbench's mug by 0.03
             AR and lowered a textured cylinder of another mesh set by 0.05 (three seeds each),
             for about 50 ms per image, so it is off by default.
         refine_top_k: candidates (besides the estimate) refined by ICP and scored again, the best
