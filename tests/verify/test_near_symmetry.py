@@ -11,10 +11,16 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from poseflow.data.objects import ObjectModel
-from poseflow.errors import DegenerateInputError
+from poseflow.errors import DegenerateInputError, ValueRangeError
 from poseflow.geometry.se3 import random_rotation
 from poseflow.render.mesh import TexturedMesh
-from poseflow.verify import axis_angle_matrix, near_symmetries, revolution_axis, rotation_distance
+from poseflow.verify import (
+    axis_angle_matrix,
+    box_turns,
+    near_symmetries,
+    revolution_axis,
+    rotation_distance,
+)
 
 
 def box_model(size=(0.1, 0.06, 0.03), **kw: object) -> ObjectModel:
@@ -142,3 +148,49 @@ def test_flat_object_uses_its_principal_axes() -> None:
     m = ObjectModel.from_mesh(quad, num_points=512, dtype=torch.float64)
     found = near_symmetries(m.points, m.normals, m.diameter, min_overlap=0.9)
     assert len(found) == 3  # the rectangle's three half-turns; no axis of revolution
+
+
+def _cube_group(R: torch.Tensor) -> None:
+    """``R`` ``(23, 3, 3)`` with the identity: the 24 signed permutations, closed under ``@``."""
+    assert torch.allclose(R.abs().sum(-1), torch.ones(23, 3, dtype=R.dtype), atol=1e-3)
+    group = torch.cat((torch.eye(3, dtype=R.dtype)[None], R.round()))
+    keys = {tuple(m.flatten().tolist()) for m in group}
+    assert len(keys) == 24
+    assert all(tuple((a @ b).flatten().tolist()) in keys for a in group for b in group)
+
+
+@given(seed=st.integers(0, 2**31 - 1), double=st.booleans(), size=st.floats(0.3, 1.0))
+def test_box_turns_are_the_cube_groups_of_the_model_and_principal_frames(
+    seed: int, double: bool, size: float
+) -> None:
+    dtype = torch.float64 if double else torch.float32
+    g = torch.Generator().manual_seed(seed)
+    R0 = random_rotation(1, generator=g, dtype=torch.float64)[0]
+    extents = torch.tensor([size, 1.7 * size, 3.0 * size], dtype=torch.float64)  # distinct
+    local = torch.randn(400, 3, generator=g, dtype=torch.float64) * extents
+    points = (local @ R0.T + torch.randn(3, generator=g, dtype=torch.float64)).to(dtype)
+    T = box_turns(points)
+    assert T.dtype == dtype and 23 <= len(T) <= 46
+    T = T.double()
+    R = T[:, :3, :3]
+    tol = 1e-4 if double else 1e-3
+    eye = torch.eye(3, dtype=torch.float64).expand(len(T), 3, 3)
+    torch.testing.assert_close(R @ R.transpose(1, 2), eye, atol=tol, rtol=0)
+    # each keeps the centroid
+    centre = points.double().mean(0)
+    torch.testing.assert_close(R @ centre + T[:, :3, 3], centre.expand(len(T), 3),
+                               atol=10 * tol, rtol=0)  # fmt: skip
+    _cube_group(R[:23])  # the model frame's turns
+    # the rest are the principal frame's, none within 5 degrees of a model-frame turn
+    _, axes = torch.linalg.eigh(torch.cov(points.double().T))
+    principal = axes.T @ R[23:] @ axes
+    assert torch.allclose(principal.abs().sum(-1), torch.ones_like(principal[..., 0]), atol=1e-3)
+    assert bool((rotation_distance(R[23:, None], R[None, :23]) >= 5.0).all())
+    # a box on the model's axes has one frame only
+    corners = torch.cartesian_prod(*[torch.stack((-e, e)) for e in extents]).to(dtype)
+    assert len(box_turns(corners)) == 23
+
+
+def test_box_turns_need_three_points() -> None:
+    with pytest.raises(ValueRangeError, match="at least 3"):
+        box_turns(torch.zeros(2, 3))

@@ -23,7 +23,10 @@ from poseflow.verify import (
 
 K = torch.tensor([[320.0, 0.0, 79.5], [0.0, 320.0, 59.5], [0.0, 0.0, 1.0]])
 W, H = 160, 120
-CONFIG = VerifierConfig(num_points=2048, crop_size=48, coarse_crop_size=24, turn_steps=4)
+# the first pass alone: the global search of low scores is tested on its own
+CONFIG = VerifierConfig(
+    num_points=2048, crop_size=48, coarse_crop_size=24, turn_steps=4, search_below=0.0
+)
 
 
 def half_turn(axis: list[float]) -> torch.Tensor:
@@ -344,3 +347,44 @@ def test_prepared_objects_are_cached_on_disk(box: ObjectModel, tmp_path: Path) -
     with pytest.warns(UserWarning, match="not cached"):
         kept = verifier.prepare(1, box, folder=blocked / "obj")
     assert verifier.objects[1] is kept
+
+
+def test_search_finds_a_pose_turned_far_from_every_candidate(
+    verifier: PoseVerifier, scene: dict[str, torch.Tensor]
+) -> None:
+    true = box_pose()
+    turn = torch.eye(4)
+    turn[:3, :3] = axis_angle_matrix(torch.tensor([0.3, 1.0, 0.2]), torch.tensor(2.0))
+    wrong = (true @ turn)[None]
+    args = (scene["rgb"], scene["depth"], K, scene["masks"], [1], wrong)
+    plain = verifier.verify(*args)
+    assert float(rotation_distance(plain.poses[0, :3, :3], true[:3, :3])) > 30
+    searching = PoseVerifier(VerifierConfig(**{**CONFIG.to_dict(), "search_below": 1.0}))
+    searching.objects = verifier.objects
+    out = searching.verify(*args)
+    H = plain.hypotheses.shape[1]
+    assert out.hypotheses.shape[1] == H + CONFIG.search_top_k
+    assert int(out.chosen[0]) >= H  # one of the searched turns
+    torch.testing.assert_close(out.hypotheses[0, out.chosen[0]], out.poses[0])
+    # ICP from the nearest turn lands in the truth's basin (the box's faces let it slide a bit)
+    assert float(rotation_distance(out.poses[0, :3, :3], true[:3, :3])) < 20.0
+    assert float(out.scores[0]) > float(plain.scores[0]) + 0.1
+    # a right pose survives its own search
+    kept = searching.verify(scene["rgb"], scene["depth"], K, scene["masks"], [1], true[None])
+    assert int(kept.chosen[0]) < H
+    assert float(rotation_distance(kept.poses[0, :3, :3], true[:3, :3])) < 1.0
+
+
+def test_search_pads_the_instances_it_does_not_search(
+    verifier: PoseVerifier, scene: dict[str, torch.Tensor]
+) -> None:
+    config = VerifierConfig(**{**CONFIG.to_dict(), "search_below": 1e-3})  # searches nothing
+    quiet = PoseVerifier(config)
+    quiet.objects = verifier.objects
+    args = (scene["rgb"], scene["depth"], K, scene["masks"], [1], box_pose()[None])
+    out, plain = quiet.verify(*args), verifier.verify(*args)
+    H = plain.hypotheses.shape[1]
+    assert out.hypotheses.shape[1] == H + config.search_top_k
+    assert torch.equal(out.poses, plain.poses) and torch.equal(out.chosen, plain.chosen)
+    assert not out.score.valid[:, H:].any() and torch.equal(out.score.total[:, :H],
+                                                             plain.score.total)  # fmt: skip

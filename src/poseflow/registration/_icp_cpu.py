@@ -4,9 +4,9 @@ An ICP iteration moves the source by the current transform, pairs every point wi
 target point (:meth:`poseflow.geometry.neighbors.NeighborTracker.query_columns`) and solves
 Procrustes on the pairs in range. Here the moving and, after the search, the pairing with the
 weighted moments that Procrustes needs (:func:`poseflow.registration.procrustes.procrustes_moments`
-with 0/1 weights) are each one pass over the points in float64, so that an iteration costs a few
-small calls instead of some forty tensor operations; only the 3 x 3 SVDs and the stopping rule
-stay in torch.
+with 0/1 weights) are each one pass over the points in float64, and the solve from those moments
+is one pass over the batch, so that an iteration costs a few small calls instead of some sixty
+tensor operations.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-__all__ = ["move", "pair_moments"]
+__all__ = ["move", "pair_moments", "rigid_from_moments"]
 
 _jit = numba.njit(cache=True, nogil=True)
 
@@ -94,3 +94,72 @@ def pair_moments(  # type: ignore[no-untyped-def]
             mu[j, 1, c] = md[c]
             for r in range(3):
                 cov[j, r, c] = acc[r, c] * scale
+
+
+@_jit
+def rigid_from_moments(mu, cov, stats, eps, T, ok):  # type: ignore[no-untyped-def]
+    """Procrustes from the moments of :func:`pair_moments`, where the rotation is unique.
+
+    :func:`poseflow.registration.procrustes.is_well_posed` and
+    :func:`~poseflow.registration.procrustes.rigid_from_svd` (rigid) with 0/1 weights: the
+    rotation ``U diag(1, 1, d) Vh`` from the SVD ``U diag(S) Vh`` of the cross-covariance, with
+    ``d`` the sign of ``det U det Vh``, and the translation ``mu_d - R mu_s``.
+
+    Args:
+        mu: float64 ``(B', 2, 3)``, the source and target centroids.
+        cov: float64 ``(B', 3, 3)``, the cross-covariance.
+        stats: float64 ``(B', 2)``, the number of pairs first.
+        eps: the machine epsilon of the points' dtype.
+        T: float64 ``(B', 4, 4)``, the current transforms; overwritten with the solution where
+            ``ok``.
+        ok: bool ``(B',)``, out: at least 3 pairs, the cross-covariance of rank >= 2 (beyond the
+            rounding of the points' dtype) and a finite SVD.
+    """
+    a = np.empty((3, 3))
+    R = np.empty((3, 3))
+    for j in range(cov.shape[0]):
+        finite = True
+        for r in range(3):
+            for c in range(3):
+                a[r, c] = cov[j, r, c]
+                finite = finite and np.isfinite(cov[j, r, c])
+        ok[j] = False
+        if not finite:
+            continue
+        U, S, Vh = np.linalg.svd(a)
+        ulp2 = eps**2 * (
+            (mu[j, 0, 0] ** 2 + mu[j, 0, 1] ** 2 + mu[j, 0, 2] ** 2)
+            + (mu[j, 1, 0] ** 2 + mu[j, 1, 1] ** 2 + mu[j, 1, 2] ** 2)
+        )
+        ok[j] = (
+            stats[j, 0] >= 3
+            and S[1] > eps**0.5 * S[0]
+            and S[0] > ulp2
+            and np.isfinite(S[0])
+            and np.isfinite(S[1])
+            and np.isfinite(S[2])
+        )
+        if not ok[j]:
+            continue
+        d = -1.0 if _det3(U) * _det3(Vh) < 0 else 1.0
+        for r in range(3):
+            for c in range(3):
+                R[r, c] = U[r, 0] * Vh[0, c] + U[r, 1] * Vh[1, c] + d * U[r, 2] * Vh[2, c]
+        for r in range(3):
+            T[j, r, 3] = mu[j, 1, r] - (
+                R[r, 0] * mu[j, 0, 0] + R[r, 1] * mu[j, 0, 1] + R[r, 2] * mu[j, 0, 2]
+            )
+            for c in range(3):
+                T[j, r, c] = R[r, c]
+            T[j, 3, r] = 0.0
+        T[j, 3, 3] = 1.0
+
+
+@_jit
+def _det3(M):  # type: ignore[no-untyped-def]
+    """The determinant of a 3 x 3 matrix, the triple product of its rows."""
+    return (
+        (M[0, 1] * M[1, 2] - M[0, 2] * M[1, 1]) * M[2, 0]
+        + (M[0, 2] * M[1, 0] - M[0, 0] * M[1, 2]) * M[2, 1]
+        + (M[0, 0] * M[1, 1] - M[0, 1] * M[1, 0]) * M[2, 2]
+    )

@@ -10,10 +10,11 @@ On the CPU the batch shrinks as instances stop, and an iteration is two compiled
 points (:mod:`poseflow.registration._icp_cpu`: moving the source; pairing it with the moments
 Procrustes needs) around a :class:`~poseflow.geometry.neighbors.NeighborTracker` search, which
 searches its k-d tree again only for the points whose nearest neighbour may have changed (same
-answers); the 3 x 3 SVDs and the stopping rule run as tensor ops on the calling thread (see
-:func:`poseflow.registration._threads.serial_cpu_ops`). On CUDA, where small clouds make ICP
-launch-bound, every iteration is the same masked step on a brute-force search, captured once as
-CUDA graphs and replayed (same results as the early-exit loop).
+answers), then a compiled pass over the batch that solves Procrustes from the moments; the
+stopping rule and the bookkeeping are numpy, computing as the tensor ops would (float32 and
+float64 points need one tensor op per iteration, a square root). On CUDA, where small clouds
+make ICP launch-bound, every iteration is the same masked step on a brute-force search, captured
+once as CUDA graphs and replayed (same results as the early-exit loop).
 """
 
 from __future__ import annotations
@@ -258,21 +259,52 @@ class _State:
     valid: torch.Tensor  # (B,) bool
 
 
-@dataclass
-class _Moments:
-    """Procrustes moments of the current pairs, float64: the centroids and cross-covariance."""
+class _Pairs(NamedTuple):
+    """The pairs in range of some batch items under their transforms, as numpy arrays (CPU)."""
 
-    mu_s: torch.Tensor  # (B, 3)
-    mu_d: torch.Tensor  # (B, 3)
-    cov: torch.Tensor  # (B, 3, 3)
+    inliers: np.ndarray  # (B', N) bool
+    fitness: np.ndarray  # (B',) in the points' dtype (see _Arithmetic)
+    rmse: np.ndarray  # (B',) likewise
+    stats: np.ndarray  # (B', 2) float64: the number of pairs and their sum of squared distances
+    mu: np.ndarray  # (B', 2, 3) float64: the source and target centroids of the pairs
+    cov: np.ndarray  # (B', 3, 3) float64: their cross-covariance
 
-    def select(self, sel: slice | torch.Tensor) -> _Moments:
-        """The moments of the batch items ``sel``."""
-        return _Moments(self.mu_s[sel], self.mu_d[sel], self.cov[sel])
+    def select(self, keep: np.ndarray) -> _Pairs:
+        """The pairs of the batch items where ``keep`` ``(B',)`` is True."""
+        return _Pairs(*(x[keep] for x in self))
 
-    def put(self, items: torch.Tensor, new: _Moments) -> None:
-        """Overwrite the moments of the batch items ``items`` with ``new``."""
-        self.mu_s[items], self.mu_d[items], self.cov[items] = new.mu_s, new.mu_d, new.cov
+
+class _Arithmetic:
+    """Tensor arithmetic in a floating-point dtype, reproduced on numpy arrays.
+
+    Calling it rounds an array to the dtype; applied after each numpy operation, it gives what
+    the tensor operation in that dtype gives. numpy computes in float16, float32 and float64
+    itself (the rounding then only converts); bfloat16 is computed in float32 and rounded by
+    torch, as torch's CPU kernels compute it. Square roots are torch's (:meth:`sqrt`).
+    """
+
+    def __init__(self, dtype: torch.dtype) -> None:
+        self.dtype = dtype
+        self.eps = torch.finfo(dtype).eps
+        bf16 = dtype == torch.bfloat16
+        self.array_dtype = (
+            np.dtype(np.float32) if bf16 else torch.empty(0, dtype=dtype).numpy().dtype
+        )
+
+    def __call__(self, x: np.ndarray | float) -> np.ndarray:
+        """``x`` rounded to the dtype, as an array of :attr:`array_dtype`."""
+        if self.dtype != torch.bfloat16:
+            return np.asarray(x, dtype=self.array_dtype)
+        return torch.from_numpy(np.asarray(x)).to(self.dtype).to(torch.float32).numpy()
+
+    def sqrt(self, x: np.ndarray) -> np.ndarray:
+        """The square roots of ``x`` (values of the dtype) as the tensor op computes them.
+
+        Its CPU kernels are not always correctly rounded (numpy's are), and the stopping rule
+        compares RMSEs.
+        """
+        root = torch.from_numpy(x).to(self.dtype).sqrt()
+        return root.to(torch.float32).numpy() if self.dtype == torch.bfloat16 else root.numpy()
 
 
 @dataclass
@@ -334,36 +366,31 @@ class _Problem:
         )
 
     def evaluate_cpu(
-        self, T: torch.Tensor, tracker: NeighborTracker, items: torch.Tensor | None = None
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, _Moments]:
-        """Pairs under ``T`` on the CPU, for the batch ``items`` only if given.
+        self, T: np.ndarray, items: np.ndarray, tracker: NeighborTracker, real: _Arithmetic
+    ) -> _Pairs:
+        """The pairs in range of the batch items ``items`` ``(B',)`` under ``T`` ``(B', 4, 4)``.
 
-        Returns inliers ``(B', N)``, fitness and inlier RMSE ``(B',)`` and the Procrustes
-        moments of the pairs in range.
+        ``T`` holds values of the points' dtype; the fitness and RMSE are computed as tensor ops
+        in that dtype would compute them (``real``).
         """
         from poseflow.registration._icp_cpu import move, pair_moments  # numba: when needed
 
-        source = self.source64()
-        valid = self.source_valid.numpy()
-        ids = np.arange(self.B) if items is None else items.numpy()
-        Bq, N = len(ids), source.shape[1]
+        source, valid = self.source64(), self.source_valid.numpy()
+        Bq, N = len(items), source.shape[1]
         q = np.empty((3, Bq, N))
-        move(source, T.detach().to(torch.float64).numpy(), ids, q)
-        dist, nearest = tracker.query_columns(q, ids)
+        move(source, T.astype(np.float64), items, q)
+        dist, nearest = tracker.query_columns(q, items)
         inliers = np.empty((Bq, N), dtype=bool)
         stats, mu, cov = np.empty((Bq, 2)), np.empty((Bq, 2, 3)), np.empty((Bq, 3, 3))
         pair_moments(
-            source, valid, self.index.columns(), nearest, dist, ids, tracker.max_distance,
+            source, valid, self.index.columns(), nearest, dist, items, tracker.max_distance,
             inliers, stats, mu, cov,
         )  # fmt: skip
-        count, d2 = torch.from_numpy(stats).to(T.dtype).unbind(-1)
-        sel = slice(None) if items is None else items
-        fitness = count / self.n_valid[sel].clamp_min(1)
-        rmse = (d2 / count.clamp_min(1)).sqrt()
-        moments = _Moments(
-            torch.from_numpy(mu[:, 0]), torch.from_numpy(mu[:, 1]), torch.from_numpy(cov)
-        )
-        return torch.from_numpy(inliers), fitness, rmse, moments
+        count, d2 = real(stats).T
+        n_valid = real(valid[items].sum(-1))
+        fitness = real(count / np.maximum(n_valid, 1))
+        rmse = real.sqrt(real(d2 / np.maximum(count, 1)))
+        return _Pairs(inliers, fitness, rmse, stats, mu, cov)
 
     def source64(self) -> np.ndarray:
         """The source as a float64 array ``(B, N, 3)``, made once."""
@@ -411,56 +438,52 @@ def _scale(problem: _Problem, T: torch.Tensor, scale: _Scale) -> _State:
 
 
 def _run_scale(problem: _Problem, T: torch.Tensor, scale: _Scale) -> _State:
-    """Iterate ICP at one correspondence distance from ``T`` on the CPU; the state at the end."""
+    """Iterate ICP at one correspondence distance from ``T`` on the CPU; the state at the end.
+
+    The transforms, fitness and RMSE are held in the points' dtype and the stopping rule is
+    :func:`_goes_on`'s, all as numpy arrays (see :class:`_Arithmetic`).
+    """
+    from poseflow.registration._icp_cpu import rigid_from_moments  # numba: when needed
+
     distance, max_iterations, relative_fitness, relative_rmse = scale
-    T = T.clone()
-    dtype = T.dtype
+    real = _Arithmetic(T.dtype)
+    relative_fitness, relative_rmse = real(relative_fitness), real(relative_rmse)
     tracker = NeighborTracker(problem.index, max_distance=distance)
-    inliers, fitness, rmse, moments = problem.evaluate_cpu(T, tracker)
     B = problem.B
-    iterations = torch.zeros(B, dtype=torch.int64)
-    solvable = torch.ones(B, dtype=torch.bool)
-    active = inliers.sum(-1) >= 3
-    n_active = int(active.sum())
+    items = np.arange(B)
+    T_now = real(T.detach().to(torch.float64).numpy().copy())  # (B, 4, 4)
+    now = problem.evaluate_cpu(T_now, items, tracker, real)
+    inliers, fitness, rmse = now.inliers, now.fitness, now.rmse
+    iterations = np.zeros(B, dtype=np.int64)
+    solvable = np.ones(B, dtype=bool)
+    going = now.stats[:, 0] >= 3
     for _ in range(max_iterations):
-        if n_active == 0:
+        if not going.any():
             break
         # Only the instances still iterating are solved and searched.
-        items = None if n_active == B else active.nonzero()[:, 0]
-        sel = slice(None) if items is None else items
-        now = moments.select(sel)
-        U, S, Vh = torch.linalg.svd(now.cov)
-        ok = is_well_posed(inliers[sel].to(dtype), now.mu_s, now.mu_d, S)
-        T_new = rigid_from_svd(now.mu_s, now.mu_d, U, S, Vh, ok, dtype=dtype)
-        T_new = torch.where(ok[:, None, None], T_new, T[sel])
-        new_inliers, new_fitness, new_rmse, new_moments = problem.evaluate_cpu(
-            T_new, tracker, items
+        items, now = items[going], now.select(going)
+        T_new = T_now[items].astype(np.float64)
+        ok = np.empty(len(items), dtype=bool)
+        rigid_from_moments(now.mu, now.cov, now.stats, real.eps, T_new, ok)
+        T_new = real(T_new)
+        new = problem.evaluate_cpu(T_new, items, tracker, real)
+        converged = (np.abs(real(new.fitness - fitness[items])) < relative_fitness) & (
+            np.abs(real(new.rmse - rmse[items])) < relative_rmse
         )
-        going = _goes_on(
-            ok, new_inliers, fitness[sel], rmse[sel], new_fitness, new_rmse, relative_fitness,
-            relative_rmse,
-        )  # fmt: skip
-        if items is None:
-            T, inliers, fitness, rmse, moments = (
-                T_new,
-                new_inliers,
-                new_fitness,
-                new_rmse,
-                new_moments,
-            )
-            iterations += ok
-            solvable &= ok
-            active = going
-        else:
-            T[items], inliers[items] = T_new, new_inliers
-            fitness[items], rmse[items] = new_fitness, new_rmse
-            moments.put(items, new_moments)
-            iterations[items] += ok
-            solvable[items] = ok
-            active[items] = going
-        n_active = int(going.sum())
-    valid = solvable & (inliers.sum(-1) >= 3)
-    return _State(T, inliers, fitness, rmse, iterations, valid)
+        going = ok & ~converged & (new.stats[:, 0] >= 3)
+        T_now[items], inliers[items] = T_new, new.inliers
+        fitness[items], rmse[items] = new.fitness, new.rmse
+        iterations[items] += ok
+        solvable[items] = ok
+        now = new
+    return _State(
+        T=torch.from_numpy(T_now).to(real.dtype),
+        inliers=torch.from_numpy(inliers),
+        fitness=torch.from_numpy(fitness).to(real.dtype),
+        rmse=torch.from_numpy(rmse).to(real.dtype),
+        iterations=torch.from_numpy(iterations),
+        valid=torch.from_numpy(solvable & (inliers.sum(-1) >= 3)),
+    )
 
 
 def _goes_on(

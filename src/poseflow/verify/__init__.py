@@ -54,6 +54,7 @@ from poseflow.verify.score import (
 from poseflow.verify.symmetry import (
     NearSymmetries,
     axis_angle_matrix,
+    box_turns,
     near_symmetries,
     revolution_axis,
     rotation_distance,
@@ -74,6 +75,7 @@ __all__ = [
     "axis_angle_matrix",
     "balance_colors",
     "box_sum",
+    "box_turns",
     "crop_intrinsics",
     "crop_observation",
     "depth_agreement",

@@ -63,6 +63,15 @@ class VerifierConfig:
             for about 50 ms per image, so it is off by default.
         refine_top_k: candidates (besides the estimate) refined by ICP and scored again, the best
             of the first, unrefined scoring.
+        search_below: an instance whose chosen pose scores below this is searched globally
+            (:meth:`~poseflow.verify.PoseVerifier.search`): the pose turned by the
+            :func:`~poseflow.verify.box_turns`, the best ``search_top_k`` of them refined by
+            ICP, one replacing the pose where it clearly explains the image better (the same
+            test as the candidates'); 0 searches nothing. A wrong pose (a bunny upside down)
+            scores well below a right one, which rarely scores under 0.45 (the estimators'
+            tenth percentile on devbench).
+        search_top_k: turned poses of a searched instance refined by ICP and scored again, the
+            best of their coarse scoring.
         refine_estimate: refine the estimate by the same ICP as the candidates before they are
             compared, so that they compete on equal terms (an estimator's own refinement may
             have used fewer points); the estimate is then returned refined where it is kept.
@@ -98,6 +107,8 @@ class VerifierConfig:
     turn_steps: int = 12
     rank_top_k: int = 0
     refine_top_k: int = 2
+    search_below: float = 0.45
+    search_top_k: int = 4
     refine_estimate: bool = True
     icp_distances: tuple[float, ...] = (0.1, 0.05, 0.02)
     icp_iterations: int = 20
@@ -115,6 +126,7 @@ class VerifierConfig:
             "turn_steps": (self.turn_steps, 2),
             "rank_top_k": (self.rank_top_k, 0),
             "refine_top_k": (self.refine_top_k, 0),
+            "search_top_k": (self.search_top_k, 1),
             "icp_iterations": (self.icp_iterations, 1),
             "max_observed_points": (self.max_observed_points, 3),
         }
@@ -151,6 +163,8 @@ class VerifierConfig:
         weights = (self.depth_weight, self.silhouette_weight, self.appearance_weight)
         if not all(math.isfinite(w) and w >= 0 for w in weights) or not sum(weights) > 0:
             raise ValueRangeError(f"the weights must be >= 0 and not all 0, got {weights}")
+        if not (isinstance(self.search_below, int | float) and 0 <= self.search_below <= 1):
+            raise ValueRangeError(f"search_below must lie in [0, 1], got {self.search_below!r}")
         if not 0 < self.significance < 1:
             raise ValueRangeError(f"significance must lie in (0, 1), got {self.significance}")
         if not 0 < self.min_self_overlap <= 1:

@@ -20,6 +20,7 @@ by one are the same answer, so they are never returned as candidates.
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass
 
@@ -33,6 +34,7 @@ from poseflow.registration.icp import multi_scale_icp
 __all__ = [
     "NearSymmetries",
     "axis_angle_matrix",
+    "box_turns",
     "near_symmetries",
     "revolution_axis",
     "rotation_distance",
@@ -108,6 +110,57 @@ def rotation_distance(R1: torch.Tensor, R2: torch.Tensor) -> torch.Tensor:
     """
     trace = (R1 * R2).sum(dim=(-2, -1))  # trace(R1^T R2)
     return torch.rad2deg(torch.acos(((trace - 1) / 2).clamp(-1.0, 1.0)))
+
+
+def box_turns(points: torch.Tensor, *, min_angle: float = 5.0) -> torch.Tensor:
+    """The turns that map a box about the points onto itself: the starts of a global search.
+
+    The 23 proper rotations of a cube other than the identity (the quarter and half turns
+    about its axes and the turns about its diagonals), taken about the points' centroid, in
+    two frames: the model's own axes (a mesh's designer usually aligns them with the object)
+    and the points' principal axes; a principal-frame turn within ``min_angle`` degrees of a
+    model-frame one is dropped. Applied to a pose (``pose @ turns``) they cover every
+    orientation coarsely (the 24 of one frame leave no rotation farther than about 63 degrees)
+    and hold the object's flips exactly.
+
+    Args:
+        points: surface points ``(N, 3)`` of the model, ``N >= 3``.
+        min_angle: turns of the two frames closer than this are one.
+
+    Returns:
+        Model-frame transforms ``(T, 4, 4)`` in the points' dtype, ``23 <= T <= 46``, the
+        model frame's first.
+
+    Example:
+        >>> box = torch.cartesian_prod(*[torch.tensor([-s, s]) for s in (3.0, 2.0, 1.0)])
+        >>> len(box_turns(box))  # its principal axes are the model's: one frame
+        23
+        >>> len(box_turns(box @ axis_angle_matrix(torch.tensor([1.0, 2, 3]), torch.tensor(0.5))))
+        46
+    """
+    check_tensor(points, "points", (None, 3), finite=True)
+    if points.shape[0] < 3:
+        raise ValueRangeError(f"box_turns needs at least 3 points, got {points.shape[0]}")
+    dtype, device = points.dtype, points.device
+    centre = points.to(torch.float64).mean(0)
+    centred = points.to(torch.float64) - centre
+    _, axes = torch.linalg.eigh(centred.T @ centred)
+    axes = axes * torch.linalg.det(axes)  # a proper frame: columns are the principal axes
+    cube = []
+    for perm in itertools.permutations(range(3)):
+        for signs in itertools.product((1.0, -1.0), repeat=3):
+            G = torch.zeros(3, 3, dtype=torch.float64)
+            G[range(3), perm] = torch.tensor(signs, dtype=torch.float64)
+            if torch.linalg.det(G) > 0 and not torch.equal(G, torch.eye(3, dtype=G.dtype)):
+                cube.append(G)
+    own = torch.stack(cube)  # (23, 3, 3)
+    principal = axes @ own @ axes.T
+    near = rotation_distance(principal[:, None], own[None]).amin(1) < min_angle
+    R = torch.cat((own, principal[~near]))
+    T = torch.eye(4, dtype=torch.float64).repeat(len(R), 1, 1)
+    T[:, :3, :3] = R
+    T[:, :3, 3] = centre - R @ centre
+    return T.to(dtype=dtype, device=device)
 
 
 def near_symmetries(

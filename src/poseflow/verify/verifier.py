@@ -29,7 +29,7 @@ from poseflow.registration.icp import multi_scale_icp
 from poseflow.verify.config import VerifierConfig
 from poseflow.verify.render import crop_intrinsics, crop_observation, render_points
 from poseflow.verify.score import VerifierScore, score_renderings, select_hypotheses
-from poseflow.verify.symmetry import near_symmetries
+from poseflow.verify.symmetry import box_turns, near_symmetries
 
 __all__ = ["PREPARED_FORMAT", "Hypotheses", "PoseVerifier", "PreparedObject", "Verification"]
 
@@ -146,9 +146,12 @@ class Verification:
         chosen: ``(B,)`` int64, the index of the chosen hypothesis in ``hypotheses`` (0: the
             estimate was kept).
         hypotheses: the finally scored hypotheses ``(B, H, 4, 4)``: the estimate (refined with
-            ``refine_estimate``), then the refined candidates.
+            ``refine_estimate``), then the refined candidates, then, with ``search_below`` on,
+            the ``search_top_k`` refined turns of :meth:`PoseVerifier.search` (invalid where the
+            instance was not searched).
         score: their scores.
-        statistic: each candidate's test statistic against the estimate ``(B, H)``.
+        statistic: each candidate's test statistic against the estimate ``(B, H)`` (a searched
+            turn's against the pose it was turned from).
     """
 
     poses: torch.Tensor
@@ -169,7 +172,8 @@ class PoseVerifier:
     all on a coarse grid, :meth:`refine` the best ``refine_top_k`` candidates (and, with
     ``refine_estimate``, the estimate) by ICP of the observed cloud onto the model, score the
     estimate and those again and keep the estimate unless a candidate beats it by more than the
-    score's own spread (:func:`~poseflow.verify.select_hypotheses`).
+    score's own spread (:func:`~poseflow.verify.select_hypotheses`); a chosen pose that still
+    scores below ``search_below`` is then searched over all orientations (:meth:`search`).
     Each step is public, so the verifier also scores hypotheses from anywhere.
 
     Args:
@@ -678,20 +682,128 @@ class PoseVerifier:
                 )
                 poses_k = torch.cat((poses_k[:, :first_refined], refined), dim=1)
         final = self.score(rgb, depth, Kd, masks, obj_ids, poses_k, mask_k, boxes=boxes)
-        index, stat = select_hypotheses(final, significance=self.config.significance)
-        rows = torch.arange(B, device=poses.device)
-        chosen_pose = poses_k[rows, index]
-        total = final.total[rows, index]
-        valid = final.valid[rows, index]
-        return Verification(
-            poses=chosen_pose,
-            scores=torch.where(valid, total.clamp(0, 1), 0.0),
-            valid=valid,
-            chosen=index,
-            hypotheses=poses_k,
-            score=final,
-            statistic=stat,
+        out = _chosen(poses_k, final, self.config.significance)
+        if self.config.search_below > 0:
+            out = self._search_low(out, rgb, depth, Kd, masks, obj_ids, observed, observed_mask)
+        return out
+
+    def search(
+        self,
+        rgb: torch.Tensor | None,
+        depth: torch.Tensor,
+        K: torch.Tensor,
+        masks: torch.Tensor,
+        obj_ids: Sequence[int] | torch.Tensor,
+        poses: torch.Tensor,
+        observed: torch.Tensor | None = None,
+        observed_mask: torch.Tensor | None = None,
+    ) -> Verification:
+        """Search every orientation for poses that explain the image poorly.
+
+        Each pose is turned by the :func:`~poseflow.verify.box_turns` of its object (the
+        flips and quarter turns about its own and its principal axes, and the turns about the
+        boxes' diagonals), the turns are scored on the coarse grid, the best ``search_top_k``
+        refined by ICP, scored on the full grid and tested against the pose as :meth:`verify`'s
+        candidates are. A pose upside down, which no near-symmetry or hypothesis of the
+        estimator reaches, is then found by ICP from the turn nearest to the truth.
+        :meth:`verify` runs this on its chosen poses that score below ``search_below``.
+
+        Args:
+            rgb: colour image ``(3, Hi, Wi)`` or None (depth and silhouette only).
+            depth: depth in metres ``(Hi, Wi)``.
+            K: intrinsics ``(3, 3)``.
+            masks: instance masks ``(B, Hi, Wi)`` bool.
+            obj_ids: object ids ``(B,)``, all prepared.
+            poses: the poses searched around ``(B, 4, 4)`` (already refined: they are
+                compared as they are).
+            observed: the observed clouds ``(B, M, 3)`` that ICP registers; lifted from
+                ``depth`` and ``masks`` when None.
+            observed_mask: ``(B, M)`` bool for ``observed``.
+
+        Returns:
+            A :class:`Verification` whose hypotheses are the pose, then the refined turns.
+        """
+        check_tensor(poses, "poses", ("B", 4, 4), finite=True)
+        B = poses.shape[0]
+        objects = self._objects(obj_ids, B)
+        Kd = K.to(poses.dtype)
+        turns_of = {id(o): box_turns(o.points).to(poses) for o in objects}
+        count = torch.tensor([len(turns_of[id(o)]) for o in objects], device=poses.device)
+        eye = torch.eye(4, dtype=poses.dtype, device=poses.device)
+        turns = torch.stack([  # (B, T, 4, 4), padded with the identity
+            torch.cat((t, eye.expand(int(count.max()) - len(t), 4, 4)))
+            for t in (turns_of[id(o)] for o in objects)
+        ])  # fmt: skip
+        padded = torch.arange(turns.shape[1], device=poses.device) >= count[:, None]
+        hyp = torch.cat((poses[:, None], poses[:, None] @ turns), dim=1)
+        boxes = self.crop_boxes(poses, obj_ids, Kd, masks)
+        first = self.score(
+            rgb, depth, Kd, masks, obj_ids, hyp,
+            torch.cat((torch.ones_like(padded[:, :1]), ~padded), dim=1), boxes=boxes,
+            crop_size=self.config.coarse_crop_size,
+        )  # fmt: skip
+        k = min(self.config.search_top_k, turns.shape[1])
+        cand = torch.where(first.valid[:, 1:], first.total[:, 1:], -torch.inf)
+        keep = cand.topk(k, dim=-1).indices + 1  # (B, k)
+        picked = hyp.gather(1, keep[..., None, None].expand(-1, -1, 4, 4))
+        mask = torch.cat((torch.ones_like(keep[:, :1], dtype=torch.bool),
+                          first.valid.gather(1, keep)), dim=1)  # fmt: skip
+        if observed is None:
+            observed, observed_mask = self.observed_cloud(depth, Kd, masks)
+        if observed.shape[1] >= 3:
+            picked = self.refine(picked, obj_ids, observed.to(poses.dtype), observed_mask)
+        hyp = torch.cat((poses[:, None], picked), dim=1)
+        final = self.score(rgb, depth, Kd, masks, obj_ids, hyp, mask, boxes=boxes)
+        return _chosen(hyp, final, self.config.significance)
+
+    def _search_low(
+        self,
+        out: Verification,
+        rgb: torch.Tensor | None,
+        depth: torch.Tensor,
+        K: torch.Tensor,
+        masks: torch.Tensor,
+        obj_ids: Sequence[int] | torch.Tensor,
+        observed: torch.Tensor | None,
+        observed_mask: torch.Tensor | None,
+    ) -> Verification:
+        """``out`` with its instances scoring below ``search_below`` searched (:meth:`search`).
+
+        The searched turns follow the hypotheses as ``search_top_k`` more columns (invalid,
+        the pose repeated, where an instance was not searched), so ``chosen`` still indexes
+        ``hypotheses``; their statistics are against the pose searched around.
+        """
+        B, H = out.hypotheses.shape[:2]
+        k = min(self.config.search_top_k, 23)  # box_turns gives at least 23
+        low = out.valid & (out.scores < self.config.search_below)
+        hypotheses = torch.cat((out.hypotheses, out.poses[:, None].expand(B, k, 4, 4)), dim=1)
+        score = VerifierScore(*(
+            torch.cat((t, t.new_zeros(B, k, *t.shape[2:])), dim=1)
+            for t in (getattr(out.score, f.name) for f in fields(out.score))
+        ))  # fmt: skip
+        statistic = torch.cat((out.statistic, out.statistic.new_zeros(B, k)), dim=1)
+        merged = Verification(
+            out.poses.clone(), out.scores.clone(), out.valid.clone(), out.chosen.clone(),
+            hypotheses, score, statistic,
+        )  # fmt: skip
+        idx = low.nonzero()[:, 0]
+        if not len(idx):
+            return merged
+        ids = torch.as_tensor(obj_ids).reshape(-1)[idx.cpu()]
+        take = lambda t: None if t is None else t[idx]  # noqa: E731
+        found = self.search(
+            rgb, depth, K, masks[idx], ids, out.poses[idx], take(observed), take(observed_mask)
         )
+        moved = found.chosen > 0
+        merged.poses[idx] = found.poses
+        merged.scores[idx] = found.scores
+        merged.valid[idx] = found.valid
+        merged.chosen[idx] = torch.where(moved, H + found.chosen - 1, out.chosen[idx])
+        merged.hypotheses[idx, H:] = found.hypotheses[:, 1:]
+        for f in fields(score):
+            getattr(merged.score, f.name)[idx, H:] = getattr(found.score, f.name)[:, 1:]
+        merged.statistic[idx, H:] = found.statistic[:, 1:]
+        return merged
 
     def _verify_subset(
         self,
@@ -753,3 +865,19 @@ class PoseVerifier:
             score=VerifierScore(*(spread(getattr(sub.score, f.name)) for f in fields(sub.score))),
             statistic=spread(sub.statistic),
         )
+
+
+def _chosen(hypotheses: torch.Tensor, score: VerifierScore, significance: float) -> Verification:
+    """The :class:`Verification` of scored ``hypotheses`` ``(B, H, 4, 4)``, incumbent first."""
+    index, stat = select_hypotheses(score, significance=significance)
+    rows = torch.arange(hypotheses.shape[0], device=hypotheses.device)
+    total, valid = score.total[rows, index], score.valid[rows, index]
+    return Verification(
+        poses=hypotheses[rows, index],
+        scores=torch.where(valid, total.clamp(0, 1), 0.0),
+        valid=valid,
+        chosen=index,
+        hypotheses=hypotheses,
+        score=score,
+        statistic=stat,
+    )
