@@ -235,6 +235,9 @@ def test_errors(verifier: PoseVerifier, scene: dict[str, torch.Tensor]) -> None:
         {"depth_weight": 0.0, "silhouette_weight": 0.0, "appearance_weight": 0.0},
         {"num_points": True},
         {"refine_estimate": 1},
+        {"search_below": True},
+        {"search_below": 1.5},
+        {"search_top_k": 0},
     ],
 )
 def test_config_rejects_bad_values(field: dict[str, object]) -> None:
@@ -388,3 +391,33 @@ def test_search_pads_the_instances_it_does_not_search(
     assert torch.equal(out.poses, plain.poses) and torch.equal(out.chosen, plain.chosen)
     assert not out.score.valid[:, H:].any() and torch.equal(out.score.total[:, :H],
                                                              plain.score.total)  # fmt: skip
+
+
+def test_search_of_objects_with_different_turn_counts_keeps_the_invariants(
+    verifier: PoseVerifier, scene: dict[str, torch.Tensor]
+) -> None:
+    import dataclasses
+
+    box = verifier.objects[1]
+    R = axis_angle_matrix(torch.tensor([1.0, 2.0, 3.0]), torch.tensor(0.5))
+    turned = dataclasses.replace(  # the same box in a model frame off its principal axes
+        box, points=box.points @ R.T, normals=box.normals @ R.T, centroid=box.centroid @ R.T
+    )
+    config = VerifierConfig(**{**CONFIG.to_dict(), "search_below": 1.0, "search_top_k": 30})
+    v = PoseVerifier(config)
+    v.objects = {1: box, 2: turned}
+    wrong = box_pose() @ half_turn([0.0, 1.0, 0.0])
+    masks = scene["masks"].repeat(2, 1, 1)
+    args = (scene["rgb"], scene["depth"], K, masks, [1, 2], torch.stack((wrong, wrong)))
+    out = v.verify(*args)
+    plain = verifier.verify(*args[:4], [1, 1], args[5])
+    H = plain.hypotheses.shape[1]
+    assert out.hypotheses.shape == (2, H + 30, 4, 4)
+    rows = torch.arange(2)
+    assert torch.equal(out.poses, out.hypotheses[rows, out.chosen])
+    chosen_total = out.score.total[rows, out.chosen].clamp(0, 1)
+    torch.testing.assert_close(out.scores, torch.where(out.valid, chosen_total, 0.0))
+    # the box has 23 turns: the rest of its 30 columns are padding
+    assert not out.score.valid[0, H + 23 :].any()
+    empty = v.search(scene["rgb"], scene["depth"], K, masks[:0], [], torch.zeros(0, 4, 4))
+    assert empty.hypotheses.shape == (0, 31, 4, 4) and empty.poses.shape == (0, 4, 4)

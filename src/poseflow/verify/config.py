@@ -63,7 +63,7 @@ class VerifierConfig:
             for about 50 ms per image, so it is off by default.
         refine_top_k: candidates (besides the estimate) refined by ICP and scored again, the best
             of the first, unrefined scoring.
-        search_below: an instance whose chosen pose scores below this is searched globally
+        search_below: a valid instance whose chosen pose scores below this is searched globally
             (:meth:`~poseflow.verify.PoseVerifier.search`): the pose turned by the
             :func:`~poseflow.verify.box_turns`, the best ``search_top_k`` of them refined by
             ICP, one replacing the pose where it clearly explains the image better (the same
@@ -163,7 +163,8 @@ class VerifierConfig:
         weights = (self.depth_weight, self.silhouette_weight, self.appearance_weight)
         if not all(math.isfinite(w) and w >= 0 for w in weights) or not sum(weights) > 0:
             raise ValueRangeError(f"the weights must be >= 0 and not all 0, got {weights}")
-        if not (isinstance(self.search_below, int | float) and 0 <= self.search_below <= 1):
+        below = self.search_below
+        if isinstance(below, bool) or not (isinstance(below, int | float) and 0 <= below <= 1):
             raise ValueRangeError(f"search_below must lie in [0, 1], got {self.search_below!r}")
         if not 0 < self.significance < 1:
             raise ValueRangeError(f"significance must lie in (0, 1), got {self.significance}")

@@ -142,8 +142,9 @@ def box_turns(points: torch.Tensor, *, min_angle: float = 5.0) -> torch.Tensor:
     if points.shape[0] < 3:
         raise ValueRangeError(f"box_turns needs at least 3 points, got {points.shape[0]}")
     dtype, device = points.dtype, points.device
-    centre = points.to(torch.float64).mean(0)
-    centred = points.to(torch.float64) - centre
+    cpu = points.detach().to("cpu", torch.float64)
+    centre = cpu.mean(0)
+    centred = cpu - centre
     _, axes = torch.linalg.eigh(centred.T @ centred)
     axes = axes * torch.linalg.det(axes)  # a proper frame: columns are the principal axes
     cube = []

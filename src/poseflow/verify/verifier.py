@@ -139,7 +139,8 @@ class Verification:
 
     Attributes:
         poses: the chosen poses ``(B, 4, 4)``: the estimate where it was kept (ICP-refined with
-            ``refine_estimate``, else unchanged), else the ICP-refined candidate that beat it.
+            ``refine_estimate``, else unchanged), else the ICP-refined candidate or searched turn
+            that beat it.
         scores: the chosen hypothesis's total score clipped to ``[0, 1]`` ``(B,)`` (0 where
             invalid), for ranking estimates.
         valid: ``(B,)`` bool, whether the chosen hypothesis could be scored.
@@ -721,20 +722,25 @@ class PoseVerifier:
             observed_mask: ``(B, M)`` bool for ``observed``.
 
         Returns:
-            A :class:`Verification` whose hypotheses are the pose, then the refined turns.
+            A :class:`Verification` whose hypotheses are the pose, then ``search_top_k`` refined
+            turns (invalid where the object has fewer turns). The crops are centred on
+            ``poses``.
         """
         check_tensor(poses, "poses", ("B", 4, 4), finite=True)
-        B = poses.shape[0]
+        B, k = poses.shape[0], self.config.search_top_k
+        if B == 0:
+            return self._unscored(poses[:, None].expand(0, 1 + k, 4, 4))
         objects = self._objects(obj_ids, B)
         Kd = K.to(poses.dtype)
         turns_of = {id(o): box_turns(o.points).to(poses) for o in objects}
         count = torch.tensor([len(turns_of[id(o)]) for o in objects], device=poses.device)
+        width = max(int(count.max()), k)
         eye = torch.eye(4, dtype=poses.dtype, device=poses.device)
-        turns = torch.stack([  # (B, T, 4, 4), padded with the identity
-            torch.cat((t, eye.expand(int(count.max()) - len(t), 4, 4)))
+        turns = torch.stack([  # (B, width, 4, 4), padded with the identity
+            torch.cat((t, eye.expand(width - len(t), 4, 4)))
             for t in (turns_of[id(o)] for o in objects)
         ])  # fmt: skip
-        padded = torch.arange(turns.shape[1], device=poses.device) >= count[:, None]
+        padded = torch.arange(width, device=poses.device) >= count[:, None]
         hyp = torch.cat((poses[:, None], poses[:, None] @ turns), dim=1)
         boxes = self.crop_boxes(poses, obj_ids, Kd, masks)
         first = self.score(
@@ -742,7 +748,6 @@ class PoseVerifier:
             torch.cat((torch.ones_like(padded[:, :1]), ~padded), dim=1), boxes=boxes,
             crop_size=self.config.coarse_crop_size,
         )  # fmt: skip
-        k = min(self.config.search_top_k, turns.shape[1])
         cand = torch.where(first.valid[:, 1:], first.total[:, 1:], -torch.inf)
         keep = cand.topk(k, dim=-1).indices + 1  # (B, k)
         picked = hyp.gather(1, keep[..., None, None].expand(-1, -1, 4, 4))
@@ -771,10 +776,11 @@ class PoseVerifier:
 
         The searched turns follow the hypotheses as ``search_top_k`` more columns (invalid,
         the pose repeated, where an instance was not searched), so ``chosen`` still indexes
-        ``hypotheses``; their statistics are against the pose searched around.
+        ``hypotheses``; they are scored on a crop centred on the pose searched around, and
+        their statistics are against it.
         """
         B, H = out.hypotheses.shape[:2]
-        k = min(self.config.search_top_k, 23)  # box_turns gives at least 23
+        k = self.config.search_top_k
         low = out.valid & (out.scores < self.config.search_below)
         hypotheses = torch.cat((out.hypotheses, out.poses[:, None].expand(B, k, 4, 4)), dim=1)
         score = VerifierScore(*(
@@ -794,16 +800,34 @@ class PoseVerifier:
         found = self.search(
             rgb, depth, K, masks[idx], ids, out.poses[idx], take(observed), take(observed_mask)
         )
-        moved = found.chosen > 0
-        merged.poses[idx] = found.poses
-        merged.scores[idx] = found.scores
-        merged.valid[idx] = found.valid
-        merged.chosen[idx] = torch.where(moved, H + found.chosen - 1, out.chosen[idx])
+        moved = found.chosen > 0  # the others keep their pose and its score on the first crop
+        rows = idx[moved]
+        merged.poses[rows] = found.poses[moved]
+        merged.scores[rows] = found.scores[moved]
+        merged.valid[rows] = found.valid[moved]
+        merged.chosen[rows] = H + found.chosen[moved] - 1
         merged.hypotheses[idx, H:] = found.hypotheses[:, 1:]
         for f in fields(score):
             getattr(merged.score, f.name)[idx, H:] = getattr(found.score, f.name)[:, 1:]
         merged.statistic[idx, H:] = found.statistic[:, 1:]
         return merged
+
+    def _unscored(self, hypotheses: torch.Tensor) -> Verification:
+        """The :class:`Verification` of ``(B, H, 4, 4)`` unscored hypotheses: the first kept."""
+        B, H = hypotheses.shape[:2]
+        g = (self.config.crop_size // self.config.block_size) ** 2
+        zeros = hypotheses.new_zeros(B, H)
+        flags = torch.zeros(B, H, dtype=torch.bool, device=hypotheses.device)
+        evidence, support = hypotheses.new_zeros(B, H, g), flags[..., None].expand(B, H, g)
+        return Verification(
+            poses=hypotheses[:, 0].clone(),
+            scores=hypotheses.new_zeros(B),
+            valid=flags[:, 0].clone(),
+            chosen=torch.zeros(B, dtype=torch.long, device=hypotheses.device),
+            hypotheses=hypotheses.clone(),
+            score=VerifierScore(zeros, zeros, zeros, zeros, flags, evidence, support),
+            statistic=zeros,
+        )
 
     def _verify_subset(
         self,
@@ -823,26 +847,7 @@ class PoseVerifier:
         B = poses.shape[0]
         idx = estimated.nonzero()[:, 0]
         if not len(idx):  # one hypothesis each, the estimate, unscored
-            g = (self.config.crop_size // self.config.block_size) ** 2
-            zeros = poses.new_zeros(B, 1)
-            flags = torch.zeros(B, 1, dtype=torch.bool, device=poses.device)
-            return Verification(
-                poses=poses.clone(),
-                scores=poses.new_zeros(B),
-                valid=flags[:, 0].clone(),
-                chosen=torch.zeros(B, dtype=torch.long, device=poses.device),
-                hypotheses=poses[:, None].clone(),
-                score=VerifierScore(
-                    zeros,
-                    zeros,
-                    zeros,
-                    zeros,
-                    flags,
-                    poses.new_zeros(B, 1, g),
-                    flags[..., None].expand(B, 1, g),
-                ),
-                statistic=zeros,
-            )
+            return self._unscored(poses[:, None])
         ids = torch.as_tensor(obj_ids).reshape(-1)[idx.cpu()]
         take = lambda t: None if t is None else t[idx]  # noqa: E731
         sub = self.verify(
