@@ -6,7 +6,10 @@ flipped end for end, a can turned about its axis. :class:`PoseVerifier` renders 
 hypotheses) and scores it against the image by depth agreement (as in VSD), silhouette IoU with
 the instance mask and a lighting-robust appearance agreement. It expands each estimate with the
 object's near-symmetries, found once per object from its geometry, refines them by ICP, and
-replaces the estimate only when a candidate beats it by more than the score's own spread.
+replaces the estimate only when a candidate beats it by more than the score's own spread. A pose
+that still scores low (``search_below``) is searched over every orientation
+(:meth:`PoseVerifier.search`): turned by the flips and quarter turns of the object's box
+(:func:`box_turns`), the best turns refined by ICP and tested in the same way.
 
 Used on its own, with a user's hypotheses::
 
