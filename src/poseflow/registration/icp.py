@@ -440,8 +440,8 @@ def _scale(problem: _Problem, T: torch.Tensor, scale: _Scale) -> _State:
 def _run_scale(problem: _Problem, T: torch.Tensor, scale: _Scale) -> _State:
     """Iterate ICP at one correspondence distance from ``T`` on the CPU; the state at the end.
 
-    The transforms, fitness and RMSE are held in the points' dtype and the stopping rule is
-    :func:`_goes_on`'s, all as numpy arrays (see :class:`_Arithmetic`).
+    The transforms, fitness and RMSE are held in the points' dtype as numpy arrays, computed as
+    the tensor ops would (see :class:`_Arithmetic`); the stopping rule is :func:`_goes_on`.
     """
     from poseflow.registration._icp_cpu import rigid_from_moments  # numba: when needed
 
@@ -467,10 +467,10 @@ def _run_scale(problem: _Problem, T: torch.Tensor, scale: _Scale) -> _State:
         rigid_from_moments(now.mu, now.cov, now.stats, real.eps, T_new, ok)
         T_new = real(T_new)
         new = problem.evaluate_cpu(T_new, items, tracker, real)
-        converged = (np.abs(real(new.fitness - fitness[items])) < relative_fitness) & (
-            np.abs(real(new.rmse - rmse[items])) < relative_rmse
-        )
-        going = ok & ~converged & (new.stats[:, 0] >= 3)
+        going = _goes_on(
+            ok, new.stats[:, 0], fitness[items], rmse[items], new.fitness, new.rmse,
+            relative_fitness, relative_rmse, rounded=real,
+        )  # fmt: skip
         T_now[items], inliers[items] = T_new, new.inliers
         fitness[items], rmse[items] = new.fitness, new.rmse
         iterations[items] += ok
@@ -487,24 +487,29 @@ def _run_scale(problem: _Problem, T: torch.Tensor, scale: _Scale) -> _State:
 
 
 def _goes_on(
-    ok: torch.Tensor,
-    new_inliers: torch.Tensor,
-    fitness: torch.Tensor,
-    rmse: torch.Tensor,
-    new_fitness: torch.Tensor,
-    new_rmse: torch.Tensor,
-    relative_fitness: float,
-    relative_rmse: float,
-) -> torch.Tensor:
-    """Which instances iterate on, ``(B,)`` bool: Open3D's stopping rule.
+    ok: Any,
+    pairs: Any,
+    fitness: Any,
+    rmse: Any,
+    new_fitness: Any,
+    new_rmse: Any,
+    relative_fitness: Any,
+    relative_rmse: Any,
+    *,
+    rounded: Callable[[Any], Any] | None = None,
+) -> Any:
+    """Which instances iterate on, ``(B,)`` bool: Open3D's stopping rule, on tensors or arrays.
 
-    An instance goes on when its step was solvable, its fitness or inlier RMSE still moved by at
-    least the relative thresholds, and at least 3 pairs remain.
+    An instance goes on when its step was solvable (``ok``), its fitness or inlier RMSE still
+    moved by at least the relative thresholds, and at least 3 ``pairs`` remain. ``rounded``
+    rounds the two changes to the points' dtype where the arrays hold it wider (bfloat16 in
+    float32, :class:`_Arithmetic`).
     """
-    converged = ((new_fitness - fitness).abs() < relative_fitness) & (
-        (new_rmse - rmse).abs() < relative_rmse
-    )
-    return ok & ~converged & (new_inliers.sum(-1) >= 3)
+    change_fitness, change_rmse = new_fitness - fitness, new_rmse - rmse
+    if rounded is not None:
+        change_fitness, change_rmse = rounded(change_fitness), rounded(change_rmse)
+    converged = (abs(change_fitness) < relative_fitness) & (abs(change_rmse) < relative_rmse)
+    return ok & ~converged & (pairs >= 3)
 
 
 def _run_scale_fixed(problem: _Problem, T: torch.Tensor, scale: _Scale, *, capture: bool) -> _State:
@@ -547,8 +552,9 @@ def _run_scale_fixed(problem: _Problem, T: torch.Tensor, scale: _Scale, *, captu
             T_new, distance
         )
         going = _goes_on(
-            ok, new_inliers, fitness, rmse, new_fitness, new_rmse, relative_fitness, relative_rmse
-        )
+            ok, new_inliers.sum(-1), fitness, rmse, new_fitness, new_rmse, relative_fitness,
+            relative_rmse,
+        )  # fmt: skip
         now = active.clone()
         T.copy_(torch.where(now[:, None, None], T_new, T))
         inliers.copy_(torch.where(now[:, None], new_inliers, inliers))
