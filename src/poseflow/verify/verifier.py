@@ -638,7 +638,6 @@ class PoseVerifier:
             ValueRangeError: an object that was not prepared.
         """
         sizes = check_tensor(poses, "poses", ("B", 4, 4), finite=True)
-        B = sizes["B"]
         check_mask(masks, "masks", ("B", None, None), sizes)
         if extra is not None:
             check_tensor(extra, "extra", ("B", "E", 4, 4), sizes=sizes, finite=True)
@@ -664,24 +663,13 @@ class PoseVerifier:
             rgb, depth, Kd, masks, obj_ids, hyp.poses, hyp.mask, boxes=boxes,
             crop_size=self.config.coarse_crop_size,
         )  # fmt: skip
-        H = hyp.poses.shape[1]
-        k = min(self.config.refine_top_k, H - 1)
-        keep = torch.zeros(B, 1 + k, dtype=torch.long, device=poses.device)
-        if k:
-            cand = torch.where(first.valid[:, 1:], first.total[:, 1:], -torch.inf)
-            keep[:, 1:] = cand.topk(k, dim=-1).indices + 1
-        poses_k = hyp.poses.gather(1, keep[..., None, None].expand(-1, -1, 4, 4))
-        mask_k = hyp.mask.gather(1, keep)
-        mask_k[:, 1:] &= first.valid.gather(1, keep[:, 1:])
-        first_refined = 0 if self.config.refine_estimate else 1  # the estimate is column 0
-        if k or self.config.refine_estimate:
-            if observed is None:
-                observed, observed_mask = self.observed_cloud(depth, Kd, masks)
-            if observed.shape[1] >= 3:
-                refined = self.refine(
-                    poses_k[:, first_refined:], obj_ids, observed.to(poses.dtype), observed_mask
-                )
-                poses_k = torch.cat((poses_k[:, :first_refined], refined), dim=1)
+        k = min(self.config.refine_top_k, hyp.poses.shape[1] - 1)
+        if observed is None and (k or self.config.refine_estimate):
+            observed, observed_mask = self.observed_cloud(depth, Kd, masks)
+        poses_k, mask_k = self._refine_best(
+            hyp.poses, hyp.mask, first, k, obj_ids, observed, observed_mask,
+            refine_first=self.config.refine_estimate,
+        )  # fmt: skip
         final = self.score(rgb, depth, Kd, masks, obj_ids, poses_k, mask_k, boxes=boxes)
         out = _chosen(poses_k, final, self.config.significance)
         if self.config.search_below > 0:
@@ -742,24 +730,63 @@ class PoseVerifier:
         ])  # fmt: skip
         padded = torch.arange(width, device=poses.device) >= count[:, None]
         hyp = torch.cat((poses[:, None], poses[:, None] @ turns), dim=1)
+        hyp_mask = torch.cat((torch.ones_like(padded[:, :1]), ~padded), dim=1)
         boxes = self.crop_boxes(poses, obj_ids, Kd, masks)
         first = self.score(
-            rgb, depth, Kd, masks, obj_ids, hyp,
-            torch.cat((torch.ones_like(padded[:, :1]), ~padded), dim=1), boxes=boxes,
+            rgb, depth, Kd, masks, obj_ids, hyp, hyp_mask, boxes=boxes,
             crop_size=self.config.coarse_crop_size,
         )  # fmt: skip
-        cand = torch.where(first.valid[:, 1:], first.total[:, 1:], -torch.inf)
-        keep = cand.topk(k, dim=-1).indices + 1  # (B, k)
-        picked = hyp.gather(1, keep[..., None, None].expand(-1, -1, 4, 4))
-        mask = torch.cat((torch.ones_like(keep[:, :1], dtype=torch.bool),
-                          first.valid.gather(1, keep)), dim=1)  # fmt: skip
         if observed is None:
             observed, observed_mask = self.observed_cloud(depth, Kd, masks)
-        if observed.shape[1] >= 3:
-            picked = self.refine(picked, obj_ids, observed.to(poses.dtype), observed_mask)
-        hyp = torch.cat((poses[:, None], picked), dim=1)
+        hyp, mask = self._refine_best(
+            hyp, hyp_mask, first, k, obj_ids, observed, observed_mask, refine_first=False
+        )
         final = self.score(rgb, depth, Kd, masks, obj_ids, hyp, mask, boxes=boxes)
         return _chosen(hyp, final, self.config.significance)
+
+    def _refine_best(
+        self,
+        hypotheses: torch.Tensor,
+        mask: torch.Tensor,
+        first: VerifierScore,
+        k: int,
+        obj_ids: Sequence[int] | torch.Tensor,
+        observed: torch.Tensor | None,
+        observed_mask: torch.Tensor | None,
+        *,
+        refine_first: bool,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The incumbent and the ``k`` best other hypotheses by their ``first`` (coarse) score.
+
+        Args:
+            hypotheses: ``(B, H, 4, 4)``, the incumbent first.
+            mask: ``(B, H)`` bool, False for padding.
+            first: their coarse scores.
+            k: other hypotheses kept, ``k < H``.
+            obj_ids: ``(B,)``.
+            observed: the clouds ICP registers ``(B, M, 3)``; None refines nothing.
+            observed_mask: ``(B, M)`` bool.
+            refine_first: refine the incumbent too.
+
+        Returns:
+            ``(poses (B, 1 + k, 4, 4), mask (B, 1 + k))``: the kept hypotheses, ICP-refined (the
+            incumbent only with ``refine_first``), and whether each is real and was scored.
+        """
+        B = hypotheses.shape[0]
+        keep = torch.zeros(B, 1 + k, dtype=torch.long, device=hypotheses.device)
+        if k:
+            cand = torch.where(first.valid[:, 1:], first.total[:, 1:], -torch.inf)
+            keep[:, 1:] = cand.topk(k, dim=-1).indices + 1
+        poses = hypotheses.gather(1, keep[..., None, None].expand(-1, -1, 4, 4))
+        kept = mask.gather(1, keep)
+        kept[:, 1:] &= first.valid.gather(1, keep[:, 1:])
+        start = 0 if refine_first else 1
+        if observed is not None and observed.shape[1] >= 3 and poses.shape[1] > start:
+            refined = self.refine(
+                poses[:, start:], obj_ids, observed.to(poses.dtype), observed_mask
+            )
+            poses = torch.cat((poses[:, :start], refined), dim=1)
+        return poses, kept
 
     def _search_low(
         self,
