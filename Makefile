@@ -5,7 +5,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 export OMP_NUM_THREADS ?= 2
 
-.PHONY: demo test test-slow lint bench bench-unseen bench-quick venv sysdeps clean wheel-check
+.PHONY: demo test test-slow lint docs bench bench-unseen bench-quick venv sysdeps clean wheel-check
 
 sysdeps:
 	@$(PYTHON) -c "import ctypes.util,sys; sys.exit(0 if all(ctypes.util.find_library(l) for l in ('usb-1.0','GL','EGL')) else 1)" \
@@ -31,6 +31,10 @@ test-slow: $(STAMP)
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
+
+# The API reference and guides (mkdocs.yml, docs/) into site/; offline, any warning fails it.
+docs: $(STAMP)
+	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict --site-dir site
 
 BENCHMARKS := registration data networks features eval accuracy pipeline ablation
 
@@ -75,4 +79,4 @@ wheel-check:
 	  sys.exit(0 if len(p) == 1 and p[0]['valid'] else 'poseflow estimate: no valid pose')"
 
 clean:
-	rm -rf $(VENV) build dist src/*.egg-info
+	rm -rf $(VENV) build dist site src/*.egg-info
