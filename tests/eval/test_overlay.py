@@ -7,7 +7,13 @@ import torch
 from PIL import Image
 
 from poseflow.errors import ShapeError, ValueRangeError
-from poseflow.eval.overlay import ESTIMATE_COLOR, GT_COLOR, overlay_poses, write_overlay
+from poseflow.eval.overlay import (
+    ESTIMATE_COLOR,
+    ESTIMATE_COLORS,
+    GT_COLOR,
+    overlay_poses,
+    write_overlay,
+)
 
 K = torch.tensor([[120.0, 0, 40], [0, 120.0, 30], [0, 0, 1]])
 
@@ -70,3 +76,84 @@ def test_bad_arguments(box):
         overlay_poses(torch.zeros(60, 80, 5, dtype=torch.uint8), K, [box], _pose())
     with pytest.raises(ShapeError):
         overlay_poses(torch.zeros(60, 80, 3, dtype=torch.int32), K, [box], _pose())
+
+
+# ------------------------------------------------------------------------------ outlines, legend
+
+BIG_K = torch.tensor([[400.0, 0, 160], [0, 400.0, 120], [0, 0, 1]])
+
+
+def _big_pose(x: float = 0.0, y: float = 0.0) -> torch.Tensor:
+    T = _pose(x)
+    T[0, 1, 3] = y
+    return T
+
+
+def _grey(h: int = 240, w: int = 320) -> torch.Tensor:
+    return torch.full((h, w, 3), 128, dtype=torch.uint8)
+
+
+def _has(pic: torch.Tensor, colour) -> torch.Tensor:
+    return (pic == torch.tensor(colour, dtype=torch.uint8)).all(-1)
+
+
+def test_estimate_is_outlined_and_lightly_tinted(box):
+    pic = overlay_poses(_grey(), BIG_K, [box], _big_pose(), legend=False)
+    outline = _has(pic, ESTIMATE_COLOR)
+    assert int(outline.sum()) > 100
+    assert not bool(outline[120, 160])  # the inside is tinted, not painted over
+    inside = pic[120, 160].float()
+    assert not torch.equal(inside, torch.full((3,), 128.0))  # tinted ...
+    assert float((inside - 128).abs().max()) < 0.5 * float(
+        (torch.tensor(ESTIMATE_COLOR) - 128).abs().max()
+    )
+
+
+def test_each_estimate_has_its_own_colour_and_invalid_ones_are_dashed(box):
+    poses = torch.cat([_big_pose(-0.1), _big_pose(0.1)])
+    pic = overlay_poses(_grey(), BIG_K, [box], poses, object_ids=[0, 0], legend=False)
+    first, second = _has(pic, ESTIMATE_COLORS[0]), _has(pic, ESTIMATE_COLORS[1])
+    assert int(first[:, :160].sum()) > 100 and int(first[:, 160:].sum()) == 0
+    assert int(second[:, 160:].sum()) > 100 and int(second[:, :160].sum()) == 0
+    dashed = overlay_poses(
+        _grey(), BIG_K, [box], poses, object_ids=[0, 0], valid=[True, False], legend=False
+    )
+    assert int(_has(dashed, ESTIMATE_COLORS[1]).sum()) < 0.7 * int(second.sum())  # dashes
+    assert bool((dashed[120, 240] == 128).all())  # no tint inside the invalid one
+    with pytest.raises(ShapeError):
+        overlay_poses(_grey(), BIG_K, [box], poses, object_ids=[0, 0], scores=[0.5])
+
+
+def test_gt_outline_lies_outside_a_matching_estimate(box):
+    pic = overlay_poses(_grey(), BIG_K, [box], _big_pose(), gt_poses=_big_pose(), legend=False)
+    green, blue = _has(pic, GT_COLOR), _has(pic, ESTIMATE_COLOR)
+    assert int(green.sum()) > 100 and int(blue.sum()) > 100  # both visible where they agree
+    assert not bool((green & blue).any())
+
+
+def _legend_pixels(pic: torch.Tensor, region: tuple[slice, slice]) -> int:
+    """Pixels of a region that are not the plain grey background (the legend's box and text)."""
+    return int((pic[region] != 128).any(-1).sum())
+
+
+def test_legend_names_the_method_and_avoids_the_objects(box):
+    top_left = (slice(0, 60), slice(0, 120))
+    plain = overlay_poses(_grey(), BIG_K, [box], _big_pose(), legend=False)
+    assert _legend_pixels(plain, top_left) == 0
+    pic = overlay_poses(
+        _grey(), BIG_K, [box], _big_pose(), method="FunFlow6D", scores=[0.87],
+        mesh_names=["obj 1"], gt_poses=_big_pose(),
+    )  # fmt: skip
+    assert _legend_pixels(pic, top_left) > 500  # the box and its lines, in the free corner
+    assert bool(_has(pic[top_left], ESTIMATE_COLOR).any())  # the estimate's swatch
+    assert bool(_has(pic[top_left], GT_COLOR).any())  # the ground truth's swatch
+    assert bool((pic[top_left].float().mean(-1) > 200).any())  # white text
+    # a longer method name makes a wider box
+    longer = overlay_poses(
+        _grey(), BIG_K, [box], _big_pose(), method="FunFlow6D with a much longer name"
+    )
+    cols = lambda p: int((p[:60] != 128).any(-1).any(0)[:200].sum())  # noqa: E731
+    assert cols(longer) > cols(pic)
+    # an object in the top-left corner moves the legend to another corner
+    moved = overlay_poses(_grey(), BIG_K, [box], _big_pose(-0.13, -0.09), method="FunFlow6D")
+    assert _legend_pixels(moved, (slice(0, 60), slice(200, 320))) > 500

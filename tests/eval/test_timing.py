@@ -78,6 +78,7 @@ def test_exception_closes_the_stage():
 
 
 def test_json_and_plots(tmp_path):
+    pytest.importorskip("matplotlib")
     timer = _timed(FakeClock())
     data = timer.to_json(tmp_path / "t.json")
     assert json.loads((tmp_path / "t.json").read_text()) == data
@@ -90,6 +91,32 @@ def test_json_and_plots(tmp_path):
         timer.plot(tmp_path / "x.png", kind="donut")
     with pytest.raises(ValueRangeError):
         StageTimer().plot(tmp_path / "y.png")
+
+
+def test_bar_chart_names_every_stage_sorted_with_ms_and_share(tmp_path):
+    pytest.importorskip("matplotlib")
+    timer = _timed(FakeClock())
+    fig = timer.figure(title="FunFlow6D")
+    ax = fig.axes[0]
+    names = [t.get_text() for t in ax.get_yticklabels()]
+    # longest first (integration 20 ms, flow_net 5, ransac 4, other 1), the excluded one last
+    assert names == [
+        "integration",
+        "flow net",
+        "ransac",
+        "other (not in any stage)",
+        "segmentation (not in total)",
+    ]
+    texts = [t.get_text().strip() for t in ax.texts]
+    assert texts == ["20.0 ms  66.7%", "5.0 ms  16.7%", "4.0 ms  13.3%", "1.0 ms  3.3%", "80.0 ms"]
+    widths = [bar.get_width() for bar in ax.patches]
+    assert widths == pytest.approx([20.0, 5.0, 4.0, 1.0, 80.0])
+    assert ax.get_title() == "FunFlow6D: 30.0 ms per image (2 images)"
+    pie = timer.figure(kind="pie").axes[0]
+    labels = [t.get_text() for t in pie.get_legend().get_texts()]
+    assert labels[0] == "integration: 20.0 ms (66.7%)" and len(labels) == 4
+    timer.plot(tmp_path / "t.png", title="FunFlow6D")
+    assert (tmp_path / "t.png").stat().st_size > 0
 
 
 def test_reset_and_real_clock():

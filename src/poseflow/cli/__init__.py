@@ -24,7 +24,17 @@ from poseflow.errors import PoseflowError, UsageError, ValueRangeError
 __all__ = ["EXIT_FAILED", "EXIT_USAGE", "build_parser", "is_usage_error", "main"]
 
 #: Subcommand modules under ``poseflow.cli``, in the order ``--help`` lists them.
-SUBCOMMANDS = ("demo", "estimate", "synth", "prepare", "train", "predict", "eval", "bench")
+SUBCOMMANDS = (
+    "demo",
+    "estimate",
+    "synth",
+    "prepare",
+    "train",
+    "predict",
+    "eval",
+    "view",
+    "bench",
+)
 
 #: Exit code of a run that failed.
 EXIT_FAILED = 1

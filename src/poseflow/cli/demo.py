@@ -94,8 +94,16 @@ def _run_registration(args: argparse.Namespace) -> int:
     return run_registration(args)
 
 
-def write_timing_chart(timer: Any, path: Path) -> bool:
+def write_timing_chart(timer: Any, path: Path, *, title: str | None = None) -> bool:
     """Draw the timer's stage breakdown to ``path``; without matplotlib, say so and skip it.
+
+    The chart has one bar per stage, longest first, each named with its ms per image and its
+    share of the total (:meth:`~poseflow.eval.StageTimer.plot`).
+
+    Args:
+        timer: the :class:`~poseflow.eval.StageTimer`.
+        path: the PNG to write.
+        title: what was timed, for the chart's title (e.g. ``FunFlow6D``).
 
     Returns:
         Whether the chart was written.
@@ -104,7 +112,7 @@ def write_timing_chart(timer: Any, path: Path) -> bool:
     from poseflow.errors import MissingDependencyError
 
     try:
-        timer.plot(path)
+        timer.plot(path, title=title)
     except MissingDependencyError:
         LOG.info(
             f"note: {path.name} skipped: the chart needs matplotlib (pip install 'poseflow[viz]')"
@@ -165,7 +173,7 @@ def run(args: argparse.Namespace) -> int:
     write_results(out / "funflow6d.csv", funflow)
     timer.to_json(out / "timing.json")
     written = ["funflow6d.csv", "timing.json"]
-    if write_timing_chart(timer, out / "timing.png"):
+    if write_timing_chart(timer, out / "timing.png", title="FunFlow6D"):
         written.append("timing.png")
 
     reports = {"FunFlow6D": evaluate_bop(root, funflow)}
@@ -207,7 +215,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _write_overlays(folder: Path, dataset: Any, models: dict, results: Any) -> None:
-    """One picture per image: estimates filled, ground truth outlined."""
+    """One picture per image: estimates outlined and tinted, ground truth outlined, a legend."""
     import numpy as np
     import torch
 
@@ -232,4 +240,7 @@ def _write_overlays(folder: Path, dataset: Any, models: dict, results: Any) -> N
                 gt_poses=torch.as_tensor(np.stack([g.pose for g in gts])),
                 gt_object_ids=[ids.index(g.obj_id) for g in gts],
                 renderer=renderer,
+                method="FunFlow6D",
+                scores=results.scores[rows],
+                mesh_names=[f"obj {i}" for i in ids],
             )

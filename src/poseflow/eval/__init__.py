@@ -13,8 +13,11 @@
 - BOP 2019 results CSV files (:func:`read_results`, :func:`write_results`);
 - the paper's correspondence-inlier metric (:func:`correspondence_inliers`);
 - the per-image stage breakdown (:class:`StageTimer`, reported to through :func:`stage` and
-  :func:`timed` while a timer is active) and qualitative overlays
-  (:func:`overlay_poses`, :func:`write_overlay`).
+  :func:`timed` while a timer is active) and qualitative overlays with a legend
+  (:func:`overlay_poses`, :func:`write_overlay`);
+- 3D scenes of one image for viewers (:func:`build_scene`: the observed cloud and the posed
+  meshes), written as a Rerun recording (:func:`write_recording`) or a GLB/PLY scene
+  (:func:`export_scene`).
 """
 
 from poseflow.eval.distributed import (
@@ -42,7 +45,14 @@ from poseflow.eval.errors import (
 from poseflow.eval.evaluate import METRICS, EvalModel, evaluate_bop, gt_results, load_eval_models
 from poseflow.eval.frame import FramePoses, estimate_frame, write_poses_json
 from poseflow.eval.inliers import InlierResult, correspondence_inliers, mutual_nearest_neighbors
-from poseflow.eval.overlay import ESTIMATE_COLOR, GT_COLOR, overlay_poses, write_overlay
+from poseflow.eval.overlay import (
+    ESTIMATE_COLOR,
+    ESTIMATE_COLORS,
+    GT_COLOR,
+    as_uint8_image,
+    overlay_poses,
+    write_overlay,
+)
 from poseflow.eval.predict import (
     Estimator,
     PoseEstimate,
@@ -52,6 +62,17 @@ from poseflow.eval.predict import (
 )
 from poseflow.eval.recall import Assignment, Recall, Target, assign, match, targets_from_gt
 from poseflow.eval.results import HEADER, PoseResults, read_results, write_results
+from poseflow.eval.scene import (
+    GLTF_FROM_CAMERA,
+    ObservedCloud,
+    PosedMesh,
+    SceneView,
+    backproject_rgbd,
+    build_scene,
+    export_scene,
+    place_mesh,
+    write_recording,
+)
 from poseflow.eval.symmetry import (
     MAX_SYM_DISC_STEP,
     axis_angle_rotation,
@@ -70,7 +91,9 @@ from poseflow.eval.timing import (
 
 __all__ = [
     "ESTIMATE_COLOR",
+    "ESTIMATE_COLORS",
     "EXCLUDED_STAGES",
+    "GLTF_FROM_CAMERA",
     "GT_COLOR",
     "HEADER",
     "MAX_SYM_DISC_STEP",
@@ -86,21 +109,28 @@ __all__ = [
     "EvalModel",
     "FramePoses",
     "InlierResult",
+    "ObservedCloud",
     "PoseEstimate",
     "PoseResults",
+    "PosedMesh",
     "PredictionPart",
     "Ranks",
     "Recall",
+    "SceneView",
     "StageTimer",
     "Target",
     "active_timer",
+    "as_uint8_image",
     "assign",
     "axis_angle_rotation",
+    "backproject_rgbd",
+    "build_scene",
     "correspondence_inliers",
     "depth_to_distance",
     "discretize_continuous_symmetry",
     "estimate_frame",
     "evaluate_bop",
+    "export_scene",
     "gt_results",
     "image_seed",
     "invalidate_implausible",
@@ -115,6 +145,7 @@ __all__ = [
     "mutual_nearest_neighbors",
     "on_device",
     "overlay_poses",
+    "place_mesh",
     "predict_dataset",
     "project_points",
     "read_results",
@@ -127,5 +158,6 @@ __all__ = [
     "vsd_from_depth",
     "write_overlay",
     "write_poses_json",
+    "write_recording",
     "write_results",
 ]

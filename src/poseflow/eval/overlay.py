@@ -1,13 +1,18 @@
-"""Qualitative pictures: object models rendered in their estimated poses over the input image.
+"""Qualitative pictures that explain themselves: estimated poses outlined over the input image.
 
-As in the paper's qualitative figure, the input image is turned to grey and every model is drawn
-in its *estimated* pose in colour (shaded by its surface orientation, so that its shape reads);
-ground-truth poses, when given, are outlined in a second colour on top, so that misalignment shows
-as a gap between the coloured surface and the outline.
+The input image is turned to grey and every model is drawn in its *estimated* pose as a coloured
+outline of its visible silhouette over a light tint (shaded by the surface orientation, so that
+its shape reads, and translucent, so that the object underneath stays visible), one colour per
+estimate; an invalid estimate gets a dashed outline and no tint. Ground-truth poses, when given,
+are outlined in a second colour just *outside* their silhouettes, so that a good estimate shows
+as two touching bands and misalignment as a gap between them. A legend in the corner that hides
+the fewest objects names the method and, per estimate, its colour, object, score and validity
+(drawn with Pillow, a dependency of poseflow; left out when the picture is too small for it).
 """
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Sequence
 from typing import Any
@@ -19,16 +24,49 @@ from torch.nn import functional as F
 from poseflow.errors import ShapeError, ValueRangeError
 from poseflow.render.raycast import Renderer
 
-__all__ = ["ESTIMATE_COLOR", "GT_COLOR", "overlay_poses", "write_overlay"]
+__all__ = [
+    "ESTIMATE_COLOR",
+    "ESTIMATE_COLORS",
+    "GT_COLOR",
+    "as_uint8_image",
+    "overlay_poses",
+    "write_overlay",
+]
 
-#: Colour of the models in their estimated poses (azure, as in the paper).
+#: Colour of the first estimate (azure, as in the paper).
 ESTIMATE_COLOR = (30, 144, 255)
+#: Colours of the estimates, in turn (no green: that is the ground truth's).
+ESTIMATE_COLORS: tuple[tuple[int, int, int], ...] = (
+    ESTIMATE_COLOR,
+    (255, 140, 0),
+    (230, 40, 160),
+    (255, 220, 0),
+    (150, 90, 255),
+    (0, 215, 215),
+    (220, 30, 30),
+    (255, 160, 200),
+)
 #: Colour of the ground-truth outlines.
 GT_COLOR = (50, 220, 50)
 
 
-def _as_image(image: torch.Tensor | np.ndarray) -> torch.Tensor:
-    """An ``(H, W, 3)`` uint8 tensor from ``(H, W, 3)``/``(H, W)`` uint8 or ``(3, H, W)`` float."""
+def as_uint8_image(image: torch.Tensor | np.ndarray) -> torch.Tensor:
+    """An ``(H, W, 3)`` uint8 CPU tensor from ``(H, W, 3)``/``(H, W)`` uint8 or ``(3, H, W)`` float.
+
+    Args:
+        image: ``(H, W, 3)``, ``(H, W, 1)`` or ``(H, W)`` uint8, or ``(3, H, W)``/``(1, H, W)``
+            float in ``[0, 1]`` (a BOP sample's ``rgb``), tensor or array.
+
+    Returns:
+        The image, ``(H, W, 3)`` uint8.
+
+    Raises:
+        ShapeError: another shape, or an integer image that is not uint8.
+
+    Example:
+        >>> as_uint8_image(torch.ones(3, 2, 4)).shape
+        torch.Size([2, 4, 3])
+    """
     x = torch.as_tensor(np.asarray(image) if not isinstance(image, torch.Tensor) else image)
     x = x.detach().cpu()
     if x.dim() == 3 and x.shape[0] in (1, 3) and x.shape[-1] not in (1, 3):
@@ -44,11 +82,96 @@ def _as_image(image: torch.Tensor | np.ndarray) -> torch.Tensor:
     return x.expand(*x.shape[:2], 3) if x.shape[-1] == 1 else x
 
 
-def _outline(mask: torch.Tensor, width: int) -> torch.Tensor:
-    """Pixels of ``mask`` (``(H, W)`` bool) within ``width`` pixels of its border."""
+def _outline(mask: torch.Tensor, width: int, *, outside: bool = False) -> torch.Tensor:
+    """The band of ``width`` pixels along the border of ``mask`` (``(H, W)`` bool).
+
+    Inside the mask by default; ``outside`` puts it just outside.
+    """
     m = mask[None, None].float()
+    if outside:
+        grown = F.max_pool2d(m, 2 * width + 1, stride=1, padding=width)
+        return (grown[0, 0] > 0.5) & ~mask
     eroded = -F.max_pool2d(-m, 2 * width + 1, stride=1, padding=width)
     return mask & ~(eroded[0, 0] > 0.5)
+
+
+def _dashes(H: int, W: int, period: int = 8) -> torch.Tensor:
+    """``(H, W)`` bool: diagonal stripes, True on half of each period (dashed outlines)."""
+    v, u = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
+    return ((u + v) // (period // 2)) % 2 == 0
+
+
+def _font(size: int) -> Any:
+    from PIL import ImageFont
+
+    try:
+        return ImageFont.load_default(size=size)  # scalable with FreeType (Pillow >= 10.1)
+    except (TypeError, ValueError, OSError, ImportError):
+        return ImageFont.load_default()
+
+
+def _draw_legend(
+    picture: torch.Tensor,
+    entries: Sequence[tuple[tuple[int, int, int] | None, str, bool]],
+    covered: torch.Tensor,
+) -> torch.Tensor:
+    """Draw a legend box (swatch and text per entry) in the least covered corner.
+
+    Args:
+        picture: ``(H, W, 3)`` uint8.
+        entries: ``(colour or None for a title line, text, dashed)`` per line.
+        covered: ``(H, W)`` bool, pixels the box should avoid (the drawn objects).
+
+    Returns:
+        The picture with the legend, or unchanged when it would cover more than half of the
+        picture's height or 60 % of its width.
+    """
+    from PIL import Image, ImageDraw
+
+    H, W = picture.shape[:2]
+    size = max(10, round(H / 40))
+    font = _font(size)
+    probe = ImageDraw.Draw(Image.new("RGB", (1, 1)))
+    pad, gap, swatch = max(3, size // 3), max(2, size // 4), size
+    widths = []
+    for colour, text, _ in entries:
+        box = probe.textbbox((0, 0), text, font=font)
+        widths.append(box[2] - box[0] + (swatch + gap if colour is not None else 0))
+    line = size + gap
+    box_w, box_h = max(widths) + 2 * pad, len(entries) * line - gap + 2 * pad
+    if not entries or box_h > H // 2 or box_w > 0.6 * W:
+        return picture
+    corners = [(pad, pad), (W - box_w - pad, pad), (pad, H - box_h - pad),
+               (W - box_w - pad, H - box_h - pad)]  # fmt: skip
+    x0, y0 = min(
+        corners, key=lambda c: int(covered[c[1] : c[1] + box_h, c[0] : c[0] + box_w].sum())
+    )
+    img = Image.fromarray(picture.numpy()).convert("RGBA")
+    layer = Image.new("RGBA", img.size, (0, 0, 0, 0))
+    draw = ImageDraw.Draw(layer)
+    draw.rectangle([x0, y0, x0 + box_w - 1, y0 + box_h - 1], fill=(0, 0, 0, 170))
+    for k, (colour, text, dashed) in enumerate(entries):
+        y = y0 + pad + k * line
+        x = x0 + pad
+        if colour is not None:
+            draw.rectangle([x, y, x + swatch - 1, y + swatch - 1], outline=(*colour, 255), width=2)
+            if not dashed:
+                draw.rectangle([x + 3, y + 3, x + swatch - 4, y + swatch - 4], fill=(*colour, 255))
+            x += swatch + gap
+        draw.text((x, y), text, fill=(255, 255, 255, 255), font=font)
+    out = Image.alpha_composite(img, layer).convert("RGB")
+    return torch.from_numpy(np.array(out))
+
+
+def _per_pose(values: Any, n: int, what: str) -> list[Any] | None:
+    if values is None:
+        return None
+    if isinstance(values, torch.Tensor):
+        values = values.detach().cpu()
+    out = np.asarray(values).reshape(-1).tolist()
+    if len(out) != n:
+        raise ShapeError(f"{what} must hold one entry per pose ({n}), got {len(out)}")
+    return out
 
 
 def overlay_poses(
@@ -60,13 +183,25 @@ def overlay_poses(
     object_ids: Sequence[int] | None = None,
     gt_poses: torch.Tensor | np.ndarray | None = None,
     gt_object_ids: Sequence[int] | None = None,
-    alpha: float = 0.7,
-    color: tuple[int, int, int] = ESTIMATE_COLOR,
+    alpha: float = 0.3,
+    color: tuple[int, int, int] | None = None,
     gt_color: tuple[int, int, int] = GT_COLOR,
     outline_width: int = 2,
     renderer: Renderer | None = None,
+    method: str | None = None,
+    scores: Sequence[float] | torch.Tensor | None = None,
+    valid: Sequence[bool] | torch.Tensor | None = None,
+    mesh_names: Sequence[str] | None = None,
+    legend: bool = True,
 ) -> torch.Tensor:
-    """Draw models in estimated poses (filled) and GT poses (outlined) over a grey image.
+    """Outline models in estimated poses (and GT poses) over a grey image, with a legend.
+
+    Each estimate gets a colour (:data:`ESTIMATE_COLORS` in turn, or ``color``), a light tint of
+    its visible surface and an outline inside its visible silhouette; an invalid one a dashed
+    outline and no tint. Ground-truth silhouettes are outlined just outside, in ``gt_color``.
+    The legend lists ``method``, then per estimate its colour, ``mesh_names[object_ids[i]]``,
+    ``scores[i]`` and valid/invalid, then the ground truth's colour; it is left out when it would
+    cover more than half of the picture's height or 60 % of its width (a tiny picture).
 
     Args:
         image: the input image, ``(H, W, 3)`` or ``(H, W)`` uint8, or ``(3, H, W)`` float in
@@ -77,17 +212,23 @@ def overlay_poses(
         object_ids: index into ``meshes`` of each pose (default ``0 .. n-1``).
         gt_poses: ground-truth poses ``(m, 4, 4)``, or None.
         gt_object_ids: index into ``meshes`` of each GT pose (default ``0 .. m-1``).
-        alpha: opacity of the rendered models.
-        color: RGB of the estimates.
+        alpha: opacity of the tint of the estimated models (1: solid colour).
+        color: one RGB for every estimate; None (default) gives each its own.
         gt_color: RGB of the ground-truth outlines.
         outline_width: outline thickness in pixels.
         renderer: a :class:`~poseflow.render.Renderer` built on ``meshes``, to reuse across calls.
+        method: the name of the method, the legend's title.
+        scores: the confidence of each pose ``(n,)``, shown in the legend.
+        valid: the validity of each pose ``(n,)`` (default: all valid).
+        mesh_names: the name of each mesh in the legend, e.g. ``["obj 1", "obj 5"]`` (default
+            ``mesh 0``, ``mesh 1``, ...).
+        legend: draw the legend.
 
     Returns:
         The picture, ``(H, W, 3)`` uint8.
 
     Raises:
-        ShapeError: bad image or pose shapes.
+        ShapeError: bad image or pose shapes, or ``scores``/``valid`` not one per pose.
         ValueRangeError: ``alpha`` outside ``[0, 1]`` or ``outline_width < 1``.
 
     Example:
@@ -96,7 +237,7 @@ def overlay_poses(
         >>> K = torch.tensor([[100.0, 0, 32], [0, 100.0, 24], [0, 0, 1]])
         >>> T = torch.eye(4)[None].clone(); T[0, 2, 3] = 0.5
         >>> pic = overlay_poses(torch.full((48, 64, 3), 200, dtype=torch.uint8), K, [box], T,
-        ...                     gt_poses=T)
+        ...                     gt_poses=T, method="FunFlow6D", scores=[0.9])
         >>> pic.shape, pic.dtype, pic[0, 0].tolist()
         (torch.Size([48, 64, 3]), torch.uint8, [200, 200, 200])
     """
@@ -104,20 +245,34 @@ def overlay_poses(
         raise ValueRangeError(f"alpha must lie in [0, 1], got {alpha}")
     if outline_width < 1:
         raise ValueRangeError(f"outline_width must be >= 1, got {outline_width}")
-    img = _as_image(image).to(torch.float32)
+    img = as_uint8_image(image).to(torch.float32)
     H, W = img.shape[:2]
     grey = (img @ torch.tensor([0.299, 0.587, 0.114]))[..., None].expand(H, W, 3)
     out = grey.clone()
     ren = renderer if renderer is not None else Renderer(meshes)
     T = torch.as_tensor(poses).reshape(-1, 4, 4)
-    if T.shape[0]:
-        ids = list(range(T.shape[0])) if object_ids is None else list(object_ids)
+    n = T.shape[0]
+    ids = list(range(n)) if object_ids is None else [int(i) for i in object_ids]
+    score_list = _per_pose(scores, n, "scores")
+    valid_list = [bool(v) for v in _per_pose(valid, n, "valid") or [True] * n]
+    colours = [color or ESTIMATE_COLORS[i % len(ESTIMATE_COLORS)] for i in range(n)]
+    covered = torch.zeros(H, W, dtype=torch.bool)
+    edges: list[tuple[torch.Tensor, tuple[int, int, int]]] = []
+    if n:
         r = ren.render(T, K, W, H, object_ids=ids, rgb=False)
-        hit = r.instance >= 0
         # Headlight shading from the camera-facing normals: |n_z| is 1 facing the camera.
         shade = (0.35 + 0.65 * r.normals[..., 2].abs()).clamp(0, 1)[..., None]
-        paint = torch.tensor(color, dtype=torch.float32) * shade
-        out = torch.where(hit[..., None], (1 - alpha) * grey + alpha * paint, out)
+        dashes = _dashes(H, W)
+        for i, visible in enumerate(r.masks_visible):
+            c = torch.tensor(colours[i], dtype=torch.float32)
+            covered |= visible
+            if valid_list[i]:
+                tint = (1 - alpha) * grey + alpha * c * shade
+                out = torch.where(visible[..., None], tint, out)
+                edges.append((_outline(visible, outline_width), colours[i]))
+            else:
+                edges.append((_outline(visible, outline_width) & dashes, colours[i]))
+    gt_drawn = False
     if gt_poses is not None:
         G = torch.as_tensor(gt_poses).reshape(-1, 4, 4)
         if G.shape[0]:
@@ -125,9 +280,32 @@ def overlay_poses(
             r = ren.render(G, K, W, H, object_ids=gids, rgb=False)
             edge = torch.zeros(H, W, dtype=torch.bool)
             for m in r.masks_full:
-                edge |= _outline(m, outline_width)
-            out = torch.where(edge[..., None], torch.tensor(gt_color, dtype=torch.float32), out)
-    return out.round().clamp(0, 255).to(torch.uint8)
+                edge |= _outline(m, outline_width, outside=True)
+                covered |= m
+            edges.insert(0, (edge, gt_color))
+            gt_drawn = True
+    for edge, c in edges:
+        out = torch.where(edge[..., None], torch.tensor(c, dtype=torch.float32), out)
+    pic = out.round().clamp(0, 255).to(torch.uint8)
+    if not legend or (n == 0 and not gt_drawn):
+        return pic
+    entries: list[tuple[tuple[int, int, int] | None, str, bool]] = []
+    if method:
+        entries.append((None, method, False))
+    for i in range(n):
+        name = mesh_names[ids[i]] if mesh_names is not None else f"mesh {ids[i]}"
+        text = name
+        if score_list is not None and math.isfinite(score_list[i]):
+            text += f"  score {score_list[i]:.2f}"
+        text += "  valid" if valid_list[i] else "  INVALID"
+        entries.append((colours[i], text, not valid_list[i]))
+    if gt_drawn:
+        entries.append((gt_color, "ground truth", False))
+    max_lines = max(1, (H // 2) // (max(10, round(H / 40)) + 3))
+    if len(entries) > max_lines:
+        rest = len(entries) - (max_lines - 1)
+        entries = [*entries[: max_lines - 1], (None, f"... {rest} more", False)]
+    return _draw_legend(pic, entries, covered)
 
 
 def write_overlay(path: str | os.PathLike[str], *args: Any, **kwargs: Any) -> torch.Tensor:

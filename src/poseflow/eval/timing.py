@@ -215,12 +215,37 @@ class StageTimer:
             json.dump(data, f, indent=2)
         return data
 
-    def plot(self, path: str | os.PathLike[str], *, kind: str = "pie") -> None:
-        """Draw the breakdown (excluded stages left out) as a pie or bar chart PNG.
+    def plot(
+        self, path: str | os.PathLike[str], *, kind: str = "bar", title: str | None = None
+    ) -> None:
+        """Draw the breakdown as a PNG chart (:meth:`figure`) at ``path``.
 
         Args:
             path: output PNG path.
-            kind: ``"pie"`` (shares, as in the paper's figure) or ``"bar"`` (ms per image).
+            kind: ``"bar"`` (default) or ``"pie"``.
+            title: what was timed (e.g. the method's name), put before the total in the title.
+
+        Raises:
+            ValueRangeError: unknown ``kind``, or nothing was recorded.
+            MissingDependencyError: matplotlib is not installed.
+        """
+        self.figure(kind=kind, title=title).savefig(path)
+
+    def figure(self, *, kind: str = "bar", title: str | None = None) -> Any:
+        """The breakdown as a matplotlib ``Figure`` in which every stage is named with its figures.
+
+        ``"bar"`` (default): one horizontal bar per stage, longest first, each labelled with its
+        milliseconds per image and its share of the total; ``other`` (time inside an image that
+        no stage covered) is named as such, and excluded stages (``segmentation``) are drawn
+        hatched below the others, marked as left out of the total. ``"pie"``: the shares, with
+        the names and figures in a legend beside the pie rather than on the slices.
+
+        Args:
+            kind: ``"bar"`` or ``"pie"``.
+            title: what was timed (e.g. the method's name), put before the total in the title.
+
+        Returns:
+            A ``matplotlib.figure.Figure`` (no pyplot state; ``savefig`` writes it).
 
         Raises:
             ValueRangeError: unknown ``kind``, or nothing was recorded.
@@ -236,18 +261,48 @@ class StageTimer:
             from matplotlib.figure import Figure
         except ImportError as exc:
             raise MissingDependencyError("matplotlib", "viz", "timing plots") from exc
-        labels = [f"{s.replace('_', ' ')} ({data['percent'][s]:.1f}%)" for s in ms]
-        fig = Figure(figsize=(7, 4.5), dpi=100)  # no pyplot: no global state, no GUI backend
+        order = sorted(ms, key=lambda s: -ms[s])
+        excluded = [s for s in data["excluded_ms"] if data["excluded_ms"][s] > 0]
+
+        def name(s: str) -> str:
+            text = s.replace("_", " ")
+            return f"{text} (not in any stage)" if s == "other" else text
+
+        n_bars = len(order) + len(excluded)
+        height = max(4.5, 0.45 * n_bars + 1.5) if kind == "bar" else 4.5
+        fig = Figure(figsize=(7, height), dpi=100)  # no pyplot: no global state, no GUI backend
         ax = fig.subplots()
         if kind == "pie":
-            ax.pie(list(ms.values()), labels=labels, startangle=90, counterclock=False)
+            values = [ms[s] for s in order]
+            wedges, _ = ax.pie(values, startangle=90, counterclock=False)
+            labels = [f"{name(s)}: {ms[s]:.1f} ms ({data['percent'][s]:.1f}%)" for s in order]
+            ax.legend(wedges, labels, loc="center left", bbox_to_anchor=(1.0, 0.5), fontsize=8)
             ax.axis("equal")
         else:
-            ax.barh(labels[::-1], list(ms.values())[::-1])
+            names = [name(s) for s in order] + [f"{name(s)} (not in total)" for s in excluded]
+            values = [ms[s] for s in order] + [data["excluded_ms"][s] for s in excluded]
+            y = list(range(n_bars))
+            bars = ax.barh(y, values, color="tab:blue")
+            for bar in list(bars)[len(order) :]:
+                bar.set_color("lightgrey")
+                bar.set_hatch("//")
+                bar.set_edgecolor("grey")
+            texts = [f"{ms[s]:.1f} ms  {data['percent'][s]:.1f}%" for s in order]
+            texts += [f"{data['excluded_ms'][s]:.1f} ms" for s in excluded]
+            for yi, v, text in zip(y, values, texts):
+                ax.text(v, yi, f" {text}", va="center", fontsize=8)
+            ax.set_yticks(y, names)
+            ax.invert_yaxis()  # longest on top
+            ax.set_xlim(0, 1.35 * max(values))
             ax.set_xlabel("ms per image")
-        ax.set_title(f"{data['total_ms']:.1f} ms per image ({data['num_images']} images)")
+        what = f"{title}: " if title else ""
+        n = data["num_images"]
+        ax.set_title(
+            f"{what}{data['total_ms']:.1f} ms per image ({n} image{'' if n == 1 else 's'})",
+            fontsize=10,
+        )
         fig.tight_layout()
-        fig.savefig(path)
+        return fig
 
 
 _ACTIVE: ContextVar[StageTimer | None] = ContextVar("poseflow_active_stage_timer", default=None)
