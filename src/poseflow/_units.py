@@ -7,8 +7,9 @@ early with a :class:`~poseflow.errors.UnitsError` (or :class:`~poseflow.errors.V
 for intrinsics) whose message names the option that fixes it.
 
 The plausible ranges: a median scene depth of 0.1 to 10 m (:data:`DEPTH_RANGE`), an object
-diameter of 5 mm to 5 m (:data:`DIAMETER_RANGE`), and an object no larger than twice its
-distance to the camera.
+diameter of 5 mm to 5 m (:data:`DIAMETER_RANGE`), an object no larger than twice its
+distance to the camera, and masked depth whose back-projected extent agrees with the objects'
+diameters (:data:`EXTENT_RATIO_RANGE`, :func:`check_depth_extent`).
 """
 
 from __future__ import annotations
@@ -24,6 +25,9 @@ from poseflow.errors import DegenerateInputError, ShapeError, UnitsError, ValueR
 __all__ = [
     "DEPTH_RANGE",
     "DIAMETER_RANGE",
+    "EXTENT_RATIO_RANGE",
+    "NEAR_DEPTH",
+    "check_depth_extent",
     "check_depth_units",
     "check_diameter_units",
     "check_intrinsics",
@@ -36,6 +40,18 @@ DEPTH_RANGE: tuple[float, float] = (0.1, 10.0)
 
 #: Plausible object diameter, metres.
 DIAMETER_RANGE: tuple[float, float] = (0.005, 5.0)
+
+#: Plausible ratio of the extent of a masked, back-projected depth to the object's diameter
+#: (:func:`check_depth_extent`): the typical instance of an image may span at most 3 diameters
+#: (no visible part is larger than its object), and the largest must span at least a twentieth
+#: of one, or a third of one where the masked depth is nearer than :data:`NEAR_DEPTH`. The lower
+#: bounds are looser because a visible part can be much smaller than its object: an instance
+#: 10 % visible, one compact patch, spans 0.09 (a thin clamp's) to 0.35 of its diameter.
+EXTENT_RATIO_RANGE: tuple[float, float] = (0.05, 3.0)
+
+#: Below this median depth (metres) of the masked pixels, the largest extent ratio must reach a
+#: third (:func:`check_depth_extent`): a depth ten times too small puts a scene 1-3 m away here.
+NEAR_DEPTH: float = 0.3
 
 
 def _suggest(value: float, low: float, high: float, scale: float, typical: float) -> float | None:
@@ -193,6 +209,137 @@ def check_size_against_depth(
         )
 
 
+def _extent(points: torch.Tensor) -> float:
+    """Twice the 90th percentile of the distances of ``points`` ``(N, 3)`` to their median point.
+
+    Rotation-invariant and robust to the flying pixels and stray background pixels of a mask's
+    border (up to a tenth of the points); about the diameter for a fully visible object.
+    """
+    if points.shape[0] > 20000:  # evenly thinned: the percentile barely moves
+        points = points[:: (points.shape[0] + 19999) // 20000]
+    centre = points.median(dim=0).values
+    return 2.0 * float(torch.quantile((points - centre).norm(dim=1), 0.9))
+
+
+def check_depth_extent(
+    depth: torch.Tensor,
+    K: Any,
+    masks: torch.Tensor,
+    diameters: Sequence[float] | torch.Tensor,
+    *,
+    min_points: int = 50,
+    where: str = "the depth image",
+    scale_name: str | None = None,
+    scale: float = 1.0,
+    api_name: str | None = None,
+) -> torch.Tensor:
+    """Check that the depth inside each mask spans about as much as its object.
+
+    Each mask's valid depth is back-projected and its robust extent (twice the 90th percentile
+    of the distances to the median point) compared with the object's diameter. A depth in the
+    wrong unit scales every extent by the same factor (10 for a depth in 0.1 mm read as
+    millimetres, 1000 for millimetres read as metres), while the median depth alone can still
+    look plausible. The image is judged on its instances with at least ``min_points`` valid
+    pixels:
+
+    - too large: the median ratio exceeds 3 (:data:`EXTENT_RATIO_RANGE`): no visible part is
+      larger than its object, and the median ignores a single mask that strays onto the
+      background;
+    - too small: even the largest ratio is below 1/20, or below 1/3 while the median masked
+      depth is nearer than :data:`NEAR_DEPTH`. A visible part can be much smaller than its
+      object (an occluded instance, a thin object seen end-on), so one instance that shows a
+      fair part of its object is enough to pass, and between 1/20 and 1/3 (what an instance
+      one-tenth visible spans) only a depth that is also implausibly near is an error.
+
+    Args:
+        depth: depth ``(H, W)``, metres; 0 or NaN where missing.
+        K: intrinsics ``(3, 3)`` (tensor, array or nested lists; checked elsewhere).
+        masks: instance masks ``(B, H, W)`` bool.
+        diameters: the diameter of each instance's object ``(B,)``, metres.
+        min_points: an instance with fewer valid depth pixels is not judged.
+        where: what the depth is (a file, a scene and image), for the message.
+        scale_name: the option or argument that sets the depth's scale (``--depth-scale``,
+            ``depth_scale=``), for the message; None: the message asks for depth in metres.
+        scale: the scale that was applied (the message suggests a corrected one).
+        api_name: the Python argument that sets the scale too, when ``scale_name`` is an option.
+
+    Returns:
+        The ratio of extent to diameter of each instance ``(B,)`` float64, NaN where not judged.
+
+    Raises:
+        ShapeError: masks and depth of different sizes, or not one diameter per mask.
+        UnitsError: the extents disagree with the diameters beyond :data:`EXTENT_RATIO_RANGE`;
+            the message gives the likely factor and the scale that fixes it.
+
+    Example:
+        >>> K = torch.tensor([[500.0, 0, 32], [0, 500, 32], [0, 0, 1]])
+        >>> masks = torch.zeros(1, 64, 64, dtype=torch.bool); masks[0, 20:44, 20:44] = True
+        >>> depth = torch.full((64, 64), 2.0)  # 24 px at 2 m: about 0.1 m across
+        >>> round(float(check_depth_extent(depth, K, masks, [0.12])[0]), 1)
+        0.9
+        >>> try:
+        ...     check_depth_extent(10 * depth, K, masks, [0.12], scale_name="--depth-scale",
+        ...                        scale=0.001)
+        ... except UnitsError as e:
+        ...     print(str(e).split("? ")[-1])
+        set --depth-scale 0.0001; it is 0.001
+    """
+    d = torch.as_tensor(depth)
+    if d.dim() != 2 or masks.dim() != 3 or tuple(masks.shape[1:]) != tuple(d.shape):
+        raise ShapeError(
+            f"{where}: masks {tuple(masks.shape)} must be (B, H, W) of the depth's {tuple(d.shape)}"
+        )
+    diam = torch.as_tensor(diameters, dtype=torch.float64).reshape(-1).cpu()
+    B = masks.shape[0]
+    if diam.numel() != B:
+        raise ShapeError(f"{where}: {B} masks but {diam.numel()} diameters")
+    ratios = torch.full((B,), float("nan"), dtype=torch.float64)
+    if B == 0:
+        return ratios
+    Kt = torch.as_tensor(_nested_floats(K), dtype=torch.float64).reshape(3, 3)
+    fx, fy, cx, cy = (float(Kt[0, 0]), float(Kt[1, 1]), float(Kt[0, 2]), float(Kt[1, 2]))
+    ok = torch.isfinite(d) & (d > 0)
+    for i in range(B):
+        v, u = torch.nonzero(masks[i].to(d.device) & ok, as_tuple=True)
+        if v.numel() < min_points or not (math.isfinite(diam[i]) and diam[i] > 0):
+            continue
+        z = d[v, u].double()
+        pts = torch.stack([(u.double() - cx) * z / fx, (v.double() - cy) * z / fy, z], dim=1)
+        ratios[i] = _extent(pts) / float(diam[i])
+    judged = ratios[torch.isfinite(ratios)]
+    if judged.numel() == 0:
+        return ratios
+    low, high = EXTENT_RATIO_RANGE
+    if float(judged.max()) < 1.0 / high and low <= float(judged.max()):
+        counted = torch.isfinite(ratios).to(masks.device)
+        inside = masks[counted].any(dim=0).to(d.device) & ok
+        if float(d[inside].median()) < NEAR_DEPTH:
+            low = 1.0 / high
+    n = judged.numel()
+    of = "one instance" if n == 1 else f"{n} instances"
+    typical, largest = float(judged.median()), float(judged.max())
+    if typical > high:
+        factor = 10.0 ** max(1, round(math.log10(typical)))
+        spans = f"{typical:.3g} times" + (" (the median)" if n > 1 else "")
+        why = "more than a visible part of an object can (unless the masks are of other objects)"
+        size = "large"
+    elif largest < low:
+        factor = 10.0 ** min(-1, round(math.log10(largest)))
+        spans = f"at most {largest:.3g} times"
+        why = "far less than the visible part of an object does"
+        size = "small"
+    else:
+        return ratios
+    if scale_name is None:
+        fix = f"multiply the depth by {1.0 / factor:g} (poseflow takes depth in metres)"
+    else:
+        fix = _fix(scale_name, scale, scale / factor, api_name)
+    raise UnitsError(
+        f"{where}: the depth inside the masks spans {spans} the objects' diameters ({of}), "
+        f"{why}: is the depth {max(factor, 1.0 / factor):g} times too {size}? {fix}"
+    )
+
+
 def check_intrinsics(
     K: Any,
     width: int,
@@ -219,9 +366,9 @@ def check_intrinsics(
 
     Raises:
         ShapeError: not 9 numbers.
-        ValueRangeError: non-finite entries, a non-positive focal length, a last row other than
-            ``[0, 0, 1]``, or a principal point outside the image (a transposed ``K``, or ``K``
-            of another resolution).
+        ValueRangeError: non-finite entries, all zeros, a non-positive focal length, a last row
+            other than ``[0, 0, 1]``, or a principal point outside the image (a transposed
+            ``K``, or ``K`` of another resolution).
 
     Example:
         >>> K = [[500.0, 0, 320], [0, 500, 240], [0, 0, 1]]
@@ -245,6 +392,8 @@ def check_intrinsics(
     t = t.reshape(3, 3)
     if not bool(torch.isfinite(t).all()):
         raise ValueRangeError(f"{name} holds NaN or inf")
+    if not bool(t.any()):
+        raise ValueRangeError(f"{name} is all zeros")
     row = [float(x) for x in t[2]]
     if row != [0.0, 0.0, 1.0]:
         raise ValueRangeError(f"{name}'s last row must be [0, 0, 1], got {row}: is K transposed?")

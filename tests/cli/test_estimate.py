@@ -164,3 +164,28 @@ def test_estimate_with_the_demo_model_caches_the_prepared_mesh(frame, tmp_path, 
     assert pose["valid"] and pose["t_m"][2] > 0
     assert len(list((tmp_path / "c" / "objects").glob("obj_000001/*/object.json"))) == 1
     assert "FunFlow6D" in capsys.readouterr().out
+
+
+def test_bop_depth_in_tenths_of_a_millimetre_read_as_millimetres_stops(frame, tmp_path, capsys):
+    argv = _argv(frame, tmp_path / "out")
+    with pytest.warns(UserWarning, match=r"0\.001 .* overrides the depth_scale 0\.1 \(mm per"):
+        assert main([*argv, "--depth-scale", "0.001", "--no-progress"]) == 1
+    err = capsys.readouterr().err
+    assert "10 times too large? set --depth-scale 0.0001" in err
+    assert str(frame["depth"]) in err and not (tmp_path / "out" / "poses.json").exists()
+
+
+@pytest.mark.parametrize("bad", ["transposed", "zero"])
+def test_a_bad_cam_k_in_scene_camera_is_a_failed_run_naming_file_and_image(
+    frame, tmp_path, capsys, bad
+):
+    cameras = json.loads(frame["camera"].read_text())
+    K = np.array(cameras["0"]["cam_K"]).reshape(3, 3)
+    cameras["0"]["cam_K"] = (K.T if bad == "transposed" else 0 * K).reshape(-1).tolist()
+    path = tmp_path / "scene_camera.json"
+    path.write_text(json.dumps(cameras))
+    argv = _argv(frame, tmp_path / "out")
+    argv[argv.index("--K") + 1] = str(path)
+    assert main(argv) == 1
+    err = capsys.readouterr().err
+    assert f"{path} (image 0)" in err and "usage:" not in err

@@ -34,6 +34,7 @@ from poseflow.data.bop import (
     write_test_targets,
 )
 from poseflow.data.rle import rle_encode
+from poseflow.errors import ShapeError
 from poseflow.geometry.se3 import random_transform
 
 H, W = 24, 32
@@ -402,3 +403,30 @@ def test_detection_numbers_must_be_numbers(tmp_path, key, value):
     (tmp_path / "d.json").write_text(json.dumps([entry]))
     with pytest.raises(BOPFormatError, match=rf"entry 0, scene 1, image 0\): '{key}' must be"):
         read_detections(tmp_path / "d.json")
+
+
+@pytest.mark.parametrize("bad", ["transposed", "zero"])
+def test_a_bad_cam_k_names_the_file_scene_and_image(dataset, bad):
+    root, _ = dataset
+    p = root / "test" / "000001" / "scene_camera.json"
+    raw = json.loads(p.read_text())
+    K = np.asarray(raw["4"]["cam_K"]).reshape(3, 3)
+    raw["4"]["cam_K"] = (K.T if bad == "transposed" else 0 * K).reshape(-1).tolist()
+    p.write_text(json.dumps(raw))
+    with pytest.raises(BOPFormatError, match=r"scene_camera\.json \(scene 000001, image 4\)"):
+        read_scene_camera(p)
+
+
+def test_files_of_different_sizes_are_named(dataset):
+    from PIL import Image
+
+    root, _ = dataset
+    scene = BOPDataset(root, "test").scene(1)
+    mask = scene.mask_path(4, 1, visible=True)
+    Image.fromarray(np.zeros((10, 12), np.uint8)).save(mask)
+    with pytest.raises(ShapeError, match="scene 1 image 4") as err:
+        scene.image_sample(4)
+    assert f"{mask} is 12x10 but {scene.depth_path(4)} is {W}x{H}" in str(err.value)
+    Image.fromarray(np.zeros((10, 12, 3), np.uint8)).save(scene.rgb_path(0))
+    with pytest.raises(ShapeError, match=r"rgb/000000\.png is 12x10"):
+        scene.image_sample(0)

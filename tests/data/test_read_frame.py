@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import warnings
 
 import numpy as np
 import pytest
@@ -12,7 +13,13 @@ from PIL import Image
 from poseflow.data.bop import Detection, write_detections
 from poseflow.data.frame import read_frame, read_intrinsics, read_metric_depth
 from poseflow.data.rle import rle_encode
-from poseflow.errors import MissingFileError, ShapeError, UnitsError, ValueRangeError
+from poseflow.errors import (
+    BOPFormatError,
+    MissingFileError,
+    ShapeError,
+    UnitsError,
+    ValueRangeError,
+)
 
 W, H = 64, 48
 K = [[60.0, 0.0, 31.5], [0.0, 60.0, 23.5], [0.0, 0.0, 1.0]]
@@ -119,3 +126,36 @@ def test_detections_of_one_image(files):
     none = read_frame(files / "rgb.png", files / "depth.png", K, detections=files / "dets.json",
                       im_id=9)  # fmt: skip
     assert len(none) == 0 and none.masks.shape == (0, H, W)
+
+
+@pytest.mark.parametrize("bad", ["transposed", "zero"])
+def test_a_bad_cam_k_in_a_file_is_that_files_error_naming_the_image(files, bad):
+    flat = (np.array(K).T if bad == "transposed" else np.zeros((3, 3))).reshape(-1).tolist()
+    good = [x for row in K for x in row]
+    scene_camera = {"3": {"cam_K": good, "depth_scale": 1.0}, "7": {"cam_K": flat}}
+    path = files / "scene_camera.json"
+    path.write_text(json.dumps(scene_camera))
+    with pytest.raises(BOPFormatError, match=f"{path} \\(image 7\\): K") as err:
+        read_frame(files / "rgb.png", files / "depth.png", path, im_id=7,
+                   masks=[files / "mask.png"])  # fmt: skip
+    assert not isinstance(err.value, ValueRangeError)  # a failed run, not a usage error
+    assert read_intrinsics(path, W, H, im_id=3).tolist() == K
+
+
+def test_a_depth_scale_that_overrides_the_camera_entry_warns_with_both_values(files):
+    flat = [x for row in K for x in row]
+    (files / "cam.json").write_text(json.dumps({"0": {"cam_K": flat, "depth_scale": 1.0}}))
+    with pytest.warns(UserWarning, match=r"0\.002 .* overrides the depth_scale 1 \(mm per unit"):
+        f = read_frame(files / "rgb.png", files / "depth.png", files / "cam.json",
+                       masks=[files / "mask.png"], depth_scale=0.002)  # fmt: skip
+    assert f.depth_scale == 0.002
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the same value in metres: nothing to say
+        read_frame(files / "rgb.png", files / "depth.png", files / "cam.json",
+                   masks=[files / "mask.png"], depth_scale=0.001)  # fmt: skip
+
+
+def test_colour_and_depth_of_different_sizes_name_both_files(files):
+    Image.fromarray(np.zeros((10, 12, 3), np.uint8)).save(files / "small_rgb.png")
+    with pytest.raises(ShapeError, match=r"small_rgb\.png is 12x10, the depth image .*depth\.png"):
+        read_frame(files / "small_rgb.png", files / "depth.png", K, masks=[files / "mask.png"])

@@ -87,3 +87,20 @@ def test_poses_json_has_metres_millimetres_score_and_validity(tmp_path):
     assert first["score"] == pytest.approx(0.7)
     assert not second["valid"] and second["score"] == 0.0 and "behind" in second["note"]
     assert data["method"] == "fixed" and data["seconds"] >= 0
+
+
+def test_depth_a_thousand_times_too_small_stops_before_the_estimator():
+    masks = torch.zeros(2, 120, 160, dtype=torch.bool)
+    masks[0, 10:40, 10:40] = True
+    masks[1, 50:80, 60:90] = True
+    K = torch.tensor([[600.0, 0, 80], [0, 600.0, 60], [0, 0, 1]], dtype=torch.float64)
+    frame = Frame(
+        torch.zeros(3, 120, 160, dtype=torch.uint8), torch.full((120, 160), 0.8), K, masks,
+        torch.tensor([1, 2]), torch.ones(2, dtype=torch.float64), depth_scale=0.001,
+    )  # fmt: skip
+    est = _Fixed([0.8, 0.8], [True, True])
+    assert estimate_frame(est, frame, diameters={1: 0.05, 2: 0.06}).valid.all()
+    frame.depth = frame.depth / 1000  # metres divided by 1000 once more
+    with pytest.raises(UnitsError, match=r"1000 times too small\? set depth_scale=1;"):
+        estimate_frame(est, frame, diameters={1: 0.05, 2: 0.06})
+    assert est.calls == 1

@@ -1,11 +1,18 @@
+import json
+import shutil
+
+import numpy as np
 import pytest
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from PIL import Image
 
+from poseflow.cli import is_usage_error
 from poseflow.data.bop import BOPDataset, Detection
 from poseflow.data.rle import rle_encode
 from poseflow.data.synthetic import generate_dataset
+from poseflow.errors import BOPFormatError, ShapeError, UnitsError
 from poseflow.eval import (
     PoseEstimate,
     StageTimer,
@@ -152,3 +159,51 @@ def test_invalidate_implausible_keeps_exactly_the_finite_poses_in_front(seed, B,
             assert float(out.scores[b]) == (float(scores[b]) if out.valid[b] else 0.0)
         assert torch.equal(out.poses.nan_to_num(7.0), poses.nan_to_num(7.0))  # kept as they are
         assert out.scores.dtype == dtype and out.valid.dtype == torch.bool
+
+
+def _copy_with_camera(dataset, tmp_path, edit):
+    """A copy of ``dataset``; its first image's ``scene_camera.json`` entry passed to ``edit``."""
+    root = tmp_path / "copy"
+    shutil.copytree(dataset.root, root)
+    s = dataset.scene_ids[0]
+    i = dataset.scene(s).im_ids[0]
+    path = root / "test" / f"{s:06d}" / "scene_camera.json"
+    cameras = json.loads(path.read_text())
+    edit(cameras[str(i)])
+    path.write_text(json.dumps(cameras))
+    return BOPDataset(root, "test"), path, i
+
+
+def test_a_depth_scale_a_thousand_times_too_large_stops_naming_the_image(dataset, tmp_path):
+    def scale(cam):
+        cam["depth_scale"] *= 1000
+
+    copy, path, im_id = _copy_with_camera(dataset, tmp_path, scale)
+    oracle = _oracle(dataset)
+    with pytest.raises(UnitsError, match="1000 times too large") as err:
+        predict_dataset(oracle, copy)
+    assert f"image {im_id}" in str(err.value) and str(path) in str(err.value)
+    assert len(predict_dataset(oracle, copy, diameters={})) > 0  # {}: no check
+
+
+@pytest.mark.parametrize("bad", ["transposed", "zero"])
+def test_a_bad_cam_k_is_a_format_error_naming_the_file_and_image(dataset, tmp_path, bad):
+    def edit(cam):
+        K = np.asarray(cam["cam_K"], dtype=float).reshape(3, 3)
+        cam["cam_K"] = (K.T if bad == "transposed" else np.zeros((3, 3))).reshape(-1).tolist()
+
+    copy, path, im_id = _copy_with_camera(dataset, tmp_path, edit)
+    with pytest.raises(BOPFormatError, match=f"image {im_id}") as err:
+        predict_dataset(_oracle(dataset), copy)
+    assert str(path) in str(err.value) and "cam_K" in str(err.value)
+    assert not is_usage_error(err.value)
+
+
+def test_a_mask_of_another_size_is_a_shape_error_naming_both_files(dataset, tmp_path):
+    copy, _, im_id = _copy_with_camera(dataset, tmp_path, lambda cam: None)
+    scene = copy.scene(copy.scene_ids[0])
+    mask = scene.mask_path(im_id, 0)
+    Image.fromarray(np.zeros((10, 12), np.uint8)).save(mask)
+    with pytest.raises(ShapeError, match="12x10 but the depth") as err:
+        predict_dataset(_oracle(dataset), copy)
+    assert str(mask) in str(err.value) and str(scene.depth_path(im_id)) in str(err.value)

@@ -39,7 +39,9 @@ Inputs: --rgb, --depth (a 16-bit PNG with --depth-scale metres per unit, 0.001 b
 float TIFF/.npy in metres), --K (9 numbers row-major, a JSON file or text, or a BOP
 scene_camera.json with --im-id), the instances (--mask PNGs, one per instance, or a BOP
 --detections file) and the objects (--mesh: a mesh file with --mesh-scale to metres, or a BOP
-models folder in millimetres). Depth, intrinsics and mesh sizes are checked for plausible units.
+models folder in millimetres). Depth, intrinsics and mesh sizes are checked for plausible units,
+and the depth inside each mask against its object's size. --depth-scale is metres per unit; a
+BOP scene_camera.json's depth_scale is millimetres per unit (BOP's 0.1 is --depth-scale 0.0001).
 
 Estimator: the classic baseline (FPFH + RANSAC + ICP, no training) unless --model names a
 trained FunFlow6D model folder (or demo, the small model shipped with poseflow)."""
@@ -62,7 +64,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         default=None,
         metavar="M",
         help="metres per unit of the depth image (default: 0.001 for integer images, i.e. "
-        "millimetres, 1 for float images; a BOP camera entry's depth_scale when --K is one)",
+        "millimetres, 1 for float images; a BOP camera entry's depth_scale when --K is one). "
+        "Not BOP's depth_scale, which is millimetres per unit: BOP's 0.1 is --depth-scale 0.0001",
     )
     frame.add_argument(
         "--K",
@@ -235,6 +238,7 @@ def run(args: argparse.Namespace) -> int:
     """Read the frame and the meshes, estimate, write the JSON and the overlay; returns 0."""
     import torch
 
+    from poseflow._units import check_depth_extent
     from poseflow.cli.common import LOG, check_writable, show_progress
     from poseflow.data.frame import read_frame
     from poseflow.errors import UsageError
@@ -265,6 +269,15 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"the detections name objects {unknown} that no --mesh gives")
     if len(frame) == 0:
         LOG.warning("no instance to estimate: the detections hold none for this image")
+    check_depth_extent(  # before preparing anything: a depth off by a power of ten stops here
+        frame.depth,
+        frame.K,
+        frame.masks,
+        [objects[int(o)].diameter for o in frame.obj_ids.tolist()],
+        where=f"depth {args.depth}",
+        scale_name="--depth-scale",
+        scale=frame.depth_scale,
+    )
     estimator, method = _estimator(args, objects, progress)
     diameters = {o: m.diameter for o, m in objects.items()}
     result = estimate_frame(estimator, frame, diameters=diameters)

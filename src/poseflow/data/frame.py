@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import json
 import math
+import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -181,11 +182,17 @@ def _load_json_spec(spec: str | Path) -> Any:
         raise BOPFormatError(f"intrinsics file {path} is not valid JSON: {exc}") from None
 
 
-def _camera_entry(spec: Any, im_id: int | None) -> tuple[Any, float | None]:
-    """``(K as given, BOP depth_scale in mm per unit or None)`` of an intrinsics spec."""
+def _camera_entry(spec: Any, im_id: int | None) -> tuple[Any, float | None, str | None]:
+    """``(K as given, BOP depth_scale in mm per unit or None, its file or None)`` of a spec.
+
+    The file is named with the image of a ``scene_camera.json``, for the messages.
+    """
     data = _load_json_spec(spec) if isinstance(spec, (str, Path)) else spec
+    source = None
+    if isinstance(spec, (str, Path)) and str(spec).strip()[:1] not in "[{":
+        source = f"intrinsics file {spec}"
     if not isinstance(data, Mapping):
-        return data, None
+        return data, None, source
     if data and all(str(k).isdigit() for k in data):  # scene_camera.json: {im_id: entry}
         ids = sorted(int(k) for k in data)
         if im_id is None:
@@ -199,17 +206,28 @@ def _camera_entry(spec: Any, im_id: int | None) -> tuple[Any, float | None]:
         if entry is None:
             raise ValueRangeError(f"{spec} has no camera of image {im_id} (images {ids})")
         data = entry
+        source = None if source is None else f"{spec} (image {im_id})"
     if not isinstance(data, Mapping):
         raise BOPFormatError(f"{spec}: a camera entry must be a JSON object")
     scale = data.get("depth_scale")
     scale = float(scale) if isinstance(scale, (int, float)) else None
     for key in ("cam_K", "K"):
         if key in data:
-            return data[key], scale
+            return data[key], scale, source
     if all(k in data for k in ("fx", "fy", "cx", "cy")):
         f = {k: data[k] for k in ("fx", "fy", "cx", "cy")}
-        return [[f["fx"], 0, f["cx"]], [0, f["fy"], f["cy"]], [0, 0, 1]], scale
+        return [[f["fx"], 0, f["cx"]], [0, f["fy"], f["cy"]], [0, 0, 1]], scale, source
     raise BOPFormatError(f"{spec}: no cam_K, K or fx/fy/cx/cy in the camera entry")
+
+
+def _check_K(K: Any, width: int, height: int, source: str | None) -> torch.Tensor:
+    """:func:`check_intrinsics`; a bad ``K`` read from a file is that file's error, named."""
+    try:
+        return check_intrinsics(K, width, height)
+    except (ShapeError, ValueRangeError) as exc:
+        if source is None:  # numbers or JSON text given directly: the caller's argument
+            raise
+        raise BOPFormatError(f"{source}: {exc}") from None
 
 
 def read_intrinsics(
@@ -231,15 +249,17 @@ def read_intrinsics(
     Raises:
         MissingFileError: a named file does not exist.
         ShapeError: not 9 numbers.
-        ValueRangeError: malformed JSON, a missing image, or implausible intrinsics (a
+        ValueRangeError: malformed JSON text, a missing image, or implausible intrinsics (a
             principal point outside the image, as a transposed ``K`` gives).
+        BOPFormatError: a file holding implausible intrinsics (named, with the image of a
+            ``scene_camera.json``), or malformed JSON in a file.
 
     Example:
         >>> read_intrinsics('{"fx": 500, "fy": 500, "cx": 320, "cy": 240}', 640, 480)[0].tolist()
         [500.0, 0.0, 320.0]
     """
-    K, _ = _camera_entry(spec, im_id)
-    return check_intrinsics(K, width, height)
+    K, _, source = _camera_entry(spec, im_id)
+    return _check_K(K, width, height, source)
 
 
 def read_masks(paths: Sequence[str | Path], width: int, height: int) -> torch.Tensor:
@@ -342,25 +362,41 @@ def read_frame(
     Returns:
         The :class:`Frame` (``B`` may be 0 when the detections hold none for the image).
 
+    Warns:
+        UserWarning: ``depth_scale`` disagrees with the ``depth_scale`` of the BOP camera entry
+            (which is millimetres per unit: BOP's 0.1 is ``depth_scale=0.0001``); the given one
+            is used.
+
     Raises:
-        ShapeError: the images differ in size, or ``obj_ids`` does not match ``masks``.
+        ShapeError: the images differ in size (both files are named), or ``obj_ids`` does not
+            match ``masks``.
         UnitsError: implausible depth (the message gives the ``depth_scale`` to set).
-        ValueRangeError: implausible intrinsics, or no instance source given.
+        ValueRangeError: implausible intrinsics given as numbers, or no instance source given.
+        BOPFormatError: implausible intrinsics in a file (named, with the image id).
     """
     if not masks and detections is None:
         raise ValueRangeError("give the instances: mask images or a detections file")
     color = read_color(rgb)
-    raw_K, bop_scale = _camera_entry(K, im_id)
-    if depth_scale is None and bop_scale is not None:
-        depth_scale = bop_scale / 1000.0  # BOP: millimetres per unit
+    raw_K, bop_scale, source = _camera_entry(K, im_id)
+    if bop_scale is not None:
+        from_camera = bop_scale / 1000.0  # BOP: millimetres per unit, poseflow: metres
+        if depth_scale is None:
+            depth_scale = from_camera
+        elif not math.isclose(depth_scale, from_camera, rel_tol=1e-6):
+            warnings.warn(
+                f"depth_scale {depth_scale:g} (m per unit, --depth-scale) overrides the "
+                f"depth_scale {bop_scale:g} (mm per unit, i.e. {from_camera:g} m) of "
+                f"{source or 'the camera entry'}; omit it to use the camera's",
+                stacklevel=2,
+            )
     d, scale = read_metric_depth(depth, depth_scale=depth_scale)
     if tuple(color.shape[1:]) != tuple(d.shape):
         raise ShapeError(
-            f"the colour image is {color.shape[2]}x{color.shape[1]}, the depth image "
-            f"{d.shape[1]}x{d.shape[0]}: they must be registered to the same pixels"
+            f"the colour image {rgb} is {color.shape[2]}x{color.shape[1]}, the depth image "
+            f"{depth} {d.shape[1]}x{d.shape[0]}: they must be registered to the same pixels"
         )
     height, width = d.shape
-    intrinsics = check_intrinsics(raw_K, width, height)
+    intrinsics = _check_K(raw_K, width, height, source)
     m = read_masks(list(masks), width, height)
     if obj_ids is None:
         ids = [1] * len(m)

@@ -20,7 +20,7 @@ from typing import Any
 
 import torch
 
-from poseflow._units import check_size_against_depth, in_front_of_camera
+from poseflow._units import check_depth_extent, check_size_against_depth, in_front_of_camera
 from poseflow.data.frame import Frame
 from poseflow.errors import ShapeError
 from poseflow.eval.predict import Estimator, PoseEstimate, invalidate_implausible
@@ -89,7 +89,9 @@ def estimate_frame(
         estimator: any :data:`~poseflow.eval.predict.Estimator`, e.g. ``model.estimator()`` of
             a FunFlow6D model whose objects are prepared, or ``ClassicBaseline(...).estimator()``.
         frame: the frame (:func:`~poseflow.data.frame.read_frame`).
-        diameters: ``{obj_id: diameter in metres}``; when given, each object must be no larger
+        diameters: ``{obj_id: diameter in metres}``; when given, the depth inside the masks
+            must span about as much as the objects (:func:`~poseflow._units.check_depth_extent`:
+            a depth off by a power of ten gives itself away), and each object must be no larger
             than twice the median depth of its mask (else the units of the mesh and the depth
             differ).
 
@@ -97,7 +99,8 @@ def estimate_frame(
         :class:`FramePoses`; a pose behind the camera or not finite is never valid.
 
     Raises:
-        UnitsError: an object's size disagrees with its depth.
+        UnitsError: an object's size disagrees with its depth (the message gives the
+            ``depth_scale=`` of :func:`~poseflow.data.frame.read_frame` that fixes it).
         ShapeError: the estimator returned the wrong number of poses.
 
     Example:
@@ -123,6 +126,15 @@ def estimate_frame(
             torch.zeros(0, dtype=torch.bool),
         )
     if diameters is not None:
+        check_depth_extent(
+            frame.depth,
+            frame.K,
+            frame.masks,
+            [float(diameters.get(int(o), float("nan"))) for o in frame.obj_ids.tolist()],
+            where="the frame's depth",
+            scale_name="depth_scale=",
+            scale=frame.depth_scale,
+        )
         for i in range(B):
             obj = int(frame.obj_ids[i])
             d = frame.depth[frame.masks[i]]

@@ -10,13 +10,14 @@ from __future__ import annotations
 
 import os
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
 import torch
 
-from poseflow._units import in_front_of_camera
-from poseflow.data.bop import BOPDataset, Detection
+from poseflow._units import check_depth_extent, check_intrinsics, in_front_of_camera
+from poseflow.data.bop import BOPDataset, BOPScene, Detection
+from poseflow.errors import BOPFormatError, ShapeError, ValueRangeError
 from poseflow.eval.recall import Target
 from poseflow.eval.results import PoseResults
 from poseflow.eval.timing import StageTimer
@@ -134,6 +135,7 @@ def predict_dataset(
     timer: StageTimer | None = None,
     progress: bool = False,
     before_image: Callable[[int, int], None] | None = None,
+    diameters: Mapping[int, float] | None = None,
 ) -> PoseResults:
     """Estimate the poses of the target instances of every image of a split.
 
@@ -156,10 +158,21 @@ def predict_dataset(
             outside its time: e.g. to reseed the estimator's generator per image
             (:func:`~poseflow.eval.distributed.image_seed`), or to stop when another process
             of a split run failed (:meth:`~poseflow.eval.distributed.Ranks.check_peers`).
+        diameters: ``{obj_id: diameter in metres}`` against which each image's masked depth is
+            checked (:func:`~poseflow._units.check_depth_extent`: a ``depth_scale`` off by a
+            power of ten stops the run); None: those of the dataset's
+            ``models/models_info.json`` when it exists; ``{}``: no check.
 
     Returns:
         One row per valid estimate; a pose behind the camera (``t_z <= 0``) is never valid
         (:func:`invalidate_implausible`).
+
+    Raises:
+        UnitsError: an image's masked depth disagrees with its objects' diameters; the message
+            names the image, its ``scene_camera.json`` and the ``depth_scale`` that fixes it.
+        BOPFormatError: an image's ``cam_K`` is not a pinhole matrix of the image (transposed,
+            zero, another resolution), named with its file and image id.
+        ShapeError: an image's colour, depth and masks differ in size (the files are named).
     """
     from tqdm.auto import tqdm
 
@@ -176,6 +189,9 @@ def predict_dataset(
     for d in detections or ():
         by_image.setdefault((d.scene_id, d.im_id), []).append(d)
     known = None if object_ids is None else {int(o) for o in object_ids}
+    if diameters is None:
+        info = ds.root / "models" / "models_info.json"
+        diameters = {o: m.diameter for o, m in ds.models_info().items()} if info.is_file() else {}
     keys = sorted(images.items())[:max_images]
     parts = []
     for (s, i), wanted in tqdm(keys, desc="predict", disable=not progress):
@@ -191,21 +207,35 @@ def predict_dataset(
             sel = [g for g, gt in enumerate(gts) if usable(gt.obj_id)]
             obj_ids = [gts[g].obj_id for g in sel]
             masks = [scene.load_mask(i, g, visible=True) for g in sel]
+            mask_names = [str(scene.mask_path(i, g, visible=True)) for g in sel]
         else:
             dets = [d for d in by_image.get((s, i), []) if usable(d.obj_id)]
             obj_ids = [d.obj_id for d in dets]
             masks = [d.mask() for d in dets]
+            mask_names = [f"the detection mask of obj {d.obj_id}" for d in dets]
         if not masks:
             continue
         depth = scene.load_depth_image(i)
         rgb = scene.load_rgb_image(i) if load_rgb else None
-        K = torch.as_tensor(scene.camera[i].K, dtype=torch.float32)
+        _check_sizes(scene, i, depth, rgb, masks, mask_names)
+        K = _checked_K(scene, i, depth)
+        stacked = torch.stack(masks)
+        if diameters:
+            check_depth_extent(
+                depth,
+                K,
+                stacked,
+                [float(diameters.get(o, float("nan"))) for o in obj_ids],
+                where=f"scene {s} image {i} (depth {scene.depth_path(i)})",
+                scale_name=f"the depth_scale of image {i} in {scene.path / 'scene_camera.json'} to",
+                scale=float(scene.camera[i].depth_scale),
+            )
         start = time.perf_counter()
         if timer is None:
-            est = estimator(rgb, depth, K, torch.stack(masks), obj_ids)
+            est = estimator(rgb, depth, K, stacked, obj_ids)
         else:
             with timer.active(), timer.image():
-                est = estimator(rgb, depth, K, torch.stack(masks), obj_ids)
+                est = estimator(rgb, depth, K, stacked, obj_ids)
         elapsed = time.perf_counter() - start
         est = invalidate_implausible(est)
         ok = est.valid.cpu()
@@ -219,3 +249,38 @@ def predict_dataset(
             )
         )
     return PoseResults.concat(parts)
+
+
+def _check_sizes(
+    scene: BOPScene,
+    im_id: int,
+    depth: torch.Tensor,
+    rgb: torch.Tensor | None,
+    masks: Sequence[torch.Tensor],
+    mask_names: Sequence[str],
+) -> None:
+    """Raise a :class:`ShapeError` naming the files when colour, depth and masks differ in size."""
+    H, W = depth.shape
+    where = f"scene {scene.scene_id} image {im_id}"
+    if rgb is not None and tuple(rgb.shape[-2:]) != (H, W):
+        raise ShapeError(
+            f"{where}: the colour image {scene.rgb_path(im_id)} is {rgb.shape[-1]}x"
+            f"{rgb.shape[-2]} but the depth {scene.depth_path(im_id)} is {W}x{H}"
+        )
+    for m, name in zip(masks, mask_names):
+        if tuple(m.shape) != (H, W):
+            raise ShapeError(
+                f"{where}: {name} is {m.shape[-1]}x{m.shape[-2]} but the depth "
+                f"{scene.depth_path(im_id)} is {W}x{H}"
+            )
+
+
+def _checked_K(scene: BOPScene, im_id: int, depth: torch.Tensor) -> torch.Tensor:
+    """The image's ``cam_K`` as float32, checked against its size (a data error, not usage)."""
+    try:
+        K = check_intrinsics(scene.camera[im_id].K, depth.shape[1], depth.shape[0], name="cam_K")
+    except ValueRangeError as exc:
+        raise BOPFormatError(
+            f"{scene.path / 'scene_camera.json'} (scene {scene.scene_id}, image {im_id}): {exc}"
+        ) from None
+    return K.to(torch.float32)

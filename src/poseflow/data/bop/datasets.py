@@ -29,7 +29,7 @@ from poseflow.data.bop.records import (
     ModelInfo,
     TestTarget,
 )
-from poseflow.errors import BOPFormatError, MissingFileError
+from poseflow.errors import BOPFormatError, MissingFileError, ShapeError
 
 __all__ = [
     "BOPDataset",
@@ -213,6 +213,33 @@ class BOPScene(torch.utils.data.Dataset):
             raise MissingFileError(f"missing mask for {self._where(im_id, gt_idx)}: {p}")
         return read_mask(p)
 
+    def _check_sizes(
+        self,
+        im_id: int,
+        shape: tuple[int, ...],
+        rgb: torch.Tensor | None,
+        masks: Sequence[torch.Tensor],
+        visib: Sequence[torch.Tensor],
+        from_depth: bool,
+    ) -> None:
+        """Raise a :class:`ShapeError` naming both files where an image's files differ in size."""
+        ref = (
+            str(self.depth_path(im_id))
+            if from_depth
+            else str(self.mask_path(im_id, 0, visible=False))
+        )
+        H, W = shape
+        named = [(m, self.mask_path(im_id, i, visible=False)) for i, m in enumerate(masks)]
+        named += [(m, self.mask_path(im_id, i, visible=True)) for i, m in enumerate(visib)]
+        if rgb is not None:
+            named.insert(0, (rgb, self.rgb_path(im_id)))
+        for x, path in named:
+            if tuple(x.shape[-2:]) != (H, W):
+                raise ShapeError(
+                    f"{self._where(im_id)}: {path} is {x.shape[-1]}x{x.shape[-2]} but {ref} is "
+                    f"{W}x{H}"
+                )
+
     def image_sample(self, im_id: int) -> dict[str, Any]:
         """The sample of image ``im_id`` (see the class docstring for its keys)."""
         cam = self._cam(im_id)
@@ -238,6 +265,7 @@ class BOPScene(torch.utils.data.Dataset):
             masks = [self.load_mask(im_id, i, visible=False) for i in range(n)]
             visib = [self.load_mask(im_id, i, visible=True) for i in range(n)]
             shape = depth.shape if depth is not None else (masks[0].shape if n else (0, 0))
+            self._check_sizes(im_id, shape, out.get("rgb"), masks, visib, depth is not None)
             out["masks"] = torch.stack(masks) if n else torch.zeros(0, *shape, dtype=torch.bool)
             out["masks_visib"] = torch.stack(visib) if n else torch.zeros_like(out["masks"])
             for i, m in enumerate(visib):

@@ -127,13 +127,19 @@ def read_scene_camera(path: str | Path) -> dict[int, CameraInfo]:
 
     Raises:
         MissingFileError: the file does not exist.
-        BOPFormatError: a key is missing or malformed (the message names file, scene and image).
+        BOPFormatError: a key is missing or malformed, or ``cam_K`` is not a pinhole matrix
+            (zero, transposed); the message names file, scene and image.
     """
     path = Path(path)
     out = {}
     for im_id, entry in sorted(_int_keys(_load_json(path), path).items()):
         where = f"{path} (scene {_scene_of(path)}, image {im_id})"
         K = _array(_get(entry, "cam_K", where), 9, where, "cam_K").reshape(3, 3)
+        if not K.any() or K[2].tolist() != [0.0, 0.0, 1.0] or not (K[0, 0] > 0 and K[1, 1] > 0):
+            raise BOPFormatError(
+                f"{where}: cam_K {K.reshape(-1).tolist()} is not a pinhole matrix (positive "
+                "fx and fy, last row 0 0 1, row-major): is it transposed, or zero?"
+            )
         scale = float(entry.get("depth_scale", 1.0)) if isinstance(entry, Mapping) else 1.0
         if not math.isfinite(scale) or scale <= 0:
             raise BOPFormatError(f"{where}: depth_scale must be positive, got {scale}")
