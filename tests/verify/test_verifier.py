@@ -421,3 +421,30 @@ def test_search_of_objects_with_different_turn_counts_keeps_the_invariants(
     assert not out.score.valid[0, H + 23 :].any()
     empty = v.search(scene["rgb"], scene["depth"], K, masks[:0], [], torch.zeros(0, 4, 4))
     assert empty.hypotheses.shape == (0, 31, 4, 4) and empty.poses.shape == (0, 4, 4)
+
+
+def test_no_instances_give_empty_results_of_the_right_shapes(
+    verifier: PoseVerifier, scene: dict[str, torch.Tensor]
+) -> None:
+    none = scene["masks"][:0]
+    s = verifier.score(scene["rgb"], scene["depth"], K, none, [], torch.zeros(0, 3, 4, 4))
+    g = (CONFIG.crop_size // CONFIG.block_size) ** 2
+    assert s.total.shape == s.valid.shape == (0, 3) and s.evidence.shape == (0, 3, g)
+    assert s.valid.dtype == torch.bool and len(s) == 0
+    for estimated in (None, torch.zeros(0, dtype=torch.bool)):
+        out = verifier.verify(
+            scene["rgb"], scene["depth"], K, none, [], torch.zeros(0, 4, 4), estimated=estimated
+        )
+        assert out.poses.shape == (0, 4, 4) and out.scores.shape == out.valid.shape == (0,)
+        assert out.chosen.dtype == torch.long and out.hypotheses.shape == (0, 1, 4, 4)
+    with pytest.raises(ShapeError):  # still one id per instance
+        verifier.verify(scene["rgb"], scene["depth"], K, none, [1], torch.zeros(0, 4, 4))
+
+
+def test_zero_hypotheses_per_instance_is_a_shape_error(
+    verifier: PoseVerifier, scene: dict[str, torch.Tensor]
+) -> None:
+    with pytest.raises(ShapeError, match=r"\(1, 0, 4, 4\).*at least one hypothesis"):
+        verifier.score(
+            scene["rgb"], scene["depth"], K, scene["masks"], [1], torch.zeros(1, 0, 4, 4)
+        )

@@ -471,10 +471,12 @@ class PoseVerifier:
                 pixel, and costs proportionally less.
 
         Returns:
-            A :class:`~poseflow.verify.VerifierScore` in the hypotheses' dtype.
+            A :class:`~poseflow.verify.VerifierScore` in the hypotheses' dtype; without
+            instances (``B = 0``) one of empty fields ``(0, H)`` and ``(0, H, G)``.
 
         Raises:
-            ShapeError: wrong shapes, devices or dtypes.
+            ShapeError: wrong shapes, devices or dtypes, or no hypothesis for some instance
+                (``H = 0`` with ``B > 0``: hypothesis 0 places each instance's crop).
             ValueRangeError: an object that was not prepared, NaN in the hypotheses.
         """
         sizes = check_tensor(hypotheses, "hypotheses", ("B", "H", 4, 4), finite=True)
@@ -485,16 +487,23 @@ class PoseVerifier:
         check_same(("hypotheses", hypotheses), ("masks", masks), dtype=False)
         cfg = self.config
         objects = self._objects(obj_ids, sizes["B"])
-        points, normals, albedo, diam = self._stack(objects, hypotheses)
-        Kd = K.to(hypotheses.dtype)
-        if boxes is None:
-            boxes = self.crop_boxes(hypotheses[:, 0], obj_ids, Kd, masks)
         S = cfg.crop_size if crop_size is None else int(crop_size)
         if not 0 < S <= cfg.crop_size or S % cfg.block_size:
             raise ValueRangeError(
                 f"crop_size must be a multiple of block_size ({cfg.block_size}) up to "
                 f"{cfg.crop_size}, got {crop_size}"
             )
+        if sizes["B"] == 0:
+            return _empty_score(hypotheses, (S // cfg.block_size) ** 2)
+        if sizes["H"] == 0:
+            raise ShapeError(
+                f"hypotheses has shape {tuple(hypotheses.shape)}: score needs at least one "
+                "hypothesis per instance (H >= 1; the first places the instance's crop)"
+            )
+        points, normals, albedo, diam = self._stack(objects, hypotheses)
+        Kd = K.to(hypotheses.dtype)
+        if boxes is None:
+            boxes = self.crop_boxes(hypotheses[:, 0], obj_ids, Kd, masks)
         n = min(points.shape[1], math.ceil(points.shape[1] * (S / cfg.crop_size) ** 2))
         points, normals, albedo = points[:, :n], normals[:, :n], albedo[:, :n]
         Kc = crop_intrinsics(Kd, boxes, S)
@@ -631,7 +640,8 @@ class PoseVerifier:
                 are not verified and come back unchanged, with score 0 and ``valid`` False.
 
         Returns:
-            A :class:`Verification`.
+            A :class:`Verification`; without instances (``B = 0``) an empty one, whose
+            ``hypotheses`` are ``(0, 1, 4, 4)``.
 
         Raises:
             ShapeError: wrong shapes, devices or dtypes.
@@ -644,6 +654,9 @@ class PoseVerifier:
             check_same(("poses", poses), ("extra", extra))
             if extra_mask is not None:
                 check_mask(extra_mask, "extra_mask", ("B", "E"), sizes)
+        if sizes["B"] == 0:
+            self._objects(obj_ids, 0)
+            return self._unscored(poses[:, None])
         if estimated is not None:
             check_mask(estimated, "estimated", ("B",), sizes)
             if not bool(estimated.all()):
@@ -841,19 +854,16 @@ class PoseVerifier:
 
     def _unscored(self, hypotheses: torch.Tensor) -> Verification:
         """The :class:`Verification` of ``(B, H, 4, 4)`` unscored hypotheses: the first kept."""
-        B, H = hypotheses.shape[:2]
-        g = (self.config.crop_size // self.config.block_size) ** 2
-        zeros = hypotheses.new_zeros(B, H)
-        flags = torch.zeros(B, H, dtype=torch.bool, device=hypotheses.device)
-        evidence, support = hypotheses.new_zeros(B, H, g), flags[..., None].expand(B, H, g)
+        B = hypotheses.shape[0]
+        score = _empty_score(hypotheses, (self.config.crop_size // self.config.block_size) ** 2)
         return Verification(
             poses=hypotheses[:, 0].clone(),
             scores=hypotheses.new_zeros(B),
-            valid=flags[:, 0].clone(),
+            valid=score.valid[:, 0].clone(),
             chosen=torch.zeros(B, dtype=torch.long, device=hypotheses.device),
             hypotheses=hypotheses.clone(),
-            score=VerifierScore(zeros, zeros, zeros, zeros, flags, evidence, support),
-            statistic=zeros,
+            score=score,
+            statistic=score.total,
         )
 
     def _verify_subset(
@@ -897,6 +907,15 @@ class PoseVerifier:
             score=VerifierScore(*(spread(getattr(sub.score, f.name)) for f in fields(sub.score))),
             statistic=spread(sub.statistic),
         )
+
+
+def _empty_score(hypotheses: torch.Tensor, g: int) -> VerifierScore:
+    """The score of ``(B, H, 4, 4)`` unscored hypotheses on ``g`` blocks: zeros, all invalid."""
+    B, H = hypotheses.shape[:2]
+    zeros = hypotheses.new_zeros(B, H)
+    flags = torch.zeros(B, H, dtype=torch.bool, device=hypotheses.device)
+    evidence, support = hypotheses.new_zeros(B, H, g), flags[..., None].expand(B, H, g)
+    return VerifierScore(zeros, zeros, zeros, zeros, flags, evidence, support)
 
 
 def _chosen(hypotheses: torch.Tensor, score: VerifierScore, significance: float) -> Verification:
