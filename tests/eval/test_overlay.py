@@ -122,6 +122,10 @@ def test_each_estimate_has_its_own_colour_and_invalid_ones_are_dashed(box):
     assert bool((dashed[120, 240] == 128).all())  # no tint inside the invalid one
     with pytest.raises(ShapeError):
         overlay_poses(_grey(), BIG_K, [box], poses, object_ids=[0, 0], scores=[0.5])
+    poses[1] = float("nan")  # no estimate at all: in the legend, not drawn
+    missing = overlay_poses(_grey(), BIG_K, [box], poses, object_ids=[0, 0], valid=[True, False])
+    assert int(_has(missing[:, 160:], ESTIMATE_COLORS[1]).sum()) == 0
+    assert bool(_has(missing[:, :160], ESTIMATE_COLORS[0]).any())
 
 
 def test_gt_outline_lies_outside_a_matching_estimate(box):

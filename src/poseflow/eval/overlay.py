@@ -208,7 +208,8 @@ def overlay_poses(
             ``[0, 1]`` (a BOP sample's ``rgb``).
         K: intrinsics ``(3, 3)``.
         meshes: the object meshes in metres (anything :class:`~poseflow.render.Renderer` takes).
-        poses: estimated model-to-camera poses ``(n, 4, 4)``.
+        poses: estimated model-to-camera poses ``(n, 4, 4)``; one that is not finite (an
+            instance with no estimate) is listed in the legend but not drawn.
         object_ids: index into ``meshes`` of each pose (default ``0 .. n-1``).
         gt_poses: ground-truth poses ``(m, 4, 4)``, or None.
         gt_object_ids: index into ``meshes`` of each GT pose (default ``0 .. m-1``).
@@ -258,12 +259,13 @@ def overlay_poses(
     colours = [color or ESTIMATE_COLORS[i % len(ESTIMATE_COLORS)] for i in range(n)]
     covered = torch.zeros(H, W, dtype=torch.bool)
     edges: list[tuple[torch.Tensor, tuple[int, int, int]]] = []
-    if n:
-        r = ren.render(T, K, W, H, object_ids=ids, rgb=False)
+    drawn = [i for i in range(n) if bool(torch.isfinite(T[i]).all())]  # NaN: listed, not drawn
+    if drawn:
+        r = ren.render(T[drawn], K, W, H, object_ids=[ids[i] for i in drawn], rgb=False)
         # Headlight shading from the camera-facing normals: |n_z| is 1 facing the camera.
         shade = (0.35 + 0.65 * r.normals[..., 2].abs()).clamp(0, 1)[..., None]
         dashes = _dashes(H, W)
-        for i, visible in enumerate(r.masks_visible):
+        for i, visible in zip(drawn, r.masks_visible):
             c = torch.tensor(colours[i], dtype=torch.float32)
             covered |= visible
             if valid_list[i]:
