@@ -72,6 +72,11 @@ __all__ = ["BASELINE_VERIFIER", "ClassicBaseline"]
 BASELINE_VERIFIER = VerifierConfig(refine_estimate=False)
 
 
+def _metres(depth: torch.Tensor) -> torch.Tensor:
+    """The depth in float64 with every missing value (NaN, ±inf) set to 0."""
+    return torch.nan_to_num(depth.to(torch.float64), nan=0.0, posinf=0.0, neginf=0.0)
+
+
 class ClassicBaseline:
     """FPFH on partial views + mutual-NN matching + RANSAC + multi-scale ICP, for known objects.
 
@@ -283,6 +288,37 @@ class ClassicBaseline:
             ValueRangeError: an object id without a model, or a ``K`` that is not a pinhole
                 matrix of this image.
         """
+        estimate, clouds = self.solve(depth, K, masks, obj_ids)
+        if not self.verification or not bool(estimate.valid.any()):
+            return estimate
+        sizes = check_tensor(depth, "depth", ("H", "W"))
+        Kd = check_intrinsics(K, sizes["W"], sizes["H"], dtype=torch.float64, device=depth.device)
+        ids = [int(o) for o in torch.as_tensor(obj_ids).reshape(-1).tolist()]
+        return invalidate_implausible(
+            self._verify(rgb, _metres(depth), Kd, masks, ids, estimate, clouds)
+        )
+
+    def solve(
+        self,
+        depth: torch.Tensor,
+        K: torch.Tensor,
+        masks: torch.Tensor,
+        obj_ids: Sequence[int] | torch.Tensor,
+    ) -> tuple[PoseEstimate, list[torch.Tensor]]:
+        """The pose of every masked instance of one image, before verification (steps 1-6).
+
+        Args: as :meth:`estimate`.
+
+        Returns:
+            The :class:`PoseEstimate` (float64; implausible poses flagged invalid) and each
+            instance's lifted, cleaned and thinned target cloud ``(M_i, 3)`` (empty where the
+            mask holds too few points).
+
+        Raises:
+            ShapeError: bad shapes, or ``K`` not 9 numbers.
+            ValueRangeError: an object id without a model, or a ``K`` that is not a pinhole
+                matrix of this image.
+        """
         sizes = check_tensor(depth, "depth", ("H", "W"))
         check_mask(masks, "masks", ("n", "H", "W"), sizes)
         Kd = check_intrinsics(K, sizes["W"], sizes["H"], dtype=torch.float64, device=depth.device)
@@ -296,17 +332,14 @@ class ClassicBaseline:
         poses = torch.eye(4, dtype=torch.float64).repeat(n, 1, 1)
         scores = torch.zeros(n, dtype=torch.float64)
         valid = torch.zeros(n, dtype=torch.bool)
-        d = torch.nan_to_num(depth.to(torch.float64), nan=0.0, posinf=0.0, neginf=0.0)
+        d = _metres(depth)
         clouds = []
         for i in range(n):
             pose, score, cloud = self._estimate_one(d, Kd, masks[i], ids[i], i)
             clouds.append(cloud)
             if pose is not None:
                 poses[i], scores[i], valid[i] = pose, score, True
-        est = invalidate_implausible(PoseEstimate(poses, scores, valid))
-        if not self.verification or not bool(est.valid.any()):
-            return est
-        return invalidate_implausible(self._verify(rgb, d, Kd, masks, ids, est, clouds))
+        return invalidate_implausible(PoseEstimate(poses, scores, valid)), clouds
 
     def _verify(
         self,

@@ -291,6 +291,23 @@ def test_missing_split_and_models_are_clear_errors(dataset, tmp_path, capsys):
 
 
 @pytest.mark.slow
+def test_hybrid_predicts_with_the_model_and_the_baseline(run_dir, dataset, tmp_path, capsys):
+    csv, timing = tmp_path / "hybrid.csv", tmp_path / "t.json"
+    argv = ["predict", str(dataset), "--method", "hybrid", "--model", str(run_dir / "model")]
+    assert main([*argv, "--out", str(csv), "--timing", str(timing), "--no-progress"]) == 0
+    results = read_results(csv)
+    assert len(results) >= 3 and (results.scores > 0).all()
+    report = json.loads(timing.read_text())
+    assert report["method"] == "hybrid" and report["config"]["verification"] is True
+    for name in ("integration", "geometric_encoder", "ransac", "icp", "verification"):
+        assert report["stages_ms"][name] > 0, name
+    assert main([*argv, "--out", str(csv), "--no-verify"]) == 2
+    assert "chooses by verification" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exc:
+        main([*argv, "--out", str(csv), "--max-images", "-1"])
+    assert exc.value.code == 2
+
+
 def test_baseline_predicts_without_a_model(dataset, tmp_path, capsys):
     csv, timing = tmp_path / "base.csv", tmp_path / "t.json"
     argv = ["predict", str(dataset), "--method", "baseline", "--out", str(csv)]

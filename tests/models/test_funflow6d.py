@@ -130,12 +130,13 @@ def test_no_masks_give_an_empty_estimate(tiny_model, scene):
 @pytest.mark.parametrize("verification", [False, True])
 def test_a_pose_behind_the_camera_is_never_valid(tiny_model, scene, monkeypatch, verification):
     import poseflow.models.funflow6d as funflow6d
+    import poseflow.models.verification as verification_module
 
     behind = torch.eye(4).repeat(2, 1, 1)
     behind[:, 2, 3] = torch.tensor([0.5, -0.5])
     flagged = PoseEstimate(behind, torch.full((2,), 0.9), torch.ones(2, dtype=torch.bool))
     if verification:
-        monkeypatch.setattr(funflow6d, "verify_estimate", lambda *a, **k: flagged)
+        monkeypatch.setattr(verification_module, "verify_estimate", lambda *a, **k: flagged)
     else:
         monkeypatch.setattr(funflow6d, "select_hypotheses", lambda *a, **k: flagged)
     model = FunFlow6D(tiny_model.config.replace(verification=verification))

@@ -9,8 +9,10 @@ poses in millimetres with ``R`` row-major, and the wall-clock seconds of the ima
 excluded; plus the detector's reported time when the detections file gives one, as the BOP
 challenge counts it). ``--method baseline`` runs the
 classic FPFH/RANSAC/ICP baseline (:class:`poseflow.baselines.ClassicBaseline`) instead and needs
-no model. ``--timing`` writes the per-stage breakdown of :class:`poseflow.eval.timing.StageTimer`,
-in wall-clock time or, with ``--clock cpu``, in the process's CPU time.
+no model; ``--method hybrid`` (:class:`poseflow.models.Hybrid`) pools the model's hypotheses and
+the baseline's pose of each instance into one verification. ``--timing`` writes the per-stage
+breakdown of :class:`poseflow.eval.timing.StageTimer`, in wall-clock time or, with
+``--clock cpu``, in the process's CPU time.
 
 Both estimators verify their poses by rendering and comparing (:mod:`poseflow.verify`) unless
 ``--no-verify`` is given, whatever the model's configuration says (the verifier is training-free,
@@ -31,6 +33,8 @@ Example::
         --out results/ff_lmo-test.csv --device cuda --timing results/ff_lmo_timing.json
     poseflow predict data/synth --method baseline --out results/base_synth-test.csv
     poseflow predict data/synth --method baseline --no-verify --out results/base_nv-test.csv
+    poseflow predict data/synth --method hybrid --model runs/small/model \
+        --out results/hybrid_synth-test.csv
     torchrun --nproc_per_node=4 -m poseflow.cli predict data/lmo --model runs/small/model \
         --device cuda --out results/ff_lmo-test.csv
     poseflow eval data/synth results/ff_synth-test.csv
@@ -50,11 +54,15 @@ from poseflow.cli.common import (
     add_device_argument,
     add_output_arguments,
     add_set_argument,
+    positive_int,
     solver_name,
 )
 
 if TYPE_CHECKING:
     from poseflow.eval.distributed import PredictionPart, Ranks
+
+#: The estimators of ``--method``; all but ``baseline`` need a model.
+METHODS = ("funflow6d", "baseline", "hybrid")
 
 __all__ = ["add_parser", "run", "select_targets"]
 
@@ -108,7 +116,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         "--all-instances", action="store_true", help="ignore the targets: every instance"
     )
     parser.add_argument(
-        "--method", choices=("funflow6d", "baseline"), default="funflow6d", help="estimator"
+        "--method",
+        choices=METHODS,
+        default="funflow6d",
+        help="estimator: the model, the classic baseline, or both under one verification",
     )
     parser.add_argument(
         "--hypotheses",
@@ -143,7 +154,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         "only, its fields changing the baseline's defaults); VALUE read as JSON, repeatable",
     )
     parser.add_argument(
-        "--max-images", type=int, default=None, metavar="N", help="stop after N images"
+        "--max-images", type=positive_int, default=None, metavar="N", help="stop after N images"
     )
     parser.add_argument(
         "--timing", default=None, metavar="JSON", help="write the stage breakdown JSON here"
@@ -257,12 +268,14 @@ def _config_changes(args: argparse.Namespace) -> dict[str, Any]:
     """The configuration fields the options change, checked against what each method allows."""
     from poseflow.baselines import BASELINE_VERIFIER
     from poseflow.cli.common import parse_set
-    from poseflow.errors import ValueRangeError
+    from poseflow.errors import UsageError, ValueRangeError
     from poseflow.models import INFERENCE_FIELDS
     from poseflow.verify import VerifierConfig
 
     changes = parse_set(args.set_fields)
-    if args.method == "funflow6d":  # verification has its own flag
+    if args.method == "hybrid" and not args.verify:
+        raise UsageError("--method hybrid chooses by verification: --no-verify does not apply")
+    if args.method != "baseline":  # verification has its own flag
         allowed = tuple(f for f in INFERENCE_FIELDS if f != "verification")
     else:
         allowed = ("verifier",)
@@ -362,7 +375,7 @@ def _predict(
     from poseflow.eval.timing import StageTimer
 
     show = show_progress(args) and (ranks is None or ranks.is_main)
-    model = _load_model(args, device, changes) if args.method == "funflow6d" else None
+    model = _load_model(args, device, changes) if args.method != "baseline" else None
     ds = BOPDataset(root, args.split)
     wanted = _targets_option(args, root)
     detections = _detections(args, ds, wanted) if args.detections is not None else None
@@ -398,6 +411,13 @@ def _predict(
         model.prepare_objects(objects, cache_dir=_cache_dir(args, root), progress=show)
         generator = torch.Generator(device=device)
         estimator = model.estimator(generator=generator)
+        if args.method == "hybrid":
+            from poseflow.baselines import ClassicBaseline
+            from poseflow.models import Hybrid
+
+            baseline = ClassicBaseline(objects, verification=False, seed=args.seed)
+            baseline.prepare()  # its banks now, so that no image's time includes them
+            estimator = Hybrid(model, baseline).estimator(generator=generator)
     else:
         from poseflow.baselines import ClassicBaseline
 

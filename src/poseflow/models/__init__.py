@@ -7,7 +7,9 @@
 - :mod:`~poseflow.models.network`: :class:`FunFlow6DNet`, fusion + positional encoder + DiT;
 - :mod:`~poseflow.models.pose`: :func:`solve_pose` and :func:`agreement_score`;
 - :mod:`~poseflow.models.verification`: :func:`verify_estimate`, render-and-compare checking;
-- :mod:`~poseflow.models.funflow6d`: :class:`FunFlow6D`, which composes them.
+- :mod:`~poseflow.models.funflow6d`: :class:`FunFlow6D`, which composes them;
+- :mod:`~poseflow.models.hybrid`: :class:`Hybrid`, FunFlow6D's and the classic baseline's poses
+  chosen among by one verification.
 """
 
 from poseflow.models.config import (
@@ -19,6 +21,7 @@ from poseflow.models.config import (
     NetOptions,
 )
 from poseflow.models.funflow6d import FunFlow6D
+from poseflow.models.hybrid import Hybrid
 from poseflow.models.inputs import TRAINING_FIELDS, FlowInputs, reduce_appearance
 from poseflow.models.network import FunFlow6DNet, NetInputs
 from poseflow.models.objects import (
@@ -30,7 +33,13 @@ from poseflow.models.objects import (
 from poseflow.models.observe import Observation, observe
 from poseflow.models.pose import agreement_score, solve_pose
 from poseflow.models.training import FlowTrainingSet, augment, build_training_set, train
-from poseflow.models.verification import other_hypotheses, prepare_verification, verify_estimate
+from poseflow.models.verification import (
+    Proposals,
+    other_hypotheses,
+    prepare_verification,
+    verify_estimate,
+    verify_proposals,
+)
 
 __all__ = [
     "ABLATIONS",
@@ -42,11 +51,13 @@ __all__ = [
     "FunFlow6D",
     "FunFlow6DConfig",
     "FunFlow6DNet",
+    "Hybrid",
     "NetConfig",
     "NetInputs",
     "NetOptions",
     "Observation",
     "PreparedObject",
+    "Proposals",
     "agreement_score",
     "augment",
     "build_training_set",
@@ -60,4 +71,5 @@ __all__ = [
     "solve_pose",
     "train",
     "verify_estimate",
+    "verify_proposals",
 ]

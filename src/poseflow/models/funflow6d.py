@@ -15,7 +15,7 @@ Shape letters: ``B`` instances, ``N`` points per cloud, ``H`` hypotheses per ins
 from __future__ import annotations
 
 import functools
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -34,7 +34,7 @@ from poseflow.eval.predict import (
     predict_dataset,
 )
 from poseflow.eval.results import PoseResults
-from poseflow.eval.timing import StageTimer, stage
+from poseflow.eval.timing import StageTimer
 from poseflow.flows import get_sampler
 from poseflow.models.checkpoint import read_checkpoint, write_checkpoint
 from poseflow.models.components import build_appearance_encoder, build_geometric_encoder
@@ -45,14 +45,14 @@ from poseflow.models.objects import PreparedObject, prepare_objects, select_obje
 from poseflow.models.observe import Observation, observe
 from poseflow.models.pose import select_hypotheses, solve_pose
 from poseflow.models.verification import (
+    Proposals,
     other_hypotheses,
     prepare_verification,
-    rank_hypotheses,
-    verify_estimate,
+    verify_proposals,
 )
 from poseflow.verify import PoseVerifier
 
-__all__ = ["FunFlow6D"]
+__all__ = ["FunFlow6D", "predict_seeded"]
 
 
 class FunFlow6D(nn.Module):
@@ -143,7 +143,8 @@ class FunFlow6D(nn.Module):
         """The target clouds of an image; see :func:`~poseflow.models.observe.observe`.
 
         ``K`` may be a tensor, an array, nested lists or 9 numbers; without masks (``B = 0``)
-        the observation is empty.
+        the observation is empty. Without a ``generator``, the draws come from one seeded 0,
+        as in :meth:`estimate`.
 
         Raises:
             ShapeError: inconsistent shapes, or ``K`` not 9 numbers.
@@ -151,6 +152,8 @@ class FunFlow6D(nn.Module):
                 matrix of this image.
         """
         diameters = [o.diameter for o in select_objects(self.objects, obj_ids)]
+        if generator is None:
+            generator = torch.Generator(device=depth.device).manual_seed(0)
         return observe(
             rgb, depth, K, masks, obj_ids, diameters,
             num_points=self.config.num_points, dense_points=self.config.dense_points,
@@ -191,12 +194,9 @@ class FunFlow6D(nn.Module):
     ) -> PoseEstimate:
         """Estimate the pose of every masked instance of one RGBD image, in one batch.
 
-        With ``config.verification`` on, the selected poses are verified
-        (:func:`~poseflow.models.verification.verify_estimate`, its ICP registering the
-        observation's cleaned cloud) and the scores are the verifier's; with
-        ``config.verify_hypotheses`` the verifier also picks which hypothesis is verified
-        (:func:`~poseflow.models.verification.rank_hypotheses`). Stages are charged to
-        the active :class:`~poseflow.eval.timing.StageTimer`, if any.
+        :meth:`propose`, then, with ``config.verification`` on, :meth:`verify`: the verifier's
+        ICP registers the observation's cleaned cloud and its scores become the estimate's.
+        Stages are charged to the active :class:`~poseflow.eval.timing.StageTimer`, if any.
 
         Args:
             rgb: the image ``(3, H, W)``, uint8 or float in ``[0, 1]``.
@@ -204,7 +204,9 @@ class FunFlow6D(nn.Module):
             K: intrinsics ``(3, 3)``: a tensor, an array, nested lists or 9 numbers.
             masks: instance masks ``(B, H, W)`` bool (``B`` may be 0).
             obj_ids: object id of each mask ``(B,)``; every id must be prepared.
-            generator: seeds the noise, the sampling of the clouds and RANSAC.
+            generator: seeds the noise, the sampling of the clouds and RANSAC; None: a generator
+                seeded 0, so that the same call gives the same poses (pass a generator seeded
+                at random for independent draws).
 
         Returns:
             A :class:`PoseEstimate` (of ``B`` instances, float32 on the depth's device); a pose
@@ -217,6 +219,33 @@ class FunFlow6D(nn.Module):
                 a verifier prepared for another ``config.verifier``, or a ``K`` that is not a
                 pinhole matrix of this image.
         """
+        proposals = self.propose(rgb, depth, K, masks, obj_ids, generator=generator)
+        if not self.config.verification or proposals.estimate.poses.shape[0] == 0:
+            return proposals.estimate
+        return self.verify(proposals, rgb, depth, K, masks, obj_ids)
+
+    @torch.no_grad()
+    def propose(
+        self,
+        rgb: torch.Tensor,
+        depth: torch.Tensor,
+        K: torch.Tensor,
+        masks: torch.Tensor,
+        obj_ids: torch.Tensor | Sequence[int],
+        *,
+        generator: torch.Generator | None = None,
+    ) -> Proposals:
+        """The flow's poses of every instance of one image, before verification.
+
+        Samples ``config.num_hypotheses`` flows per instance and solves each for a pose; the
+        best by the solver's score is the incumbent, and with ``config.verify_hypotheses`` the
+        others are candidates that the verifier ranks (:class:`Proposals` with ``rank`` on).
+        Arguments as :meth:`estimate`.
+
+        Returns:
+            :class:`~poseflow.models.verification.Proposals` of the ``B`` instances, with the
+            observation's cleaned clouds for the verifier's ICP.
+        """
         cfg = self.config
         if cfg.verification and self.verifier.config != cfg.verifier:
             raise ValueRangeError(
@@ -225,12 +254,16 @@ class FunFlow6D(nn.Module):
             )
         sizes = check_tensor(depth, "depth", ("H", "W"), floating=False)
         K = check_intrinsics(K, sizes["W"], sizes["H"], dtype=torch.float32, device=depth.device)
+        if generator is None:
+            generator = torch.Generator(device=depth.device).manual_seed(0)
         was_training = self.training
         self.eval()
         try:
             obs = self.observe(rgb, depth, K, masks, obj_ids, generator=generator)
+            H = cfg.num_hypotheses
             if obs.points.shape[0] == 0:
-                return PoseEstimate.empty(device=depth.device)
+                est = PoseEstimate.empty(device=depth.device)
+                return Proposals(est, est.poses[:, None][:, :0], est.valid[:, None][:, :0])
             inputs = self.flow_inputs(obs)
             x_1 = self.net.sample(
                 inputs,
@@ -238,30 +271,45 @@ class FunFlow6D(nn.Module):
                 frozen_mask=inputs.frozen_mask,
                 x_frozen=inputs.anchor if cfg.anchor == "pinned" else None,
                 generator=generator,
-                num_samples=cfg.num_hypotheses,
+                num_samples=H,
             )
-            rep = inputs.repeat_interleave(cfg.num_hypotheses)
+            rep = inputs.repeat_interleave(H)
             dense = [o.dense_points for o in select_objects(self.objects, rep.obj_ids)]
             n = rep.points.shape[1] // 2
             solved = solve_pose(rep, x_1[:, n:], dense, cfg, generator=generator)
-            est = select_hypotheses(*solved, obs.valid, cfg.num_hypotheses)
+            est = select_hypotheses(*solved, obs.valid, H)
             est = invalidate_implausible(est)  # nothing behind the camera is verified
-            if not cfg.verification:
-                return est
-            extra = extra_mask = None
-            if cfg.verify_hypotheses and cfg.num_hypotheses > 1:
-                extra, extra_mask = other_hypotheses(*solved, cfg.num_hypotheses)
-                with stage("verification"):
-                    est, extra, extra_mask = rank_hypotheses(
-                        self.verifier, est, extra, extra_mask, rgb, depth, K, masks, obs.obj_ids
-                    )
-            verified = verify_estimate(
-                self.verifier, est, rgb, depth, K, masks, obs.obj_ids, obs.cloud, obs.cloud_mask,
-                extra=extra, extra_mask=extra_mask,
-            )  # fmt: skip
-            return invalidate_implausible(verified)
+            rank = cfg.verify_hypotheses and H > 1
+            if rank:
+                others, others_mask = other_hypotheses(*solved, H)
+            else:
+                others, others_mask = est.poses[:, None][:, :0], est.valid[:, None][:, :0]
+            return Proposals(est, others, others_mask, obs.cloud, obs.cloud_mask, rank=rank)
         finally:
             self.train(was_training)
+
+    def verify(
+        self,
+        proposals: Proposals,
+        rgb: torch.Tensor,
+        depth: torch.Tensor,
+        K: torch.Tensor,
+        masks: torch.Tensor,
+        obj_ids: torch.Tensor | Sequence[int],
+    ) -> PoseEstimate:
+        """Choose and verify each instance's pose among ``proposals`` with :attr:`verifier`.
+
+        See :func:`~poseflow.models.verification.verify_proposals`; arguments as
+        :meth:`estimate`.
+
+        Raises:
+            ValueRangeError: an object the verifier has not prepared.
+        """
+        sizes = check_tensor(depth, "depth", ("H", "W"), floating=False)
+        K = check_intrinsics(K, sizes["W"], sizes["H"], dtype=torch.float32, device=depth.device)
+        obj_ids = torch.as_tensor(obj_ids).reshape(-1)
+        verified = verify_proposals(self.verifier, proposals, rgb, depth, K, masks, obj_ids)
+        return invalidate_implausible(verified)
 
     def estimator(self, *, seed: int = 0, generator: torch.Generator | None = None) -> Estimator:
         """This model as an :data:`~poseflow.eval.predict.Estimator` of :func:`predict_dataset`.
@@ -306,24 +354,18 @@ class FunFlow6D(nn.Module):
         Returns:
             :class:`~poseflow.eval.results.PoseResults`, one row per valid estimate.
         """
-        from poseflow.eval.distributed import image_seed
-
-        generator = torch.Generator(device=next(self.net.parameters()).device)
-
-        def reseed(scene_id: int, im_id: int) -> None:
-            generator.manual_seed(image_seed(seed, scene_id, im_id))
-
-        return predict_dataset(
-            self.estimator(generator=generator),
+        return predict_seeded(
+            lambda generator: self.estimator(generator=generator),
+            next(self.net.parameters()).device,
             dataset,
-            split=split,
             object_ids=sorted(self.objects),
+            split=split,
             targets=targets,
             detections=detections,
             max_images=max_images,
+            seed=seed,
             timer=timer,
             progress=progress,
-            before_image=reseed,
         )
 
     def save(self, folder: str | Path) -> Path:
@@ -351,3 +393,38 @@ class FunFlow6D(nn.Module):
                 "restore the pair or train again"
             ) from None
         return model.to(device)
+
+
+def predict_seeded(
+    make_estimator: Callable[[torch.Generator], Estimator],
+    device: torch.device | str,
+    dataset: str | Path | Any,
+    *,
+    object_ids: Sequence[int],
+    seed: int,
+    **options: Any,
+) -> PoseResults:
+    """:func:`~poseflow.eval.predict_dataset` with one generator reseeded before each image.
+
+    Each image's draws come from ``seed`` and its ids
+    (:func:`~poseflow.eval.distributed.image_seed`), as in ``poseflow predict``, so that an
+    image's estimate does not depend on the images before it.
+
+    Args:
+        make_estimator: builds the estimator that draws from the given generator.
+        device: the generator's device.
+        dataset: the dataset folder or a :class:`~poseflow.data.bop.BOPDataset`.
+        object_ids: the objects to estimate.
+        seed: the run's seed.
+        options: more keyword arguments of :func:`~poseflow.eval.predict_dataset`.
+    """
+    from poseflow.eval.distributed import image_seed
+
+    generator = torch.Generator(device=device)
+
+    def reseed(scene_id: int, im_id: int) -> None:
+        generator.manual_seed(image_seed(seed, scene_id, im_id))
+
+    return predict_dataset(
+        make_estimator(generator), dataset, object_ids=object_ids, before_image=reseed, **options
+    )

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -33,7 +34,75 @@ from poseflow.models.objects import object_cache_entry
 from poseflow.verify import PoseVerifier
 from poseflow.verify import PreparedObject as VerifierObject
 
-__all__ = ["other_hypotheses", "prepare_verification", "rank_hypotheses", "verify_estimate"]
+__all__ = [
+    "Proposals",
+    "other_hypotheses",
+    "prepare_verification",
+    "rank_hypotheses",
+    "verify_estimate",
+    "verify_proposals",
+]
+
+
+@dataclass(frozen=True)
+class Proposals:
+    """The poses an image's verification chooses among, one row per instance.
+
+    Attributes:
+        estimate: each instance's incumbent pose ``(B, 4, 4)`` with its score and validity.
+        others: more candidate poses of each instance ``(B, E, 4, 4)`` (``E`` may be 0).
+        others_mask: ``(B, E)`` bool, False where a candidate is padding or invalid.
+        observed: the observed clouds ``(B, N, 3)`` (camera frame, metres) the verifier's ICP
+            registers; None lifts them from the depth.
+        observed_mask: ``(B, N)`` bool, their valid points (None with ``observed``).
+        rank: whether the verifier ranks the incumbent and ``others`` on its coarse score first
+            (:func:`rank_hypotheses`) instead of keeping the incumbent as it is.
+
+    Example:
+        >>> est = PoseEstimate(torch.eye(4)[None], torch.ones(1), torch.tensor([False]))
+        >>> other = PoseEstimate(torch.eye(4)[None] * 2, torch.ones(1) / 2, torch.tensor([True]))
+        >>> p = Proposals(est, torch.zeros(1, 0, 4, 4), torch.zeros(1, 0, dtype=torch.bool))
+        >>> q = p.pooled(other)  # the only valid pose becomes the incumbent
+        >>> q.estimate.valid.tolist(), q.others.shape[1], q.others_mask.tolist()
+        ([True], 1, [[False]])
+    """
+
+    estimate: PoseEstimate
+    others: torch.Tensor
+    others_mask: torch.Tensor
+    observed: torch.Tensor | None = None
+    observed_mask: torch.Tensor | None = None
+    rank: bool = False
+
+    def pooled(self, other: PoseEstimate) -> Proposals:
+        """These proposals with another estimator's pose of each instance added as a candidate.
+
+        Where the incumbent is invalid and ``other``'s pose is valid, the two swap, so that the
+        valid pose is verified; the candidate pool is ranked (``rank`` on).
+
+        Args:
+            other: another estimate of the same ``B`` instances (any float dtype).
+        """
+        est = self.estimate
+        dt = est.poses.dtype
+        poses, valid = other.poses.to(device=est.poses.device, dtype=dt), other.valid
+        valid = valid.to(est.valid.device)
+        swap = ~est.valid & valid
+        incumbent = PoseEstimate(
+            torch.where(swap[:, None, None], poses, est.poses),
+            torch.where(swap, other.scores.to(est.scores), est.scores),
+            est.valid | valid,
+        )
+        extra_pose = torch.where(swap[:, None, None], est.poses, poses)
+        extra_ok = torch.where(swap, est.valid, valid)
+        return Proposals(
+            incumbent,
+            torch.cat((self.others, extra_pose[:, None]), dim=1),
+            torch.cat((self.others_mask, extra_ok[:, None]), dim=1),
+            self.observed,
+            self.observed_mask,
+            rank=True,
+        )
 
 
 def prepare_verification(
@@ -243,3 +312,44 @@ def verify_estimate(
             extra=extra, extra_mask=extra_mask, estimated=estimate.valid,
         )  # fmt: skip
     return PoseEstimate(out.poses, out.scores.to(estimate.scores.dtype), estimate.valid)
+
+
+def verify_proposals(
+    verifier: PoseVerifier,
+    proposals: Proposals,
+    rgb: torch.Tensor,
+    depth: torch.Tensor,
+    K: torch.Tensor,
+    masks: torch.Tensor,
+    obj_ids: torch.Tensor | Sequence[int],
+) -> PoseEstimate:
+    """Choose and verify each instance's pose among its proposals, in one verification.
+
+    With ``proposals.rank`` (and candidates to rank), :func:`rank_hypotheses` makes the best
+    proposal by the verifier's coarse score the incumbent first; then :func:`verify_estimate`
+    checks it against its near-symmetric candidates and the other proposals.
+
+    Args:
+        verifier: a verifier with every object of ``obj_ids`` prepared.
+        proposals: the instances' :class:`Proposals`.
+        rgb: the image ``(3, Hi, Wi)``.
+        depth: depth ``(Hi, Wi)`` in metres.
+        K: intrinsics ``(3, 3)``.
+        masks: instance masks ``(B, Hi, Wi)`` bool.
+        obj_ids: object id of each instance ``(B,)``.
+
+    Returns:
+        The verified :class:`~poseflow.eval.predict.PoseEstimate`.
+    """
+    est, extra, extra_mask = proposals.estimate, proposals.others, proposals.others_mask
+    if extra.shape[1] == 0:
+        extra = extra_mask = None
+    elif proposals.rank:
+        with stage("verification"):
+            est, extra, extra_mask = rank_hypotheses(
+                verifier, est, extra, extra_mask, rgb, depth, K, masks, obj_ids
+            )
+    return verify_estimate(
+        verifier, est, rgb, depth, K, masks, obj_ids, proposals.observed,
+        proposals.observed_mask, extra=extra, extra_mask=extra_mask,
+    )  # fmt: skip
