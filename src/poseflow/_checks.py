@@ -7,13 +7,17 @@ messages read the same everywhere.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import dataclasses
+import numbers
+import types
+import typing
+from collections.abc import Mapping, Sequence
 
 import torch
 
 from poseflow.errors import ShapeError, ValueRangeError
 
-__all__ = ["check_mask", "check_same", "check_tensor"]
+__all__ = ["check_field_types", "check_mask", "check_same", "check_tensor"]
 
 Dim = int | str | None
 
@@ -122,3 +126,88 @@ def check_same(*named: tuple[str, torch.Tensor], dtype: bool = True) -> None:
 
 def _fmt(shape: Sequence[Dim]) -> str:
     return "(" + ", ".join("?" if d is None else str(d) for d in shape) + ")"
+
+
+def check_field_types(config: object) -> None:
+    """Check every field of a configuration dataclass against its annotated type, once.
+
+    Understood: ``int`` (not a bool), ``float`` (any real number but a bool), ``bool``, ``str``,
+    ``tuple[X, ...]`` (a list or tuple of ``X``), ``Literal[...]``, ``X | None`` and nested
+    dataclasses (an instance, or a mapping that ``__post_init__`` turns into one). Other
+    annotations are left to the class's own checks.
+
+    Args:
+        config: a dataclass instance (typically from its ``__post_init__``).
+
+    Raises:
+        ValueRangeError: a field holds a value of another type; the message names the class,
+            the field, the expected type and the value (what ``--set num_points=abc`` gives).
+
+    Example:
+        >>> @dataclasses.dataclass
+        ... class C:
+        ...     steps: int = 1
+        >>> check_field_types(C(steps=4))
+        >>> try:
+        ...     check_field_types(C(steps="abc"))
+        ... except ValueRangeError as e:
+        ...     print(e)
+        C.steps must be an int, got 'abc' (str)
+    """
+    cls = type(config)
+    hints = typing.get_type_hints(cls)
+    for f in dataclasses.fields(config):  # type: ignore[arg-type]
+        value = getattr(config, f.name)
+        expected = hints.get(f.name)
+        if expected is not None and not _matches(value, expected):
+            raise ValueRangeError(
+                f"{cls.__name__}.{f.name} must be {_describe(expected)}, got {value!r} "
+                f"({type(value).__name__})"
+            )
+
+
+def _matches(value: object, expected: object) -> bool:
+    """Whether ``value`` is of the annotated type ``expected`` (see :func:`check_field_types`)."""
+    origin, args = typing.get_origin(expected), typing.get_args(expected)
+    if expected is typing.Any:
+        return True
+    if origin in (typing.Union, types.UnionType):
+        return any(_matches(value, a) for a in args)
+    if expected is type(None):
+        return value is None
+    if origin is typing.Literal:
+        return any(value == a and type(value) is type(a) for a in args)
+    if expected is bool:
+        return isinstance(value, bool)
+    if expected is int:
+        return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+    if expected is float:
+        return isinstance(value, numbers.Real) and not isinstance(value, bool)
+    if expected is str:
+        return isinstance(value, str)
+    if origin is tuple:
+        if not isinstance(value, (tuple, list)):
+            return False
+        if len(args) == 2 and args[1] is Ellipsis:
+            return all(_matches(v, args[0]) for v in value)
+        return len(args) == len(value) and all(_matches(v, a) for v, a in zip(value, args))
+    if isinstance(expected, type) and dataclasses.is_dataclass(expected):
+        return isinstance(value, (expected, Mapping))
+    return True  # an annotation this check does not understand: the class checks it
+
+
+def _describe(expected: object) -> str:
+    """``expected`` in words: ``an int``, ``a list of numbers``, ``one of 'a', 'b'``."""
+    origin, args = typing.get_origin(expected), typing.get_args(expected)
+    if origin in (typing.Union, types.UnionType):
+        return " or ".join(_describe(a) for a in args)
+    if expected is type(None):
+        return "null"
+    if origin is typing.Literal:
+        return "one of " + ", ".join(repr(a) for a in args)
+    if origin is tuple:
+        return "a list of " + _describe(args[0]).split(" ", 1)[-1] + "s"
+    names = {bool: "true or false", int: "an int", float: "a number", str: "a string"}
+    if expected in names:
+        return names[expected]  # type: ignore[index]
+    return f"a {getattr(expected, '__name__', expected)} (or a JSON object of its fields)"

@@ -26,7 +26,7 @@ from poseflow.cli.predict import select_targets
 from poseflow.data.bop import BOPDataset, Detection, write_detections
 from poseflow.data.rle import rle_encode
 from poseflow.data.synthetic import generate_dataset
-from poseflow.errors import MissingFileError, ValueRangeError
+from poseflow.errors import MissingFileError, UsageError, ValueRangeError
 from poseflow.eval.results import read_results
 from poseflow.models import FunFlow6D, NetOptions
 
@@ -355,6 +355,8 @@ def test_build_config_applies_file_then_flags_then_set(tmp_path):
         (["--set", "steps"], ValueRangeError, "KEY=VALUE"),
         (["--num-points", "4"], ValueRangeError, "num_points"),
         (["--set", "num_points=many"], ValueRangeError, "invalid FunFlow6D configuration"),
+        (["--set", "num_points=abc"], UsageError, r"num_points must be an int, got 'abc' \(str\)"),
+        (["--set", 'verifier={"crop_size": "x"}'], UsageError, r"VerifierConfig\.crop_size must"),
         (["--config", "/no/such/cfg.json"], MissingFileError, "no such file"),
     ],
 )

@@ -148,3 +148,36 @@ def test_a_missing_descriptor_stream_takes_the_other_width():
     assert cfg.net_config(66, None).semantic_dim == 66
     with pytest.raises(ValueRangeError, match="at least one"):
         cfg.net_config(None, None)
+
+
+@pytest.mark.parametrize(
+    ("data", "match"),
+    [
+        ({"num_points": "abc"}, r"FunFlow6DConfig\.num_points must be an int, got 'abc' \(str\)"),
+        ({"num_points": 64.0}, r"num_points must be an int, got 64\.0 \(float\)"),
+        ({"steps": True}, r"FunFlow6DConfig\.steps must be an int, got True \(bool\)"),
+        ({"ransac_threshold": "0.05"}, r"ransac_threshold must be a number, got '0\.05'"),
+        ({"verification": 1}, r"verification must be true or false, got 1 \(int\)"),
+        ({"icp_thresholds": ["a"]}, r"icp_thresholds must be a list of numbers"),
+        ({"fusion": 3}, r"FunFlow6DConfig\.fusion must be a string, got 3 \(int\)"),
+        ({"net": {"dropout": "0.1"}}, r"NetOptions\.dropout must be a number"),
+        ({"net": {"dit": {"depth": "2"}}}, r"DiTOverrides\.depth must be an int or null"),
+        ({"net": {"dit": {"attention": "none"}}}, r"attention must be one of 'global'"),
+        ({"verifier": {"crop_size": "x"}}, r"VerifierConfig\.crop_size must be an int"),
+        ({"verifier": {"icp_distances": "0.1"}}, r"icp_distances must be a list of numbers"),
+    ],
+)
+def test_values_of_the_wrong_type_name_the_field_the_type_and_the_value(data, match):
+    with pytest.raises(ValueRangeError, match=match):
+        FunFlow6DConfig.from_json(data)
+
+
+def test_numbers_of_any_kind_that_fit_the_field_are_accepted():
+    import numpy as np
+
+    cfg = FunFlow6DConfig(num_points=np.int64(64), ransac_threshold=1, icp_thresholds=[0.1])
+    assert cfg.num_points == 64 and cfg.icp_thresholds == (0.1,)
+    dit = FunFlow6DConfig(net={"dit": {"depth": None, "attention": "global"}}).net.dit
+    assert dit.depth is None and dit.attention == "global"
+    with pytest.raises(ValueRangeError, match=r"NetConfig\.geometric_dim must be an int"):
+        NetConfig(geometric_dim="64")

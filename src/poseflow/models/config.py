@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
 
+from poseflow._checks import check_field_types
 from poseflow.errors import ValueRangeError
 from poseflow.flows import PRESETS, SAMPLERS, TIME_SAMPLERS
 from poseflow.flows.dit import AttentionMode, PointDiTConfig
@@ -97,6 +98,10 @@ class DiTOverrides:
     time_frequency_dim: int | None = None
     time_scale: float | None = None
 
+    def __post_init__(self) -> None:
+        """Check the fields' types."""
+        check_field_types(self)
+
     def resolve(self, preset: str, *, cond_dim: int) -> PointDiTConfig:
         """The preset's configuration with these fields changed and ``cond_dim`` set.
 
@@ -139,7 +144,8 @@ class NetOptions:
     dit: DiTOverrides = field(default_factory=DiTOverrides)
 
     def __post_init__(self) -> None:
-        """Read a mapping ``dit``; validate the sizes."""
+        """Read a mapping ``dit``; validate the types and sizes."""
+        check_field_types(self)
         if isinstance(self.dit, Mapping):
             object.__setattr__(self, "dit", DiTOverrides.from_json(self.dit))
         if not isinstance(self.dit, DiTOverrides):
@@ -260,7 +266,8 @@ class FunFlow6DConfig:
             :meth:`NetOptions.from_json`).
 
     Raises:
-        ValueRangeError: an unknown name (the message lists the allowed ones) or a bad value.
+        ValueRangeError: an unknown name (the message lists the allowed ones), a value of the
+            wrong type (the message names the field, its type and the value) or a bad value.
     """
 
     num_points: int = 256
@@ -292,7 +299,8 @@ class FunFlow6DConfig:
     net: NetOptions = field(default_factory=NetOptions)
 
     def __post_init__(self) -> None:
-        """Validate the choices."""
+        """Validate the types (once, against the annotations) and the choices."""
+        check_field_types(self)
         self.geometric_radii = tuple(float(r) for r in self.geometric_radii)
         self.icp_thresholds = tuple(float(r) for r in self.icp_thresholds)
         if isinstance(self.net, Mapping):

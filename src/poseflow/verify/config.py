@@ -7,6 +7,7 @@ import math
 from dataclasses import asdict, dataclass, fields
 from typing import Any
 
+from poseflow._checks import check_field_types
 from poseflow.errors import ValueRangeError
 
 __all__ = ["VerifierConfig"]
@@ -116,6 +117,7 @@ class VerifierConfig:
     max_observed_points: int = 600
 
     def __post_init__(self) -> None:
+        check_field_types(self)
         ints = {
             "num_points": (self.num_points, 16),
             "crop_size": (self.crop_size, 8),
