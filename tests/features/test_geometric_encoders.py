@@ -115,12 +115,27 @@ def test_torchscript_encoder(tmp_path) -> None:
 
     path = tmp_path / "toy.pt"
     torch.jit.save(torch.jit.script(Toy()), str(path))
-    enc = TorchScriptEncoder(path, 3)
+    enc = TorchScriptEncoder(path, 3, trust=True)
     pts = torch.rand(2, 4, 3)
     out = enc.encode(pts, None, None, torch.tensor([1.0, 2.0]))
     assert torch.allclose(out[1], 2 * pts[1])
     with pytest.raises(MissingWeightsError):
-        TorchScriptEncoder(tmp_path / "missing.pt", 3)
+        TorchScriptEncoder(tmp_path / "missing.pt", 3, trust=True)
+
+
+def test_torchscript_encoder_reads_nothing_without_trust(tmp_path, monkeypatch) -> None:
+    class Toy(torch.nn.Module):
+        def forward(self, p, n, m, d):
+            return p
+
+    path = tmp_path / "toy.pt"
+    torch.jit.save(torch.jit.script(Toy()), str(path))
+    loads = []
+    monkeypatch.setattr(torch.jit, "load", lambda *a, **k: loads.append(a))
+    for trust in (False, 1, "yes"):
+        with pytest.raises(ValueRangeError, match=r"runs the code it holds.*trust=True"):
+            TorchScriptEncoder(path, 3, trust=trust)
+    assert loads == []  # refused before torch.jit.load is called
 
 
 def _box_surface(n: int, generator: torch.Generator, dtype: torch.dtype) -> tuple:

@@ -455,14 +455,24 @@ class TorchScriptEncoder(CallableEncoder):
     ``normals`` replaced by zeros when None, and must return ``(B, P, D)``; it runs on the device of
     the points it receives (``map_location`` picks where it is loaded).
 
+    What loads what: this is the one place in poseflow that reads a file other than safetensors,
+    JSON, images and meshes. ``torch.jit.load`` unpickles the archive's constants and runs the
+    TorchScript code it holds, which can do anything the file's author wrote, so it is opt-in:
+    pass ``trust=True`` only for a file you exported yourself or trust like code you would run.
+    Everything else poseflow loads (checkpoints, prepared objects, reducers, GeDi's
+    ``.safetensors`` weights) is safetensors plus JSON; a GeDi ``chkpt.tar`` is read by
+    ``torch.load(weights_only=True)``, which unpickles tensors only.
+
     Args:
         path: the ``.pt`` file written by ``torch.jit.save``.
         dim: the descriptor size ``D``.
         normalize: L2-normalise every descriptor.
         map_location: device to load the module on.
+        trust: load and run the file's code (required: see above).
 
     Raises:
         MissingWeightsError: ``path`` does not exist.
+        ValueRangeError: ``trust`` is not True (nothing is read).
 
     Example:
         >>> import tempfile, os
@@ -471,7 +481,7 @@ class TorchScriptEncoder(CallableEncoder):
         ...         return torch.cat([p, n], -1)
         >>> path = os.path.join(tempfile.mkdtemp(), "toy.pt")
         >>> torch.jit.save(torch.jit.script(Toy()), path)
-        >>> TorchScriptEncoder(path, 6).encode(torch.rand(1, 8, 3), None, None, 1.0).shape
+        >>> TorchScriptEncoder(path, 6, trust=True).encode(torch.rand(1, 8, 3), None, None, 1).shape
         torch.Size([1, 8, 6])
     """
 
@@ -482,12 +492,19 @@ class TorchScriptEncoder(CallableEncoder):
         *,
         normalize: bool = False,
         map_location: str | torch.device = "cpu",
+        trust: bool = False,
     ) -> None:
         path = Path(path)
         if not path.is_file():
             raise MissingWeightsError(
                 f"no TorchScript encoder at {path}: export one with "
                 "torch.jit.save(torch.jit.script(model), path) and pass that path"
+            )
+        if trust is not True:
+            raise ValueRangeError(
+                f"loading the TorchScript file {path} runs the code it holds (torch.jit.load "
+                "unpickles it): pass trust=True if you exported it yourself or trust it as code; "
+                "poseflow's own weights are safetensors and never need this"
             )
         self.module = torch.jit.load(str(path), map_location=map_location).eval()
 
