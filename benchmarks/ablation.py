@@ -129,7 +129,7 @@ def generated(folder: Path, **params: Any) -> Path:
         return folder
     from poseflow.data.synthetic import generate_dataset
 
-    root = generate_dataset(folder, progress=False, **params)
+    root = generate_dataset(folder, progress=False, overwrite=True, **params)
     stamp.write_text(json.dumps(params))
     return Path(root)
 

@@ -161,7 +161,7 @@ def main() -> None:
     if not (root / "test").is_dir():
         generate_dataset(
             root, None, num_train_images=0, num_test_images=n_images, images_per_scene=3,
-            objects_per_image=3, seed=0, progress=False,
+            objects_per_image=3, seed=0, progress=False, overwrite=True,  # an interrupted one
         )  # fmt: skip
     objects = {i + 1: m for i, m in enumerate(demo_objects(num_points=n_points, seed=0))}
     instances = _instances(root, 1500, n_inst)

@@ -468,6 +468,7 @@ def prepare(work: Path, scale: Scale, images: int, seed: int) -> dict[str, Any]:
     generate_dataset(
         root, num_train_images=0, num_test_images=images, objects_per_image=scale.instances,
         width=scale.width, height=scale.height, seed=seed, min_target_visib=0.3, progress=False,
+        overwrite=True,  # the work folder's split of an earlier run is generated again
     )  # fmt: skip
     generated = time.perf_counter() - start
     digest = write_random_dinov2(weights_dir(work, scale), scale)

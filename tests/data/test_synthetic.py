@@ -328,3 +328,18 @@ def test_meshes_in_millimetres_without_mesh_scale_are_refused(tmp_path, objects)
     huge = objects[0].mesh.scaled(1000.0)  # a mesh in memory, in mm
     with pytest.raises(UnitsError, match="scale it to metres"):
         _generate(tmp_path / "out", [huge], num_train_images=0, num_test_images=1)
+
+
+def test_a_non_empty_folder_is_refused_unless_overwrite(tmp_path, objects):
+    from poseflow.errors import OutputExistsError
+
+    kw = dict(num_train_images=0, num_test_images=1, objects_per_image=1, width=48, height=40)
+    root = _generate(tmp_path / "ds", objects, **kw)
+    before = sorted(p.relative_to(root) for p in root.rglob("*"))
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / "notes.txt").write_text("mine")
+    for folder in (root, tmp_path / "other"):
+        with pytest.raises(OutputExistsError, match=r"not empty.*overwrite=True"):
+            _generate(folder, objects, **kw)
+    assert sorted(p.relative_to(root) for p in root.rglob("*")) == before  # nothing written
+    assert _generate(root, objects, seed=5, overwrite=True, **kw) == root

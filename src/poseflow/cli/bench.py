@@ -247,6 +247,7 @@ def generated_split(
         seed=seed,
         min_target_visib=0.3,
         progress=progress,
+        overwrite=True,  # a split of other options is generated again in its place
     )
     record.write_text(json.dumps(options))
     return root

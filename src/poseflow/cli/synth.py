@@ -132,6 +132,7 @@ def run(args: argparse.Namespace) -> int:
         image_ext=".jpg" if args.jpg else ".png",
         mesh_scale=args.mesh_scale,
         progress=show_progress(args),
+        overwrite=args.overwrite,
     )
     print(f"wrote {args.train} train and {args.test} test images to {root}")
     return 0

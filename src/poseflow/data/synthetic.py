@@ -45,7 +45,7 @@ from poseflow.data.bop import (
     write_models_info,
     write_test_targets,
 )
-from poseflow.errors import ShapeError, ValueRangeError
+from poseflow.errors import OutputExistsError, ShapeError, ValueRangeError
 from poseflow.geometry.pointcloud import cloud_diameter
 from poseflow.geometry.se3 import quaternion_to_rotation
 from poseflow.render.mesh import TexturedMesh, as_textured_mesh
@@ -578,11 +578,12 @@ def generate_dataset(
     image_ext: str = ".png",
     mesh_scale: float = 1.0,
     progress: bool = True,
+    overwrite: bool = False,
 ) -> Path:
     """Render a synthetic BOP dataset with ``train`` and ``test`` splits.
 
     Args:
-        out_dir: output folder (created; existing files of the same names are overwritten).
+        out_dir: output folder, created; it must be empty or new unless ``overwrite``.
         objects: the objects: None for the library's demo objects
             (:func:`poseflow.data.demo_objects.demo_objects`); a folder of ``.ply``/``.obj``
             meshes (scaled by ``mesh_scale``; BOP-named ``obj_XXXXXX.ply`` files keep their id
@@ -615,12 +616,18 @@ def generate_dataset(
         image_ext: ``".png"`` or ``".jpg"``.
         mesh_scale: factor to metres of the meshes read from a folder (0.001 for meshes in mm).
         progress: show a tqdm progress bar.
+        overwrite: write into a folder that holds files, overwriting those of the same names.
+            Files of an earlier dataset that this one does not rewrite stay and mix with it
+            (scenes, images, models), which is why a non-empty folder is refused by default,
+            as ``poseflow synth`` refuses it without ``--overwrite``.
 
     Returns:
         ``out_dir`` as a :class:`~pathlib.Path`.
 
     Raises:
         ValueRangeError: bad counts, sizes or ranges.
+        OutputExistsError: ``out_dir`` holds files and ``overwrite`` is False (nothing is
+            written).
 
     Example:
         >>> import tempfile
@@ -654,8 +661,13 @@ def generate_dataset(
     if not 0 < clutter <= 1:
         raise ValueRangeError(f"clutter must lie in (0, 1], got {clutter}")
 
-    objs = _load_objects(objects, mesh_scale)
     root = Path(out_dir)
+    if root.is_dir() and any(root.iterdir()) and not overwrite:
+        raise OutputExistsError(
+            f"{root} is not empty: a new dataset would mix with what it holds; choose an empty "
+            "or new folder, or pass overwrite=True (--overwrite for poseflow synth)"
+        )
+    objs = _load_objects(objects, mesh_scale)
     root.mkdir(parents=True, exist_ok=True)
     f = KINECT_FOCAL_640 * width / 640.0 if focal is None else float(focal)
     K = np.array([[f, 0.0, (width - 1) / 2], [0.0, f, (height - 1) / 2], [0.0, 0.0, 1.0]])
