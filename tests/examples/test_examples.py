@@ -28,6 +28,7 @@ def test_quickstart_estimates_every_instance_of_the_test_image(capsys):
         assert math.isfinite(mm) and mm >= 0.0
     out = capsys.readouterr().out
     assert "rotation deg" in out and len(out.strip().splitlines()[-n:]) == n
+    assert "20 steps" in out and "over a hundred degrees are expected" in out  # says it is bad
 
 
 def test_custom_pipeline_recovers_the_poses(capsys):
