@@ -40,7 +40,7 @@ from typing import Any
 import torch
 
 from poseflow._checks import check_mask, check_tensor
-from poseflow._units import check_intrinsics
+from poseflow._units import check_depth_extent, check_intrinsics
 from poseflow.data.bop import BOPDataset
 from poseflow.data.objects import ObjectModel, sample_surface
 from poseflow.errors import DegenerateInputError, ValueRangeError
@@ -318,6 +318,8 @@ class ClassicBaseline:
             ShapeError: bad shapes, or ``K`` not 9 numbers.
             ValueRangeError: an object id without a model, or a ``K`` that is not a pinhole
                 matrix of this image.
+            UnitsError: the masked depth spans far more or far less than the objects (a depth
+                in the wrong unit).
         """
         sizes = check_tensor(depth, "depth", ("H", "W"))
         check_mask(masks, "masks", ("n", "H", "W"), sizes)
@@ -329,6 +331,7 @@ class ClassicBaseline:
         missing = sorted(set(ids) - set(self.models))
         if missing:
             raise ValueRangeError(f"no model for object ids {missing}")
+        check_depth_extent(depth, Kd, masks, [self.models[o].diameter for o in ids])
         poses = torch.eye(4, dtype=torch.float64).repeat(n, 1, 1)
         scores = torch.zeros(n, dtype=torch.float64)
         valid = torch.zeros(n, dtype=torch.bool)

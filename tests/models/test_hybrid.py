@@ -8,7 +8,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from poseflow.baselines import ClassicBaseline
-from poseflow.errors import ValueRangeError
+from poseflow.errors import UnitsError, ValueRangeError
 from poseflow.eval.predict import PoseEstimate
 from poseflow.eval.timing import StageTimer
 from poseflow.geometry.se3 import rotation_angle_error, translation_error
@@ -106,3 +106,18 @@ def test_pooling_keeps_every_valid_pose_and_verifies_a_valid_one(inc_valid, othe
         else:
             assert torch.equal(pooled.estimate.poses[i], est.poses[i])
             assert bool(pooled.others_mask[i, E]) == bool(other_ok[i])
+
+
+@pytest.mark.parametrize("factor", [1000.0, 0.001])
+def test_a_depth_in_the_wrong_unit_is_a_units_error_for_every_estimator(
+    tiny_model, hybrid, baseline, scene, factor
+):
+    """Depth in millimetres passed as metres (or the reverse) is never estimated."""
+    rgb, depth, K, masks, ids = _args(scene)
+    for estimate in (
+        tiny_model.estimate,
+        hybrid.estimate,
+        lambda *a: baseline.estimate(*a[1:], rgb=a[0]),
+    ):
+        with pytest.raises(UnitsError, match="depth"):
+            estimate(rgb, depth * factor, K, masks, ids)

@@ -159,6 +159,7 @@ def run(args: argparse.Namespace) -> int:
         num_test_images=args.images,
         seed=args.seed,
         progress=progress,
+        overwrite=True,  # the demo's own folder, made again on every run
     )
     # the objects as the dataset's models/ hold them, as `poseflow predict` reads them: the
     # prepared objects shipped with the model are keyed by these meshes

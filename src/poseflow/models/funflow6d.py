@@ -23,7 +23,7 @@ import torch
 from torch import nn
 
 from poseflow._checks import check_tensor
-from poseflow._units import check_intrinsics
+from poseflow._units import check_depth_extent, check_intrinsics
 from poseflow.data.objects import ObjectModel
 from poseflow.errors import CheckpointError, ValueRangeError
 from poseflow.eval.predict import (
@@ -218,6 +218,8 @@ class FunFlow6D(nn.Module):
             ValueRangeError: an object id that is not prepared (for verification too, when on),
                 a verifier prepared for another ``config.verifier``, or a ``K`` that is not a
                 pinhole matrix of this image.
+            UnitsError: the masked depth spans far more or far less than the objects (a depth
+                in the wrong unit; :func:`~poseflow._units.check_depth_extent`).
         """
         proposals = self.propose(rgb, depth, K, masks, obj_ids, generator=generator)
         if not self.config.verification or proposals.estimate.poses.shape[0] == 0:
@@ -254,6 +256,8 @@ class FunFlow6D(nn.Module):
             )
         sizes = check_tensor(depth, "depth", ("H", "W"), floating=False)
         K = check_intrinsics(K, sizes["W"], sizes["H"], dtype=torch.float32, device=depth.device)
+        diameters = [o.diameter for o in select_objects(self.objects, obj_ids)]
+        check_depth_extent(depth, K, masks, diameters, where="the depth")
         if generator is None:
             generator = torch.Generator(device=depth.device).manual_seed(0)
         was_training = self.training
