@@ -102,8 +102,9 @@ class ClassicBaseline:
             :data:`BASELINE_VERIFIER`.
         seed: seed of every random draw (estimates are reproducible).
 
-    The stages ``geometric_encoder``, ``ransac``, ``icp``, ``verification`` and ``other`` are
-    charged to the active :class:`~poseflow.eval.timing.StageTimer` (see :meth:`predict`), if any.
+    The stages ``lifting``, ``geometric_encoder``, ``matching``, ``ransac``, ``icp`` and
+    ``verification`` are charged to the active :class:`~poseflow.eval.timing.StageTimer` (see
+    :meth:`predict`), if any.
 
     Example:
         >>> import open3d as o3d
@@ -190,19 +191,20 @@ class ClassicBaseline:
         generator: torch.Generator,
     ) -> tuple[torch.Tensor, torch.Tensor] | None:
         """Lift, clean, thin and describe one masked depth image: points ``(M, 3)``, FPFH."""
-        cloud = backproject_depth(depth[None], K, mask[None])
-        pts, ok = cloud.points, cloud.mask
-        if int(ok.sum()) < self.min_points:
-            return None
-        ok = ok & remove_statistical_outliers(pts, ok)
-        idx, vok = voxel_downsample(pts, self.voxel_fraction * diameter, ok)
-        t = pts[0, idx[0][vok[0]]]
-        if t.shape[0] > self.max_target_points:
-            pick = torch.randperm(t.shape[0], generator=generator)[: self.max_target_points]
-            t = t[pick.sort().values]
-        if t.shape[0] < self.min_points:
-            return None
-        normals = estimate_normals(t[None], k=min(30, t.shape[0]))
+        with stage("lifting"):
+            cloud = backproject_depth(depth[None], K, mask[None])
+            pts, ok = cloud.points, cloud.mask
+            if int(ok.sum()) < self.min_points:
+                return None
+            ok = ok & remove_statistical_outliers(pts, ok)
+            idx, vok = voxel_downsample(pts, self.voxel_fraction * diameter, ok)
+            t = pts[0, idx[0][vok[0]]]
+            if t.shape[0] > self.max_target_points:
+                pick = torch.randperm(t.shape[0], generator=generator)[: self.max_target_points]
+                t = t[pick.sort().values]
+            if t.shape[0] < self.min_points:
+                return None
+            normals = estimate_normals(t[None], k=min(30, t.shape[0]))
         with stage("geometric_encoder"):
             feats = self.encoder.encode(t[None], normals, None, diameter)[0]
         return t, feats
@@ -380,11 +382,11 @@ class ClassicBaseline:
         diam = self.models[obj_id].diameter
         bank_pts, bank_feats, model_pts = self.bank(obj_id)
         gen = torch.Generator().manual_seed(self.seed * 1_000_003 + index)
-        with stage("other"):
-            got = self._describe(depth, K, mask, diam, gen)
-            if got is None:
-                return None, 0.0, depth.new_zeros(0, 3)
-            t, ft = got
+        got = self._describe(depth, K, mask, diam, gen)
+        if got is None:
+            return None, 0.0, depth.new_zeros(0, 3)
+        t, ft = got
+        with stage("matching"):
             mutual = mutual_nearest_neighbors(bank_feats[None], ft[None])[0]  # (M,) or -1
             has = mutual >= 0
             src, dst = bank_pts[mutual[has]], t[has]  # model points, their observed partners
@@ -456,9 +458,11 @@ class ClassicBaseline:
 
         Returns:
             :class:`~poseflow.eval.results.PoseResults` with one estimate per valid instance of
-            a target object, and the wall-clock time of each image (image loading excluded).
+            a target object, and the wall-clock time of each image (image loading and the
+            objects' one-time preparation, done first, excluded).
             The colour images are read only with verification on.
         """
+        self.prepare()  # the banks (and the verifier's objects) are not any image's time
         return predict_dataset(
             self.estimator(),
             dataset,

@@ -311,8 +311,13 @@ def test_hybrid_predicts_with_the_model_and_the_baseline(run_dir, dataset, tmp_p
 def test_baseline_predicts_without_a_model(dataset, tmp_path, capsys):
     csv, timing = tmp_path / "base.csv", tmp_path / "t.json"
     argv = ["predict", str(dataset), "--method", "baseline", "--out", str(csv)]
-    assert main([*argv, "--timing", str(timing), "--no-progress"]) == 0
+    overlays = tmp_path / "pictures"
+    assert main([*argv, "--timing", str(timing), "--overlays", str(overlays), "--no-progress"]) == 0
     results = read_results(csv)
+    pictures = sorted(overlays.glob("*.png"))
+    images = sorted(set(zip(results.scene_ids.tolist(), results.im_ids.tolist())))
+    assert [p.name for p in pictures] == [f"{s:06d}_{i:06d}.png" for s, i in images]
+    assert "overlay pictures written" in capsys.readouterr().out
     assert len(results) >= 3 and (results.scores > 0).all()
     report = json.loads(timing.read_text())
     assert report["method"] == "baseline" and report["stages_ms"]["icp"] > 0

@@ -236,8 +236,8 @@ def test_estimate_reports_stages_to_the_active_timer_only(tiny_model, scene):
     with timer.active():
         tiny_model.estimate(*args, generator=torch.Generator().manual_seed(0))
     expected = {
-        "other", "geometric_encoder", "appearance_encoder", "reducer", "fusion", "integration",
-        "flow_net", "ransac", "icp", "verification",
+        "lifting", "geometric_encoder", "appearance_encoder", "flow_inputs", "reducer", "fusion",
+        "integration", "flow_net", "ransac", "icp", "verification",
     }  # fmt: skip
     assert set(timer.counts) == expected
     assert timer.counts["flow_net"] == tiny_model.config.steps

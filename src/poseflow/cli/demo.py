@@ -139,7 +139,7 @@ def run(args: argparse.Namespace) -> int:
     from poseflow.cli.eval import format_table
     from poseflow.data.bop import BOPDataset
     from poseflow.data.synthetic import generate_dataset
-    from poseflow.eval import StageTimer, evaluate_bop, write_results
+    from poseflow.eval import StageTimer, evaluate_bop, write_result_overlays, write_results
     from poseflow.features import FPFHEncoder
 
     start = time.perf_counter()
@@ -209,39 +209,15 @@ def run(args: argparse.Namespace) -> int:
         print(f"  {stage:<20} {ms:>8.1f} ms  {share:>5.1f}%")
 
     if not args.no_overlays:
-        _write_overlays(out / "overlays", BOPDataset(root, "test"), models, funflow)
+        dataset = BOPDataset(root, "test")
+        write_result_overlays(
+            out / "overlays",
+            dataset,
+            {o: m.mesh for o, m in models.items()},
+            funflow,
+            images=[(s, i) for s in dataset.scene_ids for i in dataset.scene(s).im_ids],
+            method="FunFlow6D",
+        )
         written.append("overlays/")
     print(f"\nwrote {out}/{', '.join(written)} in {time.perf_counter() - start:.0f} s")
     return 0
-
-
-def _write_overlays(folder: Path, dataset: Any, models: dict, results: Any) -> None:
-    """One picture per image: estimates outlined and tinted, ground truth outlined, a legend."""
-    import numpy as np
-    import torch
-
-    from poseflow.eval import write_overlay
-    from poseflow.render import Renderer
-
-    folder.mkdir(parents=True, exist_ok=True)
-    ids = sorted(models)
-    renderer = Renderer([models[i].mesh for i in ids])
-    for scene_id in dataset.scene_ids:
-        scene = dataset.scene(scene_id)
-        for im_id in scene.im_ids:
-            rows = (results.scene_ids == scene_id) & (results.im_ids == im_id)
-            gts = scene.gt_of(im_id)
-            write_overlay(
-                folder / f"{scene_id:06d}_{im_id:06d}.png",
-                scene.load_rgb_image(im_id),
-                scene.camera[im_id].K,
-                [models[i].mesh for i in ids],
-                results.poses[rows],
-                object_ids=[ids.index(int(o)) for o in results.obj_ids[rows]],
-                gt_poses=torch.as_tensor(np.stack([g.pose for g in gts])),
-                gt_object_ids=[ids.index(g.obj_id) for g in gts],
-                renderer=renderer,
-                method="FunFlow6D",
-                scores=results.scores[rows],
-                mesh_names=[f"obj {i}" for i in ids],
-            )

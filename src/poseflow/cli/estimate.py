@@ -291,14 +291,17 @@ def run(args: argparse.Namespace) -> int:
     }
     write_poses_json(out / "poses.json", result, meta=meta)
     order = sorted(objects)
-    keep = result.valid
-    write_overlay(
+    write_overlay(  # every instance: an invalid one dashed and named so in the legend
         out / "overlay.png",
         frame.rgb,
         frame.K.float(),
         [objects[o].mesh for o in order],
-        result.poses[keep].float(),
-        object_ids=[order.index(int(o)) for o in result.obj_ids[keep]],
+        result.poses.float(),
+        object_ids=[order.index(int(o)) for o in result.obj_ids],
+        method=method,
+        scores=result.scores,
+        valid=result.valid,
+        mesh_names=[f"obj {o}" for o in order],
     )
     for pose in result.to_json():
         where = f"obj {pose['obj_id']} ({pose['source']})"

@@ -63,6 +63,8 @@ if TYPE_CHECKING:
 
 #: The estimators of ``--method``; all but ``baseline`` need a model.
 METHODS = ("funflow6d", "baseline", "hybrid")
+#: How the overlays' legends name them.
+METHOD_LABELS = {"funflow6d": "FunFlow6D", "baseline": "classic baseline", "hybrid": "hybrid"}
 
 __all__ = ["add_parser", "run", "select_targets"]
 
@@ -158,6 +160,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     )
     parser.add_argument(
         "--timing", default=None, metavar="JSON", help="write the stage breakdown JSON here"
+    )
+    parser.add_argument(
+        "--overlays",
+        default=None,
+        metavar="DIR",
+        help="write one picture per image here: the estimates outlined with a legend (method, "
+        "score), the ground truth outlined in green where the split has it",
     )
     parser.add_argument(
         "--clock",
@@ -342,6 +351,8 @@ def run(args: argparse.Namespace) -> int:
     check_writable(args.out)
     if args.timing is not None:
         check_writable(args.timing, flag="--timing")
+    if args.overlays is not None:
+        check_writable(args.overlays, flag="--overlays", folder=True)
     device = resolve_device(args.device)
     changes = _config_changes(args)
     ranks = join_ranks(device)
@@ -479,6 +490,8 @@ def _report(args: argparse.Namespace, part: PredictionPart) -> None:
     mean = results.average_time()
     if mean >= 0:
         print(f"mean time per image: {1000 * mean:.1f} ms on {device}")
+    if args.overlays is not None and len(results):
+        _write_overlays(args, results)
     if args.timing is not None:
         report = {
             "method": args.method,
@@ -494,6 +507,25 @@ def _report(args: argparse.Namespace, part: PredictionPart) -> None:
         Path(args.timing).parent.mkdir(parents=True, exist_ok=True)
         Path(args.timing).write_text(json.dumps(report, indent=2))
         print(f"stage timing written to {args.timing}")
+
+
+def _write_overlays(args: argparse.Namespace, results: Any) -> None:
+    """One overlay picture per image with estimates, in ``args.overlays``."""
+    from poseflow.cli.common import load_object_models, show_progress
+    from poseflow.data.bop import BOPDataset
+    from poseflow.eval.overlay import write_result_overlays
+
+    ids = sorted({int(o) for o in results.obj_ids.tolist()})
+    objects = load_object_models(Path(args.dataset), obj_ids=ids, progress=False)
+    written = write_result_overlays(
+        args.overlays,
+        BOPDataset(args.dataset, args.split),
+        {o: m.mesh for o, m in objects.items()},
+        results,
+        method=METHOD_LABELS[args.method],
+        progress=show_progress(args),
+    )
+    print(f"{len(written)} overlay pictures written to {args.overlays}")
 
 
 def _add_detection_time(results: Any, detections: Any) -> Any:

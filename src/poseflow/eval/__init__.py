@@ -14,7 +14,7 @@
 - the paper's correspondence-inlier metric (:func:`correspondence_inliers`);
 - the per-image stage breakdown (:class:`StageTimer`, reported to through :func:`stage` and
   :func:`timed` while a timer is active) and qualitative overlays with a legend
-  (:func:`overlay_poses`, :func:`write_overlay`);
+  (:func:`overlay_poses`, :func:`write_overlay`, :func:`write_result_overlays`);
 - 3D scenes of one image for viewers (:func:`build_scene`: the observed cloud and the posed
   meshes), written as a Rerun recording (:func:`write_recording`) or a GLB/PLY scene
   (:func:`export_scene`).
@@ -52,6 +52,7 @@ from poseflow.eval.overlay import (
     as_uint8_image,
     overlay_poses,
     write_overlay,
+    write_result_overlays,
 )
 from poseflow.eval.predict import (
     Estimator,
@@ -159,5 +160,6 @@ __all__ = [
     "write_overlay",
     "write_poses_json",
     "write_recording",
+    "write_result_overlays",
     "write_results",
 ]

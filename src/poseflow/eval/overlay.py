@@ -14,7 +14,8 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -31,6 +32,7 @@ __all__ = [
     "as_uint8_image",
     "overlay_poses",
     "write_overlay",
+    "write_result_overlays",
 ]
 
 #: Colour of the first estimate (azure, as in the paper).
@@ -329,3 +331,66 @@ def write_overlay(path: str | os.PathLike[str], *args: Any, **kwargs: Any) -> to
     pic = overlay_poses(*args, **kwargs)
     Image.fromarray(pic.numpy()).save(path)
     return pic
+
+
+def write_result_overlays(
+    folder: str | os.PathLike[str],
+    dataset: Any,
+    meshes: Mapping[int, Any],
+    results: Any,
+    *,
+    images: Sequence[tuple[int, int]] | None = None,
+    method: str | None = None,
+    ground_truth: bool = True,
+    progress: bool = False,
+) -> list[Path]:
+    """One :func:`write_overlay` picture per image of a split.
+
+    Args:
+        folder: where ``SSSSSS_IIIIII.png`` (scene and image ids) are written; created.
+        dataset: the :class:`~poseflow.data.bop.BOPDataset` split the results are of.
+        meshes: ``{obj_id: mesh}`` (Open3D triangle meshes, metres) of every estimated object.
+        results: the :class:`~poseflow.eval.results.PoseResults` (one row per valid estimate).
+        images: the ``(scene_id, im_id)`` pairs to draw (default: those with an estimate).
+        method: the estimator's name, for the legend.
+        ground_truth: outline the ground truth too, where the split has it.
+        progress: show a progress bar.
+
+    Returns:
+        The written files, in scene and image order.
+    """
+    from tqdm.auto import tqdm
+
+    out = Path(folder)
+    out.mkdir(parents=True, exist_ok=True)
+    ids = sorted(meshes)
+    meshes_in_order = [meshes[i] for i in ids]
+    renderer = Renderer(meshes_in_order)
+    if images is None:
+        images = sorted(set(zip(results.scene_ids.tolist(), results.im_ids.tolist())))
+    written = []
+    for scene_id, im_id in tqdm(images, desc="overlays", disable=not progress):
+        scene = dataset.scene(scene_id)
+        rows = (results.scene_ids == scene_id) & (results.im_ids == im_id)
+        gt: dict[str, Any] = {}
+        if ground_truth:
+            gts = [g for g in scene.gt_of(im_id) if g.obj_id in meshes]
+            if gts:
+                gt["gt_poses"] = torch.as_tensor(np.stack([g.pose for g in gts]))
+                gt["gt_object_ids"] = [ids.index(g.obj_id) for g in gts]
+        path = out / f"{scene_id:06d}_{im_id:06d}.png"
+        write_overlay(
+            path,
+            scene.load_rgb_image(im_id),
+            scene.camera[im_id].K,
+            meshes_in_order,
+            results.poses[rows],
+            object_ids=[ids.index(int(o)) for o in results.obj_ids[rows]],
+            renderer=renderer,
+            method=method,
+            scores=results.scores[rows],
+            mesh_names=[f"obj {i}" for i in ids],
+            **gt,
+        )
+        written.append(path)
+    return written

@@ -38,9 +38,12 @@ __all__ = ["EXCLUDED_STAGES", "STAGES", "StageTimer", "active_timer", "stage", "
 #: with ``verification`` (render-and-compare checking of the chosen poses) after ICP.
 STAGES: tuple[str, ...] = (
     "segmentation",
+    "lifting",
     "appearance_encoder",
     "reducer",
     "geometric_encoder",
+    "matching",
+    "flow_inputs",
     "fusion",
     "flow_net",
     "integration",

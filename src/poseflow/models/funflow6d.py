@@ -34,7 +34,7 @@ from poseflow.eval.predict import (
     predict_dataset,
 )
 from poseflow.eval.results import PoseResults
-from poseflow.eval.timing import StageTimer
+from poseflow.eval.timing import StageTimer, stage
 from poseflow.flows import get_sampler
 from poseflow.models.checkpoint import read_checkpoint, write_checkpoint
 from poseflow.models.components import build_appearance_encoder, build_geometric_encoder
@@ -268,7 +268,8 @@ class FunFlow6D(nn.Module):
             if obs.points.shape[0] == 0:
                 est = PoseEstimate.empty(device=depth.device)
                 return Proposals(est, est.poses[:, None][:, :0], est.valid[:, None][:, :0])
-            inputs = self.flow_inputs(obs)
+            with stage("flow_inputs"):
+                inputs = self.flow_inputs(obs)
             x_1 = self.net.sample(
                 inputs,
                 get_sampler(cfg.solver, steps=cfg.steps),

@@ -134,7 +134,7 @@ def observe(
         )
     image = rgb.float() / 255.0 if not rgb.is_floating_point() else rgb.float()
     depth = torch.nan_to_num(depth.float(), nan=0.0, posinf=0.0)
-    with stage("other"):
+    with stage("lifting"):
         cloud = backproject_depth(depth.expand(B, *depth.shape), K, masks.bool())
         cloud_points, cloud_pixels, keep = cloud.points, cloud.pixels, cloud.mask
         if cloud_points.shape[1] == 0:  # every mask empty: one padded point each
