@@ -3,9 +3,10 @@
 The recipe a new user follows, end to end, on any BOP folder with ``models/`` (millimetres) and a
 test split: ``poseflow synth`` renders training images of the dataset's own meshes (never its
 test images), ``poseflow train`` trains FunFlow6D on them, ``poseflow predict`` estimates every
-target of the test split with the trained model and with the classic baseline (ground-truth
-visible masks), once per seed, and ``poseflow eval`` scores both with the BOP 2019 AR. Prints
-the AR of both per object (mean and spread over the seeds), one JSON line and the command.
+target of the test split with the trained model, the classic baseline and their hybrid under
+one verification (ground-truth visible masks; ``--methods`` picks), once per seed, and
+``poseflow eval`` scores them with the BOP 2019 AR. Prints the AR of each per object (mean and
+spread over the seeds), one JSON line and the command.
 
 Everything is written under ``--work`` (default ``runs/unseen/DATASET_NAME``) and reused when
 run again, so a second run with other seeds or ``--predict-args`` only predicts and scores.
@@ -31,6 +32,7 @@ from poseflow.cli import main as poseflow
 
 REPO = Path(__file__).resolve().parents[1]
 METRICS = ("AR", "AR_VSD", "AR_MSSD", "AR_MSPD")
+METHODS = ("funflow6d", "baseline", "hybrid")
 
 
 def _run(command: list[str]) -> None:
@@ -97,6 +99,9 @@ def main() -> None:
         "--predict-args", default="", help="more `poseflow predict` flags, one string"
     )
     parser.add_argument("--tag", default="", help="suffix of the result files of this setting")
+    parser.add_argument(
+        "--methods", nargs="+", choices=METHODS, default=list(METHODS), help="estimators to run"
+    )
     parser.add_argument("--quick", action="store_true", help="tiny generated dataset (CI)")
     args = parser.parse_args()
     torch.set_num_threads(1)
@@ -117,26 +122,26 @@ def main() -> None:
         extra = args.predict_args.split()
         if args.max_images is not None:
             extra += ["--max-images", str(args.max_images)]
-        reports: dict[str, list[dict]] = {"funflow6d": [], "baseline": []}
+        reports: dict[str, list[dict]] = {m: [] for m in args.methods}
         for seed in args.seeds:
             for method in reports:
                 csv = work / f"{method}{args.tag}-seed{seed}_{dataset.name}-test.csv"
                 command = ["predict", str(dataset), "--out", str(csv), "--seed", str(seed)]
                 command += ["--method", method, "--no-progress", *extra]
-                if method == "funflow6d":
+                if method != "baseline":
                     command += ["--model", str(model)]
                 _run(command)
                 reports[method].append(_score(dataset, csv))
         summary = {m: _summary(r) for m, r in reports.items()}
     summary["dataset"], summary["seeds"] = dataset.name, args.seeds
-    f, b = summary["funflow6d"], summary["baseline"]
+    runs = [summary[m] for m in args.methods]
     print(f"\n{dataset.name}: AR over seeds {args.seeds} (mean ± half range)")
-    print(f"{'object':<10} {'FunFlow6D':>16} {'baseline':>16}")
-    cell = lambda s: f"{s['mean']:>9.3f} ± {s['spread']:.3f}"  # noqa: E731
-    for o in f["per_object"]:
-        print(f"{o:<10} {cell(f['per_object'][o]['AR'])} {cell(b['per_object'][o]['AR'])}")
+    print(f"{'object':<10}" + "".join(f"{m:>17}" for m in args.methods))
+    cell = lambda s: f"{s['mean']:>10.3f} ± {s['spread']:.3f}"  # noqa: E731
+    for o in runs[0]["per_object"]:
+        print(f"{o:<10}" + "".join(cell(r["per_object"][o]["AR"]) for r in runs))
     for k in METRICS:
-        print(f"{k:<10} {cell(f[k])} {cell(b[k])}")
+        print(f"{k:<10}" + "".join(cell(r[k]) for r in runs))
     print(json.dumps(summary))
     print("command:", " ".join([sys.executable, *sys.argv]))
 
