@@ -9,7 +9,9 @@ model ``Q`` and of the observed target ``T``.
   from a local file), :class:`TorchScriptEncoder` / :class:`CallableEncoder` for any other
   per-point encoder;
 - appearance encoders Θ (:class:`AppearanceEncoder`): :class:`DINOv2Encoder` (transformers),
-  :class:`DenseSIFTEncoder` (weight-free default);
+  :class:`DenseSIFTEncoder` (weight-free default), :class:`LearnedAppearanceEncoder` (poseflow's
+  own descriptor network, trained on generated renders by
+  :mod:`poseflow.features.descriptor_training`);
 - lifting: :func:`lift_target_features` (crop around the barycentre), :func:`lift_query_features`
   (multi-view renderings → :class:`QueryFeatureBank`), cached per object by :class:`FeatureCache`;
 - reduction (:class:`Reducer`): :class:`UMAPReducer` (umap-learn or, on CUDA, TorchDR fit; fast
@@ -37,6 +39,13 @@ from poseflow.features.geometric import (
     encode_on_support,
     estimate_outward_normals,
 )
+from poseflow.features.learned import (
+    SHIPPED_DESCRIPTOR_DIR,
+    DescriptorNet,
+    LearnedAppearanceEncoder,
+    load_descriptor,
+    save_descriptor,
+)
 from poseflow.features.lifting import (
     QueryFeatureBank,
     lift_query_features,
@@ -53,16 +62,19 @@ from poseflow.features.reducers import (
 
 __all__ = [
     "DINOV2_MODELS",
+    "SHIPPED_DESCRIPTOR_DIR",
     "AppearanceEncoder",
     "CallableEncoder",
     "DINOv2Encoder",
     "DenseSIFTEncoder",
+    "DescriptorNet",
     "FPFHEncoder",
     "FeatureCache",
     "GeDiEncoder",
     "GeDiNet",
     "GeometricEncoder",
     "IdentityReducer",
+    "LearnedAppearanceEncoder",
     "PCAReducer",
     "QueryFeatureBank",
     "Reducer",
@@ -75,8 +87,10 @@ __all__ = [
     "features_at",
     "lift_query_features",
     "lift_target_features",
+    "load_descriptor",
     "load_reducer",
     "sample_features",
+    "save_descriptor",
     "upsample_features",
     "viewpoint_poses",
 ]

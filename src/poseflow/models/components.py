@@ -17,6 +17,7 @@ from poseflow.features import (
     GeDiEncoder,
     GeometricEncoder,
     IdentityReducer,
+    LearnedAppearanceEncoder,
     PCAReducer,
     Reducer,
     UMAPReducer,
@@ -34,8 +35,9 @@ __all__ = [
 
 #: Kinds of :func:`build_geometric_encoder` (``"gedi"`` is written ``"gedi:PATH"``).
 GEOMETRIC_ENCODERS: tuple[str, ...] = ("fpfh", "gedi", "none")
-#: Kinds of :func:`build_appearance_encoder` (``"dinov2"`` takes ``":NAME_OR_PATH"``).
-APPEARANCE_ENCODERS: tuple[str, ...] = ("dsift", "dinov2", "none")
+#: Kinds of :func:`build_appearance_encoder` (``"dinov2"`` takes ``":NAME_OR_PATH"``,
+#: ``"learned"`` an optional ``":FOLDER"``).
+APPEARANCE_ENCODERS: tuple[str, ...] = ("dsift", "dinov2", "learned", "none")
 #: Names of :func:`build_reducer`.
 REDUCERS: tuple[str, ...] = ("umap", "pca", "identity")
 
@@ -91,10 +93,14 @@ def build_geometric_encoder(name: str, *, radii: tuple[float, ...]) -> Geometric
 
 
 def build_appearance_encoder(name: str, *, crop_size: int) -> AppearanceEncoder | None:
-    """``"dsift"``, ``"dinov2:NAME_OR_PATH"`` or ``"none"`` (returns None).
+    """``"dsift"``, ``"dinov2:NAME_OR_PATH"``, ``"learned[:FOLDER]"`` or ``"none"`` (None).
+
+    ``"learned"`` is the descriptor shipped with the package, ``"learned:FOLDER"`` one made by
+    ``python -m poseflow.features.descriptor_training --out FOLDER``.
 
     Raises:
         ValueRangeError: an unknown name.
+        MissingWeightsError: ``"learned"`` weights that are not there.
 
     Example:
         >>> build_appearance_encoder("dsift", crop_size=64).dim
@@ -105,6 +111,8 @@ def build_appearance_encoder(name: str, *, crop_size: int) -> AppearanceEncoder 
         return DenseSIFTEncoder(input_size=crop_size)
     if kind == "dinov2":
         return DINOv2Encoder(weights or "vits14", input_size=crop_size)
+    if kind == "learned":
+        return LearnedAppearanceEncoder(weights or None, input_size=crop_size)
     return None
 
 

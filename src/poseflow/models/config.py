@@ -224,7 +224,9 @@ class FunFlow6DConfig:
             sample; see :func:`~poseflow.features.encode_on_support`); 0: from the ``N`` points
             alone, as checkpoints written before the field did.
         appearance_encoder: ``"dsift"`` (dense SIFT, weight-free), ``"dinov2:NAME_OR_PATH"``
-            (e.g. ``dinov2:vits14`` or a local folder) or ``"none"``.
+            (e.g. ``dinov2:vits14`` or a local folder), ``"learned"`` / ``"learned:FOLDER"``
+            (poseflow's own descriptor network, see :mod:`poseflow.features.learned`) or
+            ``"none"``.
         crop_size: side of the square crop fed to the appearance encoder, pixels.
         query_views: viewpoints of the query's multi-view rendering.
         reducer: ``"umap"`` (paper), ``"pca"`` or ``"identity"``, fitted on the query features.

@@ -1,0 +1,231 @@
+"""Correspondence inliers of the appearance conditioning: dense SIFT against the learned descriptor.
+
+On a BOP split's test images (devbench by default; ground-truth poses and visible masks are used
+only to measure), every BOP19 target instance is observed as FunFlow6D observes it (``N`` points by
+farthest-point sampling of the masked depth, the crop around their barycentre), and paired with
+its object's query cloud (``N`` points, features lifted from ``query_views`` renderings). The
+mutual nearest neighbours (cosine) of the query's and the target's appearance features are
+counted as inliers when their two points lie within 10 % (and 5 %) of the diameter under the
+ground-truth pose, next to the count perfect features (the true canonical coordinates) give on
+the same clouds, the ceiling. Two feature stages are scored:
+
+- ``conditioning``: what the flow network is fed (``FlowInputs.semantic``: the query pooled as the
+  encoder asks, then the object's PCA reducer), as ``benchmarks/diagnose.py`` scores it;
+- ``raw``: the encoder's features before the reducer.
+
+Encoders: ``dsift`` (poseflow's default, ``query_pooling="select"``), the learned descriptor with
+its own ``"mean"`` pooling and with ``"select"``. The same generator seed gives every encoder the
+same target points. Prints a table per ``N``, one JSON line and the command. Run
+``python benchmarks/descriptor_inliers.py [DATASET] [--learned FOLDER]``; ``--quick`` (CI) scores
+two images with ``N = 64`` and four query views.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shlex
+import statistics
+import sys
+import time
+from collections import defaultdict
+from pathlib import Path
+
+import torch
+
+from poseflow.cli.common import load_object_models
+from poseflow.data.bop import BOPDataset
+from poseflow.eval.inliers import correspondence_inliers
+from poseflow.features.learned import SHIPPED_DESCRIPTOR_DIR, LearnedAppearanceEncoder
+from poseflow.models import FunFlow6D, FunFlow6DConfig
+
+DEVBENCH = Path("/work/shared/devbench")
+THRESHOLDS = (0.10, 0.05)
+
+
+def _encoders(learned: Path | None) -> list[tuple[str, str, str | None]]:
+    """``(label, appearance_encoder name, query_pooling override)`` of each scored encoder."""
+    out: list[tuple[str, str, str | None]] = [("dsift", "dsift", None)]
+    if learned is not None:
+        out += [
+            ("learned/mean", f"learned:{learned}", "mean"),
+            ("learned/select", f"learned:{learned}", "select"),
+        ]
+    return out
+
+
+def _images(ds: BOPDataset, max_images: int | None) -> dict[tuple[int, int], set[int]]:
+    """``{(scene, image): {obj_id}}`` of the BOP19 targets on the first ``max_images`` images."""
+    images: dict[tuple[int, int], set[int]] = defaultdict(set)
+    for t in ds.test_targets():
+        images[(t.scene_id, t.im_id)].add(t.obj_id)
+    keep = sorted(images)[:max_images]
+    return {k: images[k] for k in keep}
+
+
+def measure(
+    root: Path,
+    images: dict[tuple[int, int], set[int]],
+    objects: dict,
+    name: str,
+    pooling: str | None,
+    *,
+    num_points: int,
+    crop_size: int,
+    query_views: int,
+    seed: int,
+) -> dict:
+    """Inliers per object of one encoder at one ``N``: ``{stage: {threshold: {obj: [..]}}}``."""
+    cfg = FunFlow6DConfig(
+        num_points=num_points,
+        crop_size=crop_size,
+        query_views=query_views,
+        appearance_encoder=name,
+        geometric_encoder="none",
+        verification=False,
+    )
+    model = FunFlow6D(cfg)
+    if pooling is not None and isinstance(model.appearance_encoder, LearnedAppearanceEncoder):
+        model.appearance_encoder.query_pooling = pooling
+    start = time.perf_counter()
+    model.prepare_objects(objects, progress=False)
+    prepare_s = time.perf_counter() - start
+    ds = BOPDataset(root, "test")
+    g = torch.Generator().manual_seed(seed)
+    res: dict = {s: {th: defaultdict(list) for th in THRESHOLDS} for s in ("conditioning", "raw",
+                                                                           "ceiling")}  # fmt: skip
+    observe_s = 0.0
+    for (s, i), wanted in sorted(images.items()):
+        scene = ds.scene(s)
+        gts = scene.gt_of(i)
+        sel = [k for k, gt in enumerate(gts) if gt.obj_id in wanted]
+        obj_ids = [gts[k].obj_id for k in sel]
+        masks = torch.stack([scene.load_mask(i, k, visible=True) for k in sel])
+        gt = torch.stack([torch.as_tensor(gts[k].pose, dtype=torch.float32) for k in sel])
+        rgb, depth = scene.load_rgb_image(i), scene.load_depth_image(i)
+        K = torch.as_tensor(scene.camera[i].K, dtype=torch.float32)
+        with torch.no_grad():
+            t0 = time.perf_counter()
+            obs = model.observe(rgb, depth, K, masks, obj_ids, generator=g)
+            observe_s += time.perf_counter() - t0
+            inputs = model.flow_inputs(obs, poses=gt)
+        n = num_points
+        B = len(sel)
+        pooled = model.appearance_encoder.query_pooling
+        raw_q = []
+        for b, o in enumerate(obj_ids):
+            bank = model.objects[o].bank
+            if not bool(obs.valid[b]):  # too few points: not scored
+                raw_q.append(torch.zeros_like(obs.appearance[b]))
+            elif pooled == "select":
+                raw_q.append(bank.select(obs.appearance[b : b + 1], obs.mask[b : b + 1])[0])
+            else:
+                raw_q.append(bank.pooled())
+        feats = {
+            "conditioning": (inputs.semantic[:, :n], inputs.semantic[:, n:]),
+            "raw": (torch.stack(raw_q).to(obs.appearance), obs.appearance),
+            "ceiling": (inputs.x_1[:, :n], inputs.x_1[:, n:]),
+        }
+        for stage, (fq, ft) in feats.items():
+            for th in THRESHOLDS:
+                r = correspondence_inliers(
+                    fq, ft, inputs.points[:, :n], inputs.x_1[:, n:], torch.full((B,), 2.0), th,
+                    t_mask=inputs.mask[:, n:],
+                    metric="euclidean" if stage == "ceiling" else "cosine",
+                )  # fmt: skip
+                for b, o in enumerate(obj_ids):
+                    if bool(obs.valid[b]):
+                        res[stage][th][o].append(float(r.num_inliers[b]))
+    return {"inliers": res, "prepare_s": prepare_s, "observe_s": observe_s}
+
+
+def _mean(v: list[float]) -> float:
+    return round(statistics.fmean(v), 2) if v else float("nan")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("dataset", nargs="?", default=str(DEVBENCH), help="BOP dataset folder")
+    parser.add_argument(
+        "--learned",
+        default=None,
+        help="learned descriptor folder (default: the shipped weights, when present)",
+    )
+    parser.add_argument("--points", type=int, nargs="+", default=[64, 256], help="N values")
+    parser.add_argument("--crop-size", type=int, default=96)
+    parser.add_argument("--query-views", type=int, default=12)
+    parser.add_argument("--max-images", type=int, default=None)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--quick", action="store_true", help="two images, N = 64, 4 query views")
+    args = parser.parse_args()
+    if args.quick:
+        args.max_images, args.points, args.query_views = 2, [64], 4
+    torch.set_num_threads(1)
+    learned = Path(args.learned) if args.learned else None
+    if learned is None and (SHIPPED_DESCRIPTOR_DIR / "model.safetensors").is_file():
+        learned = SHIPPED_DESCRIPTOR_DIR
+    root = Path(args.dataset)
+    ds = BOPDataset(root, "test")
+    images = _images(ds, args.max_images)
+    obj_set = sorted({o for v in images.values() for o in v})
+    encoders = _encoders(learned)
+    report: dict = {
+        "benchmark": "descriptor_inliers",
+        "dataset": root.name,
+        "images": len(images),
+        "learned": str(learned) if learned else None,
+        "crop_size": args.crop_size,
+        "query_views": args.query_views,
+        "results": {},
+    }
+    for N in args.points:
+        objects = load_object_models(root, obj_ids=obj_set)
+        per_n: dict = {}
+        for label, name, pooling in encoders:
+            out = measure(
+                root, images, objects, name, pooling, num_points=N, crop_size=args.crop_size,
+                query_views=args.query_views, seed=args.seed,
+            )  # fmt: skip
+            per_n[label] = out
+        ceiling = next(iter(per_n.values()))["inliers"]["ceiling"]
+        summary: dict = {"ceiling": {}, "encoders": {}}
+        for th in THRESHOLDS:
+            summary["ceiling"][str(th)] = {
+                **{str(o): _mean(ceiling[th][o]) for o in obj_set},
+                "all": _mean([x for o in obj_set for x in ceiling[th][o]]),
+            }
+        for label, out in per_n.items():
+            entry: dict = {
+                "prepare_s": round(out["prepare_s"], 1),
+                "observe_s": round(out["observe_s"], 1),
+            }
+            for stage in ("conditioning", "raw"):
+                for th in THRESHOLDS:
+                    d = out["inliers"][stage][th]
+                    entry[f"{stage}@{th}"] = {
+                        **{str(o): _mean(d[o]) for o in obj_set},
+                        "all": _mean([x for o in obj_set for x in d[o]]),
+                    }
+            summary["encoders"][label] = entry
+        report["results"][str(N)] = summary
+        instances = sum(len(ceiling[THRESHOLDS[0]][o]) for o in obj_set)
+        print(f"\nN = {N}: mean mutual-NN inliers per instance ({instances} instances)")
+        cols = [str(o) for o in obj_set] + ["all"]
+        for stage in ("conditioning", "raw"):
+            for th in THRESHOLDS:
+                print(f"\n{stage}, within {th:.0%} of the diameter")
+                print(f"{'':<16}" + "".join(f"{c:>8}" for c in cols))
+                for label in per_n:
+                    row = summary["encoders"][label][f"{stage}@{th}"]
+                    print(f"{label:<16}" + "".join(f"{row[c]:>8.2f}" for c in cols))
+                row = summary["ceiling"][str(th)]
+                print(f"{'ceiling':<16}" + "".join(f"{row[c]:>8.2f}" for c in cols))
+        for label in per_n:
+            e = summary["encoders"][label]
+            print(f"{label}: query preparation {e['prepare_s']} s, observation {e['observe_s']} s")
+    print(json.dumps(report))
+    print("command:", shlex.join([Path(sys.executable).name, *sys.argv]))
+
+
+if __name__ == "__main__":
+    main()
