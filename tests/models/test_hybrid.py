@@ -12,7 +12,7 @@ from poseflow.errors import UnitsError, ValueRangeError
 from poseflow.eval.predict import PoseEstimate
 from poseflow.eval.timing import StageTimer
 from poseflow.geometry.se3 import rotation_angle_error, translation_error
-from poseflow.models import FunFlow6D, Hybrid, Proposals
+from poseflow.models import FunFlow6D, Hybrid, Proposals, keep_better
 
 
 @pytest.fixture(scope="module")
@@ -81,31 +81,36 @@ def test_a_funflow6d_estimate_without_a_generator_is_seeded(tiny_model, scene):
     st.lists(st.booleans(), min_size=6, max_size=6),
     st.integers(0, 3),
     st.sampled_from([torch.float32, torch.float64]),
+    st.booleans(),
 )
-def test_pooling_keeps_every_valid_pose_and_verifies_a_valid_one(inc_valid, other_valid, E, dtype):
-    B = len(inc_valid)
+def test_a_rival_is_verified_on_its_own_row_and_the_better_score_is_kept(
+    first_valid, second_valid, E, dtype, rank
+):
+    B = len(first_valid)
     g = torch.Generator().manual_seed(B * 7 + E)
     pose = lambda *s: torch.randn(*s, 4, 4, generator=g, dtype=dtype)  # noqa: E731
-    est = PoseEstimate(pose(B), torch.rand(B, generator=g, dtype=dtype), torch.tensor(inc_valid))
+    est = PoseEstimate(pose(B), torch.rand(B, generator=g, dtype=dtype), torch.tensor(first_valid))
     others, others_mask = pose(B, E), torch.rand(B, E, generator=g) < 0.5
-    other_ok = torch.tensor(other_valid[:B])
-    other = PoseEstimate(pose(B).double(), torch.rand(B, generator=g).double(), other_ok)
-    pooled = Proposals(est, others, others_mask).pooled(other)
-    assert pooled.rank and pooled.others.shape == (B, E + 1, 4, 4)
-    assert pooled.estimate.poses.dtype == dtype and pooled.others.dtype == dtype
-    assert torch.equal(pooled.estimate.valid, est.valid | other_ok)
-    assert torch.equal(pooled.others[:, :E], others) and torch.equal(
-        pooled.others_mask[:, :E], others_mask
-    )
-    for i in range(B):  # the two poses of an instance are the incumbent and the last candidate
-        pair = {pooled.estimate.poses[i].sum().item(), pooled.others[i, E].sum().item()}
-        assert pair == {est.poses[i].sum().item(), other.poses[i].to(dtype).sum().item()}
-        if other_ok[i] and not est.valid[i]:  # a valid pose is verified, not the invalid one
-            assert torch.equal(pooled.estimate.poses[i], other.poses[i].to(dtype))
-            assert not pooled.others_mask[i, E]
-        else:
-            assert torch.equal(pooled.estimate.poses[i], est.poses[i])
-            assert bool(pooled.others_mask[i, E]) == bool(other_ok[i])
+    cloud, cloud_mask = torch.rand(B, 5, 3, generator=g), torch.rand(B, 5, generator=g) < 0.5
+    second_ok = torch.tensor(second_valid[:B])
+    other = PoseEstimate(pose(B).double(), torch.rand(B, generator=g).double(), second_ok)
+    both = Proposals(est, others, others_mask, cloud, cloud_mask, rank=rank).with_rival(other)
+    assert both.rank == rank and both.others.shape == (2 * B, E, 4, 4)
+    assert both.estimate.poses.dtype == dtype and both.others.dtype == dtype
+    assert torch.equal(both.estimate.poses[B:], other.poses.to(dtype))
+    assert torch.equal(both.estimate.valid, torch.cat((est.valid, second_ok)))
+    assert torch.equal(both.others[:B], others) and torch.equal(both.others_mask[:B], others_mask)
+    assert not both.others_mask[B:].any()  # the rival's rows have no other candidates
+    assert torch.equal(both.observed, torch.cat((cloud, cloud)))
+    assert torch.equal(both.observed_mask, torch.cat((cloud_mask, cloud_mask)))
+    kept = keep_better(both.estimate)
+    assert torch.equal(kept.valid, est.valid | second_ok)
+    for i in range(B):
+        s1, s2 = est.scores[i].item(), other.scores[i].item()
+        second_wins = second_ok[i] and (not est.valid[i] or s2 > s1)
+        winner = both.estimate.poses[B + i] if second_wins else est.poses[i]
+        assert torch.equal(kept.poses[i], winner)
+        assert kept.scores[i].item() == pytest.approx(s2 if second_wins else s1)
 
 
 @pytest.mark.parametrize("factor", [1000.0, 0.001])

@@ -35,6 +35,7 @@ from poseflow.models.pose import agreement_score, solve_pose
 from poseflow.models.training import FlowTrainingSet, augment, build_training_set, train
 from poseflow.models.verification import (
     Proposals,
+    keep_better,
     other_hypotheses,
     prepare_verification,
     verify_estimate,
@@ -61,6 +62,7 @@ __all__ = [
     "agreement_score",
     "augment",
     "build_training_set",
+    "keep_better",
     "load_prepared_object",
     "object_fingerprint",
     "observe",

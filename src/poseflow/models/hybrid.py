@@ -2,13 +2,20 @@
 
 The learned flow and the geometric pipeline fail on different instances (the flow on shapes whose
 local geometry decides the pose, the baseline on turns that only the print decides), and the
-render-and-compare verifier tells which of their poses explains the image. :class:`Hybrid` pools
-both estimators' proposals of each instance into one verification: the flow's ``H`` hypotheses
-(:meth:`FunFlow6D.propose <poseflow.models.FunFlow6D.propose>`) and the baseline's ICP-refined
-pose (:meth:`ClassicBaseline.solve <poseflow.baselines.ClassicBaseline.solve>`) are ranked by the
-verifier's coarse score, the best is expanded with its near-symmetric candidates, refined and
-tested, exactly as FunFlow6D's own hypotheses are; the two pipelines share the image, the
-verifier's prepared objects, its crops, renderings and ICP.
+render-and-compare verifier tells which of their poses explains the image. :class:`Hybrid` checks
+both estimators' proposals of each instance in one batched verification: the flow's ``H``
+hypotheses (:meth:`FunFlow6D.propose <poseflow.models.FunFlow6D.propose>`), ranked by the
+verifier, and the baseline's ICP-refined pose
+(:meth:`ClassicBaseline.solve <poseflow.baselines.ClassicBaseline.solve>`) each enter as an
+incumbent of their own (:meth:`Proposals.with_rival
+<poseflow.models.verification.Proposals.with_rival>`), expanded with its near-symmetric
+candidates, refined, tested and searched, and the pose the verifier scores higher is kept
+(:func:`~poseflow.models.verification.keep_better`). The two pipelines share the image, the
+observed clouds, the verifier's prepared objects and one batch of its renderings and ICP.
+
+Ranking both estimators' poses as candidates of one incumbent was measured too and is worse where
+the flow's best-ranked hypothesis is a wrong turn: the baseline's pose then never gets its own
+near-symmetric candidates (``benchmarks/RESULTS.md``).
 
 Shape letters: ``B`` instances of an image.
 """
@@ -28,6 +35,7 @@ from poseflow.eval.predict import Estimator, PoseEstimate, on_device
 from poseflow.eval.results import PoseResults
 from poseflow.eval.timing import StageTimer
 from poseflow.models.funflow6d import FunFlow6D, predict_seeded
+from poseflow.models.verification import keep_better
 
 __all__ = ["Hybrid"]
 
@@ -87,13 +95,20 @@ class Hybrid:
         Returns:
             The verified :class:`~poseflow.eval.predict.PoseEstimate` (float32), the verifier's
             scores; an instance is valid where either estimator found a pose.
+
+        Raises:
+            UnitsError: the masked depth spans far more or far less than the objects.
         """
         proposals = self.model.propose(rgb, depth, K, masks, obj_ids, generator=generator)
         if proposals.estimate.poses.shape[0] == 0:
             return proposals.estimate
         classic, _ = self.baseline.solve(depth.cpu(), K, masks.cpu(), obj_ids)
-        pooled = proposals.pooled(classic)
-        return self.model.verify(pooled, rgb, depth, K, masks, obj_ids)
+        both = proposals.with_rival(classic)
+        ids = torch.as_tensor(obj_ids).reshape(-1)
+        out = self.model.verify(
+            both, rgb, depth, K, torch.cat((masks, masks)), torch.cat((ids, ids))
+        )
+        return keep_better(out)
 
     def estimator(self, *, seed: int = 0, generator: torch.Generator | None = None) -> Estimator:
         """This estimator as an :data:`~poseflow.eval.predict.Estimator` of one generator.

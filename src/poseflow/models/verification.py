@@ -36,6 +36,7 @@ from poseflow.verify import PreparedObject as VerifierObject
 
 __all__ = [
     "Proposals",
+    "keep_better",
     "other_hypotheses",
     "prepare_verification",
     "rank_hypotheses",
@@ -62,9 +63,9 @@ class Proposals:
         >>> est = PoseEstimate(torch.eye(4)[None], torch.ones(1), torch.tensor([False]))
         >>> other = PoseEstimate(torch.eye(4)[None] * 2, torch.ones(1) / 2, torch.tensor([True]))
         >>> p = Proposals(est, torch.zeros(1, 0, 4, 4), torch.zeros(1, 0, dtype=torch.bool))
-        >>> q = p.pooled(other)  # the only valid pose becomes the incumbent
-        >>> q.estimate.valid.tolist(), q.others.shape[1], q.others_mask.tolist()
-        ([True], 1, [[False]])
+        >>> both = p.with_rival(other)  # instance 0 twice: its own pose, then the rival's
+        >>> both.estimate.valid.tolist(), keep_better(both.estimate).scores.tolist()
+        ([False, True], [0.5])
     """
 
     estimate: PoseEstimate
@@ -74,35 +75,63 @@ class Proposals:
     observed_mask: torch.Tensor | None = None
     rank: bool = False
 
-    def pooled(self, other: PoseEstimate) -> Proposals:
-        """These proposals with another estimator's pose of each instance added as a candidate.
+    def with_rival(self, other: PoseEstimate) -> Proposals:
+        """These ``B`` instances followed by the same ``B`` instances proposed by ``other``.
 
-        Where the incumbent is invalid and ``other``'s pose is valid, the two swap, so that the
-        valid pose is verified; the candidate pool is ranked (``rank`` on).
+        Rows ``B + i`` hold ``other``'s pose of instance ``i`` as their incumbent, without
+        other candidates (padding), so that one verification checks both estimators' poses,
+        each with its own near-symmetric candidates, refinement and search; the caller keeps,
+        per instance, the row the verifier scores higher (:func:`keep_better`).
 
         Args:
             other: another estimate of the same ``B`` instances (any float dtype).
+
+        Returns:
+            :class:`Proposals` of ``2B`` rows (the observed clouds repeated).
         """
         est = self.estimate
-        dt = est.poses.dtype
-        poses, valid = other.poses.to(device=est.poses.device, dtype=dt), other.valid
-        valid = valid.to(est.valid.device)
-        swap = ~est.valid & valid
-        incumbent = PoseEstimate(
-            torch.where(swap[:, None, None], poses, est.poses),
-            torch.where(swap, other.scores.to(est.scores), est.scores),
-            est.valid | valid,
+        dev, dt = est.poses.device, est.poses.dtype
+        B, E = self.others.shape[:2]
+        rival = PoseEstimate(
+            other.poses.to(device=dev, dtype=dt),
+            other.scores.to(device=dev, dtype=est.scores.dtype),
+            other.valid.to(dev),
         )
-        extra_pose = torch.where(swap[:, None, None], est.poses, poses)
-        extra_ok = torch.where(swap, est.valid, valid)
+        twice = lambda t: None if t is None else torch.cat((t, t))  # noqa: E731
         return Proposals(
-            incumbent,
-            torch.cat((self.others, extra_pose[:, None]), dim=1),
-            torch.cat((self.others_mask, extra_ok[:, None]), dim=1),
-            self.observed,
-            self.observed_mask,
-            rank=True,
+            PoseEstimate(
+                torch.cat((est.poses, rival.poses)),
+                torch.cat((est.scores, rival.scores)),
+                torch.cat((est.valid, rival.valid)),
+            ),
+            torch.cat((self.others, est.poses[:, None].expand(B, E, 4, 4))),
+            torch.cat((self.others_mask, torch.zeros_like(self.others_mask))),
+            twice(self.observed),
+            twice(self.observed_mask),
+            rank=self.rank,
         )
+
+
+def keep_better(verified: PoseEstimate) -> PoseEstimate:
+    """Per instance, the better of rows ``i`` and ``B + i`` of a :meth:`Proposals.with_rival`.
+
+    The higher verifier score wins (the first row on a tie); an invalid row never does.
+
+    Args:
+        verified: the verified estimate of ``2B`` rows.
+
+    Returns:
+        The :class:`~poseflow.eval.predict.PoseEstimate` of the ``B`` instances.
+    """
+    B = len(verified.valid) // 2
+    first = PoseEstimate(verified.poses[:B], verified.scores[:B], verified.valid[:B])
+    second = PoseEstimate(verified.poses[B:], verified.scores[B:], verified.valid[B:])
+    take = second.valid & (~first.valid | (second.scores > first.scores))
+    return PoseEstimate(
+        torch.where(take[:, None, None], second.poses, first.poses),
+        torch.where(take, second.scores, first.scores),
+        first.valid | second.valid,
+    )
 
 
 def prepare_verification(
