@@ -189,3 +189,23 @@ def test_a_bad_cam_k_in_scene_camera_is_a_failed_run_naming_file_and_image(
     assert main(argv) == 1
     err = capsys.readouterr().err
     assert f"{path} (image 0)" in err and "usage:" not in err
+
+
+def test_view_writes_the_frame_in_3d(frame, tmp_path, capsys):
+    trimesh = pytest.importorskip("trimesh")
+    pytest.importorskip("rerun")
+    from poseflow.eval import GLTF_FROM_CAMERA
+
+    out = tmp_path / "out"
+    assert main([*_argv(frame, out), "--view", "--no-progress"]) == 0
+    assert (out / "scene.rrd").stat().st_size > 0
+    (pose,) = json.loads((out / "poses.json").read_text())["poses"]
+    scene = trimesh.load(out / "scene.glb", process=False)
+    transform, geom = scene.graph["est_0_obj_000001"]
+    np.testing.assert_allclose(transform, GLTF_FROM_CAMERA)
+    mesh = trimesh.load(frame["mesh"], process=False)  # millimetres
+    R, t = np.asarray(pose["R"]), np.asarray(pose["t_m"])
+    expected = (1e-3 * np.asarray(mesh.vertices)) @ R.T + t
+    np.testing.assert_allclose(scene.geometry[geom].vertices, expected, atol=1e-5)
+    assert "observed" in scene.graph.nodes_geometry
+    assert "scene.rrd" in capsys.readouterr().out

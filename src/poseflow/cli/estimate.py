@@ -123,6 +123,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     )
     objs.add_argument("--seed", type=int, default=0, help="seed of sampling and RANSAC")
     parser.add_argument("--out", default="estimate_output", help="folder for poses.json, overlay")
+    parser.add_argument(
+        "--view",
+        action="store_true",
+        help="also write the frame in 3D: scene.rrd (a Rerun recording: the image, the depth as a "
+        "coloured cloud, each posed mesh with its score and validity) and scene.glb (any mesh "
+        "viewer); needs pip install 'poseflow[viz]'",
+    )
     add_device_argument(parser)
     add_output_arguments(parser)
     parser.set_defaults(run=run)
@@ -247,6 +254,8 @@ def run(args: argparse.Namespace) -> int:
 
     if not args.mask and args.detections is None:
         raise UsageError("give the instances: one --mask PNG per instance, or --detections")
+    if args.view:
+        _check_view_dependencies()
     out = check_writable(args.out, flag="--out", folder=True)
     progress = show_progress(args)
     objects = load_meshes(args.mesh, mesh_scale=args.mesh_scale, progress=progress)
@@ -303,6 +312,8 @@ def run(args: argparse.Namespace) -> int:
         valid=result.valid,
         mesh_names=[f"obj {o}" for o in order],
     )
+    if args.view:
+        _write_view(out, frame, objects, result, method, name=f"{method}: {args.rgb}")
     for pose in result.to_json():
         where = f"obj {pose['obj_id']} ({pose['source']})"
         if pose["valid"]:
@@ -325,3 +336,37 @@ def _number(text: str) -> float:
         return float(text)
     except ValueError:
         raise UsageError(f"--K takes 9 numbers or one JSON file/text, got {text!r}") from None
+
+
+def _check_view_dependencies() -> None:
+    """``--view`` needs rerun-sdk and trimesh: say so before any work."""
+    import importlib.util
+
+    from poseflow.errors import MissingDependencyError
+
+    for module, package in (("rerun", "rerun-sdk"), ("trimesh", "trimesh")):
+        if importlib.util.find_spec(module) is None:
+            raise MissingDependencyError(package, "viz", "--view")
+
+
+def _write_view(out: Path, frame: Any, objects: dict, result: Any, method: str, name: str) -> None:
+    """``out/scene.rrd`` and ``out/scene.glb``: the frame's cloud and every finite posed mesh."""
+    import torch
+
+    from poseflow.eval import build_scene, export_scene, write_recording
+
+    shown = torch.isfinite(result.poses).flatten(1).all(1)  # a non-finite pose has no place
+    view = build_scene(
+        frame.rgb,
+        frame.depth,
+        frame.K,
+        objects,
+        result.poses[shown],
+        result.obj_ids[shown],
+        scores=result.scores[shown],
+        valid=result.valid[shown],
+        method=method,
+        name=name,
+    )
+    written = [write_recording(view, out / "scene.rrd"), *export_scene(view, out / "scene.glb")]
+    print(f"3D view: {', '.join(str(p) for p in written)} (open scene.rrd with `rerun`)")
