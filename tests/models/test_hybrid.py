@@ -126,3 +126,24 @@ def test_a_depth_in_the_wrong_unit_is_a_units_error_for_every_estimator(
     ):
         with pytest.raises(UnitsError, match="depth"):
             estimate(rgb, depth * factor, K, masks, ids)
+
+
+def test_predict_gives_an_image_the_same_poses_whatever_came_before(hybrid, tmp_path):
+    from poseflow.data.bop import BOPDataset
+    from poseflow.data.synthetic import generate_dataset
+    from poseflow.eval.recall import Target
+
+    root = generate_dataset(
+        tmp_path / "ds", num_train_images=0, num_test_images=2, width=160, height=120,
+        seed=5, progress=False,
+    )  # fmt: skip
+    scene = BOPDataset(root, "test").scene(0)
+    last = max(scene.im_ids)
+    count = sum(gt.obj_id == 1 for gt in scene.gt_of(last))
+    both = hybrid.predict(root, seed=3, max_images=2)
+    alone = hybrid.predict(root, seed=3, targets=[Target(0, last, 1, count)])
+    rows = (both.scene_ids == 0) & (both.im_ids == last)
+    assert len(alone) == int(rows.sum()) > 0 and bool((~rows).any())
+    assert torch.equal(alone.poses, both.poses[rows]) and torch.equal(
+        alone.scores, both.scores[rows]
+    )

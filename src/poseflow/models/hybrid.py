@@ -33,7 +33,6 @@ from poseflow.baselines import ClassicBaseline
 from poseflow.errors import ValueRangeError
 from poseflow.eval.predict import Estimator, PoseEstimate, on_device
 from poseflow.eval.results import PoseResults
-from poseflow.eval.timing import StageTimer
 from poseflow.models.funflow6d import FunFlow6D, predict_seeded
 from poseflow.models.verification import keep_better
 
@@ -120,32 +119,24 @@ class Hybrid:
             generator = torch.Generator(device=device).manual_seed(seed)
         return on_device(functools.partial(self.estimate, generator=generator), device)
 
-    def predict(
-        self,
-        dataset: str | Path | Any,
-        *,
-        split: str = "test",
-        targets: Sequence[Any] | None = None,
-        detections: Sequence[Any] | None = None,
-        max_images: int | None = None,
-        seed: int = 0,
-        timer: StageTimer | None = None,
-        progress: bool = False,
-    ) -> PoseResults:
+    def predict(self, dataset: str | Path | Any, *, seed: int = 0, **options: Any) -> PoseResults:
         """Estimate every target instance of a BOP split.
 
-        Arguments as :meth:`FunFlow6D.predict <poseflow.models.FunFlow6D.predict>`.
+        Args:
+            dataset: the dataset folder or a :class:`~poseflow.data.bop.BOPDataset`.
+            seed: seeds each image's draws from its ids, as
+                :meth:`FunFlow6D.predict <poseflow.models.FunFlow6D.predict>` does.
+            options: ``split``, ``targets``, ``detections``, ``max_images``, ``timer`` and
+                ``progress``, as for :meth:`FunFlow6D.predict <poseflow.models.FunFlow6D.predict>`.
+
+        Returns:
+            :class:`~poseflow.eval.results.PoseResults`, one row per valid estimate.
         """
         return predict_seeded(
             lambda generator: self.estimator(generator=generator),
             next(self.model.net.parameters()).device,
             dataset,
             object_ids=sorted(self.model.objects),
-            split=split,
-            targets=targets,
-            detections=detections,
-            max_images=max_images,
             seed=seed,
-            timer=timer,
-            progress=progress,
+            **options,
         )
