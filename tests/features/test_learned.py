@@ -161,7 +161,8 @@ def test_generator_correspondences_are_right() -> None:
             assert float(err.median()) < 0.03 and float(err.quantile(0.9)) < 0.08
 
 
-def test_loss_decreases_on_a_tiny_config() -> None:
+@pytest.mark.parametrize("sigma", [0.0, 0.06])
+def test_loss_decreases_on_a_tiny_config(sigma: float) -> None:
     torch.manual_seed(0)
     gen = PairGenerator(0, input_size=32, anchors=32, texture_count=2, photos=False)
     batch = gen.batch(4)
@@ -170,7 +171,7 @@ def test_loss_decreases_on_a_tiny_config() -> None:
     losses = []
     for _ in range(25):
         fa, fb = net(torch.cat([batch.images_a, batch.images_b])).chunk(2)
-        loss, acc = descriptor_loss(fa, fb, batch, temperature=0.1, exclusion=0.1)
+        loss, acc = descriptor_loss(fa, fb, batch, temperature=0.1, exclusion=0.1, sigma=sigma)
         opt.zero_grad()
         loss.backward()
         opt.step()

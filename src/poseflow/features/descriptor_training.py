@@ -25,10 +25,11 @@ The data never contains a user's object. Every training pair is made as follows:
    not occluded).
 
 The loss (:func:`descriptor_loss`) is InfoNCE over those correspondences in both directions: the
-descriptor of a pixel in one view must be closer to the descriptor at its true match in the other
-view than to every feature cell of that view (object and background) whose surface point lies
-farther than ``exclusion`` diameters from the true one. Colour jitter is applied independently
-to each view.
+descriptor of a pixel in one view is scored against every feature cell of the other view (object
+and background), with a soft target on the true match and the cells around it (Gaussian in the
+surface distance, ``sigma`` diameters), so that descriptors vary smoothly over the surface at the
+scale at which FunFlow6D's sparse clouds are matched. Colour jitter is applied independently to
+each view.
 
 :func:`train_descriptor` trains a :class:`~poseflow.features.learned.DescriptorNet` with AdamW
 and a cosine schedule, one CPU thread friendly, seeded, and writes ``model.safetensors`` +
@@ -96,7 +97,9 @@ class DescriptorTrainingConfig:
         temperature: InfoNCE temperature.
         anchors: correspondences per pair and direction.
         exclusion: feature cells whose surface point is closer than this (fraction of the
-            diameter) to the true match are not negatives.
+            diameter) to the true match are not negatives (with ``sigma = 0``).
+        sigma: width of the loss's soft target around the match, fraction of the diameter (see
+            :func:`descriptor_loss`); 0: hard InfoNCE.
         fresh_pairs: new pairs rendered per step; the rest of the batch is drawn from a pool of
             ``pool_size`` recent pairs (with new colour jitter).
         pool_size: pairs kept for reuse.
@@ -117,6 +120,7 @@ class DescriptorTrainingConfig:
     temperature: float = 0.07
     anchors: int = 128
     exclusion: float = 0.05
+    sigma: float = 0.06
     fresh_pairs: int = 4
     pool_size: int = 64
     max_view_angle: float = 80.0
@@ -133,6 +137,8 @@ class DescriptorTrainingConfig:
             raise ValueRangeError("need 1 <= fresh_pairs <= batch_size <= pool_size")
         if not (self.lr > 0 and self.temperature > 0 and 0 <= self.exclusion < 1):
             raise ValueRangeError("lr and temperature must be positive, exclusion in [0, 1)")
+        if not 0 <= self.sigma < 1:
+            raise ValueRangeError(f"sigma must be in [0, 1), got {self.sigma}")
         if not 0 <= self.max_view_angle <= 180 or not 0 <= self.clutter <= 1:
             raise ValueRangeError("max_view_angle must be in [0, 180] and clutter in [0, 1]")
         object.__setattr__(self, "widths", tuple(int(w) for w in self.widths))
@@ -965,19 +971,26 @@ def _info_nce(
     size: int,
     temperature: float,
     exclusion: float,
+    sigma: float,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     f_src = F.normalize(sample_features(feat_src, uv_src, (size, size)), dim=-1)  # (B, P, G)
     f_pos = F.normalize(sample_features(feat_dst, uv_dst, (size, size)), dim=-1)
     h, w = feat_dst.shape[-2:]
     cells = feat_dst.flatten(2).transpose(1, 2)  # (B, hw, G)
     pos = (f_src * f_pos).sum(-1, keepdim=True)  # (B, P, 1)
-    neg = f_src @ cells.transpose(1, 2)  # (B, P, hw)
+    sim = f_src @ cells.transpose(1, 2)  # (B, P, hw)
     c, m = _cell_coords(coords_dst, mask_dst, h, w)
-    near = m[:, None] & (torch.cdist(points, c) < exclusion)  # (B, P, hw)
-    neg = neg.masked_fill(near, float("-inf"))
-    logits = torch.cat([pos, neg], dim=-1) / temperature
-    loss = -torch.log_softmax(logits, dim=-1)[..., 0].mean()
-    acc = (pos[..., 0] > neg.amax(-1)).float().mean()
+    dist = torch.where(m[:, None], torch.cdist(points, c), torch.full_like(sim, torch.inf))
+    near = dist < exclusion  # (B, P, hw)
+    if sigma > 0:  # soft targets: the match and the cells around it, by surface distance
+        weights = torch.cat([torch.ones_like(pos), torch.exp(-0.5 * (dist / sigma) ** 2)], -1)
+        weights = weights / weights.sum(-1, keepdim=True)
+        logp = torch.log_softmax(torch.cat([pos, sim], dim=-1) / temperature, dim=-1)
+        loss = -(weights * logp).sum(-1).mean()
+    else:
+        logits = torch.cat([pos, sim.masked_fill(near, float("-inf"))], dim=-1) / temperature
+        loss = -torch.log_softmax(logits, dim=-1)[..., 0].mean()
+    acc = (pos[..., 0] > sim.masked_fill(near, -2.0).amax(-1)).float().mean()
     return loss, acc
 
 
@@ -988,30 +1001,38 @@ def descriptor_loss(
     *,
     temperature: float = 0.07,
     exclusion: float = 0.05,
+    sigma: float = 0.06,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Symmetric InfoNCE over the ground-truth correspondences of a :class:`PairBatch`.
 
     For each correspondence, the source pixel's descriptor (bilinear, normalised) is scored
-    against its match in the other view (the positive) and every feature cell of the other view
-    (negatives: background, clutter and object cells whose model point lies at least
-    ``exclusion`` diameters from the match); both directions are averaged.
+    against its match in the other view and every feature cell of the other view (background,
+    clutter and object cells). With ``sigma > 0`` the target of the softmax is soft: the match
+    and every object cell with weight ``exp(-d² / 2 sigma²)`` of its surface distance ``d`` to
+    the match, so that descriptors stay similar over about ``sigma`` of the surface, the scale at
+    which sparse clouds are matched (an exact-match target makes descriptors so peaked that the
+    nearest of a few hundred sampled points is not the most similar). With ``sigma = 0`` the
+    match is the only positive and object cells closer than ``exclusion`` are left out. Both
+    directions are averaged.
 
     Args:
         feat_a: descriptor maps of view A ``(B, G, h, w)``.
         feat_b: descriptor maps of view B ``(B, G, h, w)``.
         batch: the batch (crops of side ``S``; the maps cover them uniformly).
         temperature: softmax temperature.
-        exclusion: radius around the match without negatives, fraction of the diameter.
+        exclusion: radius around the match without negatives (``sigma = 0``) and ignored by
+            the accuracy, fraction of the diameter.
+        sigma: width of the soft target, fraction of the diameter; 0: hard InfoNCE.
 
     Returns:
-        ``(loss, accuracy)``: the mean loss and the fraction of correspondences whose positive
-        beats every negative.
+        ``(loss, accuracy)``: the mean loss and the fraction of correspondences whose match
+        beats every cell farther than ``exclusion`` from it.
     """
     S = batch.images_a.shape[-1]
     la, aa = _info_nce(feat_a, feat_b, batch.uv_a, batch.uv_b, batch.points, batch.coords_b,
-                       batch.mask_b, S, temperature, exclusion)  # fmt: skip
+                       batch.mask_b, S, temperature, exclusion, sigma)  # fmt: skip
     lb, ab = _info_nce(feat_b, feat_a, batch.uv_b, batch.uv_a, batch.points, batch.coords_a,
-                       batch.mask_a, S, temperature, exclusion)  # fmt: skip
+                       batch.mask_a, S, temperature, exclusion, sigma)  # fmt: skip
     return (la + lb) / 2, (aa + ab) / 2
 
 
@@ -1108,7 +1129,7 @@ def train_descriptor(
         feats = net(torch.cat([batch.images_a, batch.images_b]))
         fa, fb = feats.chunk(2)
         loss, acc = descriptor_loss(
-            fa, fb, batch, temperature=cfg.temperature, exclusion=cfg.exclusion
+            fa, fb, batch, temperature=cfg.temperature, exclusion=cfg.exclusion, sigma=cfg.sigma
         )
         opt.zero_grad(set_to_none=True)
         loss.backward()
@@ -1152,7 +1173,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.add_argument(
             f"--{name.replace('_', '-')}", type=int, default=getattr(defaults, name)
         )
-    for name in ("lr", "weight_decay", "temperature", "exclusion", "max_view_angle", "clutter"):
+    for name in ("lr", "weight_decay", "temperature", "exclusion", "sigma", "max_view_angle",
+                 "clutter"):  # fmt: skip
         parser.add_argument(
             f"--{name.replace('_', '-')}", type=float, default=getattr(defaults, name)
         )
