@@ -89,11 +89,14 @@ PAPER_A100_MS = {
 PAPER_A100_TOTAL_MS = 1015.90
 
 #: Table labels of the timer's stages, in the paper's order (verification, which the paper does
-#: not have, before "other").
+#: not have, before "other"; the paper's "other" holds what poseflow times as lifting and flow
+#: inputs too).
 STAGE_LABELS = {
+    "lifting": "lifting",
     "appearance_encoder": "DINOv2",
     "reducer": "UMAP",
     "geometric_encoder": "geometric encoder",
+    "flow_inputs": "flow inputs",
     "fusion": "fusion",
     "flow_net": "flow net (DiT)",
     "integration": "integration",

@@ -333,7 +333,8 @@ class ClassicBaseline:
         missing = sorted(set(ids) - set(self.models))
         if missing:
             raise ValueRangeError(f"no model for object ids {missing}")
-        check_depth_extent(depth, Kd, masks, [self.models[o].diameter for o in ids])
+        with stage("lifting"):  # the check back-projects every mask
+            check_depth_extent(depth, Kd, masks, [self.models[o].diameter for o in ids])
         poses = torch.eye(4, dtype=torch.float64).repeat(n, 1, 1)
         scores = torch.zeros(n, dtype=torch.float64)
         valid = torch.zeros(n, dtype=torch.bool)

@@ -257,7 +257,8 @@ class FunFlow6D(nn.Module):
         sizes = check_tensor(depth, "depth", ("H", "W"), floating=False)
         K = check_intrinsics(K, sizes["W"], sizes["H"], dtype=torch.float32, device=depth.device)
         diameters = [o.diameter for o in select_objects(self.objects, obj_ids)]
-        check_depth_extent(depth, K, masks, diameters, where="the depth")
+        with stage("lifting"):  # the check back-projects every mask
+            check_depth_extent(depth, K, masks, diameters, where="the depth")
         if generator is None:
             generator = torch.Generator(device=depth.device).manual_seed(0)
         was_training = self.training
