@@ -115,6 +115,17 @@ def test_bad_weights_folder_is_a_clear_error(tmp_path, folder, monkeypatch) -> N
         load_descriptor(other)
 
 
+@pytest.mark.skipif(
+    not (learned_mod.SHIPPED_DESCRIPTOR_DIR / "model.safetensors").is_file(),
+    reason="this checkout ships no descriptor weights",
+)
+def test_shipped_weights_load() -> None:
+    enc = build_appearance_encoder("learned", crop_size=96)
+    assert isinstance(enc, LearnedAppearanceEncoder) and enc.query_pooling in ("mean", "select")
+    out = enc.encode(torch.rand(1, 3, 96, 96, generator=torch.Generator().manual_seed(0)))
+    assert out.shape == (1, enc.dim, 24, 24) and bool(torch.isfinite(out).all())
+
+
 def test_bad_arguments() -> None:
     with pytest.raises(ValueRangeError):
         DescriptorNet(widths=(8,))

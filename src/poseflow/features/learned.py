@@ -287,6 +287,7 @@ def save_descriptor(net: DescriptorNet, out: str | Path, **config: Any) -> Path:
         os.close(fd)
         try:
             write(tmp)
+            os.chmod(tmp, 0o644)  # mkstemp's 0600 would hide shipped weights from other users
             os.replace(tmp, folder / name)
         finally:
             if os.path.exists(tmp):
