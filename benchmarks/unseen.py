@@ -87,7 +87,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("dataset", nargs="?", help="BOP dataset folder (models/ in mm, test/)")
     parser.add_argument("--work", default=None, help="output folder (default runs/unseen/NAME)")
-    parser.add_argument("--config", default=str(REPO / "configs" / "demo_small.json"))
+    parser.add_argument("--config", default=str(REPO / "configs" / "learned_small.json"))
     parser.add_argument("--train-images", type=int, default=400)
     parser.add_argument("--steps", type=int, default=5000)
     parser.add_argument("--mesh-scale", type=float, default=0.001, help="model units to metres")
