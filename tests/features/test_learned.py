@@ -11,12 +11,7 @@ from poseflow.errors import CheckpointError, MissingWeightsError, ValueRangeErro
 from poseflow.features.appearance import AppearanceEncoder
 from poseflow.features.descriptor_training import (
     DescriptorTrainingConfig,
-    PairGenerator,
     descriptor_loss,
-    random_mesh,
-    random_texture,
-    render_pair,
-    texture_images,
     train_descriptor,
 )
 from poseflow.features.learned import (
@@ -25,6 +20,8 @@ from poseflow.features.learned import (
     load_descriptor,
     save_descriptor,
 )
+from poseflow.features.procedural import random_mesh, random_texture, texture_images
+from poseflow.features.view_pairs import PairGenerator, render_pair
 from poseflow.models.components import build_appearance_encoder
 from poseflow.models.config import FunFlow6DConfig
 
