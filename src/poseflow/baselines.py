@@ -290,15 +290,12 @@ class ClassicBaseline:
             ValueRangeError: an object id without a model, or a ``K`` that is not a pinhole
                 matrix of this image.
         """
-        estimate, clouds = self.solve(depth, K, masks, obj_ids)
+        Kd, ids = self._checked(depth, K, masks, obj_ids)
+        d = _metres(depth)
+        estimate, clouds = self._solve(d, Kd, masks, ids)
         if not self.verification or not bool(estimate.valid.any()):
             return estimate
-        sizes = check_tensor(depth, "depth", ("H", "W"))
-        Kd = check_intrinsics(K, sizes["W"], sizes["H"], dtype=torch.float64, device=depth.device)
-        ids = [int(o) for o in torch.as_tensor(obj_ids).reshape(-1).tolist()]
-        return invalidate_implausible(
-            self._verify(rgb, _metres(depth), Kd, masks, ids, estimate, clouds)
-        )
+        return invalidate_implausible(self._verify(rgb, d, Kd, masks, ids, estimate, clouds))
 
     def solve(
         self,
@@ -323,6 +320,17 @@ class ClassicBaseline:
             UnitsError: the masked depth spans far more or far less than the objects (a depth
                 in the wrong unit).
         """
+        Kd, ids = self._checked(depth, K, masks, obj_ids)
+        return self._solve(_metres(depth), Kd, masks, ids)
+
+    def _checked(
+        self,
+        depth: torch.Tensor,
+        K: torch.Tensor,
+        masks: torch.Tensor,
+        obj_ids: Sequence[int] | torch.Tensor,
+    ) -> tuple[torch.Tensor, list[int]]:
+        """Check the inputs of :meth:`solve`; the float64 ``K`` and the ids as ints."""
         sizes = check_tensor(depth, "depth", ("H", "W"))
         check_mask(masks, "masks", ("n", "H", "W"), sizes)
         Kd = check_intrinsics(K, sizes["W"], sizes["H"], dtype=torch.float64, device=depth.device)
@@ -335,13 +343,19 @@ class ClassicBaseline:
             raise ValueRangeError(f"no model for object ids {missing}")
         with stage("lifting"):  # the check back-projects every mask
             check_depth_extent(depth, Kd, masks, [self.models[o].diameter for o in ids])
+        return Kd, ids
+
+    def _solve(
+        self, depth: torch.Tensor, K: torch.Tensor, masks: torch.Tensor, ids: list[int]
+    ) -> tuple[PoseEstimate, list[torch.Tensor]]:
+        """:meth:`solve` of checked inputs: depth in metres, float64, 0 where missing."""
+        n = len(ids)
         poses = torch.eye(4, dtype=torch.float64).repeat(n, 1, 1)
         scores = torch.zeros(n, dtype=torch.float64)
         valid = torch.zeros(n, dtype=torch.bool)
-        d = _metres(depth)
         clouds = []
         for i in range(n):
-            pose, score, cloud = self._estimate_one(d, Kd, masks[i], ids[i], i)
+            pose, score, cloud = self._estimate_one(depth, K, masks[i], ids[i], i)
             clouds.append(cloud)
             if pose is not None:
                 poses[i], scores[i], valid[i] = pose, score, True
