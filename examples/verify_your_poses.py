@@ -25,8 +25,9 @@ import torch
 
 from poseflow.data.demo_objects import demo_mesh
 from poseflow.data.objects import ObjectModel, write_bop_model
+from poseflow.geometry.se3 import rotation_angle_error
 from poseflow.render import Light, Renderer
-from poseflow.verify import PoseVerifier, VerifierConfig, axis_angle_matrix, rotation_distance
+from poseflow.verify import PoseVerifier, VerifierConfig, axis_angle_matrix
 
 
 def turn(axis: Sequence[float], degrees: float) -> torch.Tensor:
@@ -80,8 +81,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
 
     # the whole stage for one estimate per box: candidates, ICP, scores, the choice
     result = verifier.verify(rgb, depth, K, masks, obj_ids, flipped)
-    before = rotation_distance(flipped[:, :3, :3], poses[:, :3, :3])
-    after = rotation_distance(result.poses[:, :3, :3], poses[:, :3, :3])
+    before = rotation_angle_error(flipped[:, :3, :3], poses[:, :3, :3])
+    after = rotation_angle_error(result.poses[:, :3, :3], poses[:, :3, :3])
     for b in range(len(masks)):
         print(
             f"box {b}: flipped estimate {before[b]:.1f} deg off -> verified {after[b]:.1f} deg "

@@ -12,7 +12,7 @@ from poseflow.eval.timing import StageTimer
 from poseflow.geometry.se3 import rotation_angle_error, transform_points, translation_error
 from poseflow.models import FunFlow6D, FunFlow6DConfig
 from poseflow.models.verification import rank_hypotheses
-from poseflow.verify import PoseVerifier, rotation_distance
+from poseflow.verify import PoseVerifier
 
 
 def test_observe_lifts_valid_clouds_with_features(tiny_model, scene):
@@ -257,7 +257,7 @@ def test_verification_turns_a_flipped_pose_back_and_scores_it(tiny_model, scene)
     model = FunFlow6D(tiny_model.config)
     model.objects, model.verifier = tiny_model.objects, tiny_model.verifier
     flips = model.verifier.objects[1].candidates
-    flip = flips[rotation_distance(torch.eye(3), flips[:, :3, :3]).argmax()]  # a half-turn
+    flip = flips[rotation_angle_error(torch.eye(3), flips[:, :3, :3]).argmax()]  # a half-turn
     _perfect_flow_to(model, scene, scene["poses"] @ flip)
     args = (scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 1])
     timer = StageTimer(synchronize=False)

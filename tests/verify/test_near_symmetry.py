@@ -12,14 +12,13 @@ from hypothesis import strategies as st
 
 from poseflow.data.objects import ObjectModel
 from poseflow.errors import DegenerateInputError, ValueRangeError
-from poseflow.geometry.se3 import random_rotation
+from poseflow.geometry.se3 import random_rotation, rotation_angle_error
 from poseflow.render.mesh import TexturedMesh
 from poseflow.verify import (
     axis_angle_matrix,
     box_turns,
     near_symmetries,
     revolution_axis,
-    rotation_distance,
 )
 
 
@@ -50,7 +49,7 @@ def l_block_model() -> ObjectModel:
 
 def angles(found) -> list[float]:
     eye = torch.eye(3, dtype=found.transforms.dtype)
-    return rotation_distance(eye, found.transforms[:, :3, :3]).tolist()
+    return rotation_angle_error(eye, found.transforms[:, :3, :3]).tolist()
 
 
 @given(seed=st.integers(0, 2**31 - 1), double=st.booleans())
@@ -65,7 +64,7 @@ def test_axis_angle_is_a_rotation_by_that_angle(seed: int, double: bool) -> None
     torch.testing.assert_close(R @ R.transpose(1, 2), eye, atol=tol, rtol=0)
     torch.testing.assert_close(torch.linalg.det(R), torch.ones(5, dtype=dtype), atol=tol, rtol=0)
     torch.testing.assert_close((R @ axis[..., None])[..., 0], axis, atol=10 * tol, rtol=0)
-    got = rotation_distance(eye, R)
+    got = rotation_angle_error(eye, R)
     torch.testing.assert_close(got, torch.rad2deg(angle), atol=0.05 if not double else 1e-6, rtol=0)
 
 
@@ -111,7 +110,7 @@ def test_box_has_its_three_half_turns() -> None:
     exact = [torch.diag(torch.tensor(d, dtype=torch.float64)) for d in
              ([1.0, -1.0, -1.0], [-1.0, 1.0, -1.0], [-1.0, -1.0, 1.0])]  # fmt: skip
     for T in found.transforms:
-        assert min(float(rotation_distance(E, T[:3, :3])) for E in exact) < 1.0
+        assert min(float(rotation_angle_error(E, T[:3, :3])) for E in exact) < 1.0
         assert float(T[:3, 3].norm()) < 0.01 * m.diameter
 
 
@@ -185,7 +184,7 @@ def test_box_turns_are_the_cube_groups_of_the_model_and_principal_frames(
     _, axes = torch.linalg.eigh(torch.cov(points.double().T))
     principal = axes.T @ R[23:] @ axes
     assert torch.allclose(principal.abs().sum(-1), torch.ones_like(principal[..., 0]), atol=1e-3)
-    assert bool((rotation_distance(R[23:, None], R[None, :23]) >= 5.0).all())
+    assert bool((rotation_angle_error(R[23:, None], R[None, :23]) >= 5.0).all())
     # a box on the model's axes has one frame only
     corners = torch.cartesian_prod(*[torch.stack((-e, e)) for e in extents]).to(dtype)
     assert len(box_turns(corners)) == 23

@@ -12,13 +12,13 @@ import torch
 from poseflow.data.demo_objects import demo_mesh
 from poseflow.data.objects import ObjectModel
 from poseflow.errors import ShapeError, ValueRangeError
+from poseflow.geometry.se3 import rotation_angle_error
 from poseflow.render import Light, Renderer
 from poseflow.verify import (
     PoseVerifier,
     PreparedObject,
     VerifierConfig,
     axis_angle_matrix,
-    rotation_distance,
 )
 
 K = torch.tensor([[320.0, 0.0, 79.5], [0.0, 320.0, 59.5], [0.0, 0.0, 1.0]])
@@ -65,7 +65,7 @@ def scene(box: ObjectModel) -> dict[str, torch.Tensor]:
 
 def test_prepare_finds_the_box_flips(verifier: PoseVerifier) -> None:
     cand = verifier.objects[1].candidates
-    angles = rotation_distance(torch.eye(3), cand[:, :3, :3])
+    angles = rotation_angle_error(torch.eye(3), cand[:, :3, :3])
     assert (angles > 179).sum() >= 3  # the three half-turns of a box
     assert verifier.prepare(1, verifier.objects[1]) is verifier.objects[1]  # cached by id
 
@@ -90,13 +90,13 @@ def test_exact_flip_is_told_apart_by_appearance_not_depth(
     flipped = flips[:1]
     out = verifier.verify(scene["rgb"], scene["depth"], K, scene["masks"], [1], flipped)
     assert int(out.chosen[0]) != 0
-    assert float(rotation_distance(out.poses[0, :3, :3], true[:3, :3])) < 3.0
+    assert float(rotation_angle_error(out.poses[0, :3, :3], true[:3, :3])) < 3.0
     assert float((out.poses[0, :3, 3] - true[:3, 3]).norm()) < 0.003
     depth_only = PoseVerifier(VerifierConfig(**{**CONFIG.to_dict(), "appearance_weight": 0.0}))
     depth_only.objects = verifier.objects
     kept = depth_only.verify(scene["rgb"], scene["depth"], K, scene["masks"], [1], flipped)
     assert int(kept.chosen[0]) == 0  # the flip stays (refined by ICP, so not bit-equal)
-    assert float(rotation_distance(kept.poses[0, :3, :3], flipped[0, :3, :3])) < 1.0
+    assert float(rotation_angle_error(kept.poses[0, :3, :3], flipped[0, :3, :3])) < 1.0
 
 
 def test_right_estimate_is_kept(verifier: PoseVerifier, scene: dict[str, torch.Tensor]) -> None:
@@ -105,7 +105,7 @@ def test_right_estimate_is_kept(verifier: PoseVerifier, scene: dict[str, torch.T
     out = verifier.verify(*args)
     assert int(out.chosen[0]) == 0 and bool(out.valid[0])
     # refined with the candidates by the same ICP: it stays where it was, within the sampling
-    assert float(rotation_distance(out.poses[0, :3, :3], true[0, :3, :3])) < 1.0
+    assert float(rotation_angle_error(out.poses[0, :3, :3], true[0, :3, :3])) < 1.0
     assert float((out.poses[0, :3, 3] - true[0, :3, 3]).norm()) < 0.0035
     assert 0.5 < float(out.scores[0]) <= 1.0
     as_given = PoseVerifier(VerifierConfig(**{**CONFIG.to_dict(), "refine_estimate": False}))
@@ -297,7 +297,7 @@ def test_extra_hypotheses_compete_with_the_near_symmetric_candidates(
     args = (scene["rgb"], scene["depth"], K, scene["masks"], [1], off[None])
 
     def is_true(pose: torch.Tensor) -> bool:
-        angle = float(rotation_distance(pose[:3, :3], true[:3, :3]))
+        angle = float(rotation_angle_error(pose[:3, :3], true[:3, :3]))
         return angle < 3.0 and float((pose[:3, 3] - true[:3, 3]).norm()) < 0.003
 
     assert not is_true(verifier.verify(*args).poses[0])
@@ -361,7 +361,7 @@ def test_search_finds_a_pose_turned_far_from_every_candidate(
     wrong = (true @ turn)[None]
     args = (scene["rgb"], scene["depth"], K, scene["masks"], [1], wrong)
     plain = verifier.verify(*args)
-    assert float(rotation_distance(plain.poses[0, :3, :3], true[:3, :3])) > 30
+    assert float(rotation_angle_error(plain.poses[0, :3, :3], true[:3, :3])) > 30
     searching = PoseVerifier(VerifierConfig(**{**CONFIG.to_dict(), "search_below": 1.0}))
     searching.objects = verifier.objects
     out = searching.verify(*args)
@@ -370,12 +370,12 @@ def test_search_finds_a_pose_turned_far_from_every_candidate(
     assert int(out.chosen[0]) >= H  # one of the searched turns
     torch.testing.assert_close(out.hypotheses[0, out.chosen[0]], out.poses[0])
     # ICP from the nearest turn lands in the truth's basin (the box's faces let it slide a bit)
-    assert float(rotation_distance(out.poses[0, :3, :3], true[:3, :3])) < 20.0
+    assert float(rotation_angle_error(out.poses[0, :3, :3], true[:3, :3])) < 20.0
     assert float(out.scores[0]) > float(plain.scores[0]) + 0.1
     # a right pose survives its own search
     kept = searching.verify(scene["rgb"], scene["depth"], K, scene["masks"], [1], true[None])
     assert int(kept.chosen[0]) < H
-    assert float(rotation_distance(kept.poses[0, :3, :3], true[:3, :3])) < 1.0
+    assert float(rotation_angle_error(kept.poses[0, :3, :3], true[:3, :3])) < 1.0
 
 
 def test_search_pads_the_instances_it_does_not_search(

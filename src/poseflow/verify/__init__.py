@@ -60,7 +60,6 @@ from poseflow.verify.symmetry import (
     box_turns,
     near_symmetries,
     revolution_axis,
-    rotation_distance,
 )
 from poseflow.verify.verifier import Hypotheses, PoseVerifier, PreparedObject, Verification
 
@@ -85,7 +84,6 @@ __all__ = [
     "near_symmetries",
     "render_points",
     "revolution_axis",
-    "rotation_distance",
     "score_renderings",
     "select_hypotheses",
     "silhouette_agreement",

@@ -29,6 +29,7 @@ import torch
 from poseflow._checks import check_tensor
 from poseflow.errors import DegenerateInputError, ValueRangeError
 from poseflow.geometry.neighbors import nearest_neighbors
+from poseflow.geometry.se3 import axis_angle_to_rotation, rotation_angle_error
 from poseflow.registration.icp import multi_scale_icp
 
 __all__ = [
@@ -37,7 +38,6 @@ __all__ = [
     "box_turns",
     "near_symmetries",
     "revolution_axis",
-    "rotation_distance",
 ]
 
 
@@ -59,7 +59,10 @@ class NearSymmetries:
 
 
 def axis_angle_matrix(axis: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
-    """Rotation matrices from axes and angles (Rodrigues' formula).
+    """Rotation matrices from axes of any length and angles in radians.
+
+    The axis-angle vectors ``axis / |axis| * angle`` through
+    :func:`~poseflow.geometry.se3.axis_angle_to_rotation`.
 
     Args:
         axis: rotation axes ``(*, 3)``, any non-zero length.
@@ -74,42 +77,15 @@ def axis_angle_matrix(axis: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
 
     Example:
         >>> R = axis_angle_matrix(torch.tensor([0.0, 0.0, 2.0]), torch.tensor(math.pi / 2))
-        >>> (R @ torch.tensor([1.0, 0.0, 0.0])).round(decimals=6)
+        >>> (R @ torch.tensor([1.0, 0.0, 0.0])).round(decimals=6) + 0.0
         tensor([0., 1., 0.])
     """
     check_tensor(axis, "axis", ("*", 3))
     norm = axis.norm(dim=-1, keepdim=True)
     if bool((norm == 0).any()):
         raise DegenerateInputError("rotation axes must be non-zero")
-    k = axis / norm
     angle = torch.as_tensor(angle, dtype=axis.dtype, device=axis.device)
-    zero = torch.zeros_like(k[..., 0])
-    cross = torch.stack(
-        (zero, -k[..., 2], k[..., 1], k[..., 2], zero, -k[..., 0], -k[..., 1], k[..., 0], zero),
-        dim=-1,
-    ).reshape(*k.shape[:-1], 3, 3)
-    s, c = torch.sin(angle)[..., None, None], torch.cos(angle)[..., None, None]
-    eye = torch.eye(3, dtype=axis.dtype, device=axis.device)
-    return eye + s * cross + (1 - c) * (cross @ cross)
-
-
-def rotation_distance(R1: torch.Tensor, R2: torch.Tensor) -> torch.Tensor:
-    """Angle in degrees of ``R1^T R2``, broadcast over leading dimensions.
-
-    Args:
-        R1: rotations ``(*, 3, 3)``.
-        R2: rotations ``(*, 3, 3)``, broadcastable with ``R1``.
-
-    Returns:
-        Angles ``(*)`` in ``[0, 180]``.
-
-    Example:
-        >>> R = axis_angle_matrix(torch.tensor([1.0, 0.0, 0.0]), torch.tensor(0.5))
-        >>> round(rotation_distance(torch.eye(3), R).item(), 3)
-        28.648
-    """
-    trace = (R1 * R2).sum(dim=(-2, -1))  # trace(R1^T R2)
-    return torch.rad2deg(torch.acos(((trace - 1) / 2).clamp(-1.0, 1.0)))
+    return axis_angle_to_rotation(axis / norm * angle[..., None])
 
 
 def box_turns(points: torch.Tensor, *, min_angle: float = 5.0) -> torch.Tensor:
@@ -156,7 +132,7 @@ def box_turns(points: torch.Tensor, *, min_angle: float = 5.0) -> torch.Tensor:
                 cube.append(G)
     own = torch.stack(cube)  # (23, 3, 3)
     principal = axes @ own @ axes.T
-    near = rotation_distance(principal[:, None], own[None]).amin(1) < min_angle
+    near = rotation_angle_error(principal[:, None], own[None]).amin(1) < min_angle
     R = torch.cat((own, principal[~near]))
     T = torch.eye(4, dtype=torch.float64).repeat(len(R), 1, 1)
     T[:, :3, :3] = R
@@ -215,7 +191,7 @@ def near_symmetries(
         >>> box = o3d.geometry.TriangleMesh.create_box(0.1, 0.06, 0.03)
         >>> m = ObjectModel.from_mesh(box, num_points=1024, dtype=torch.float64)
         >>> found = near_symmetries(m.points, m.normals, m.diameter, min_overlap=0.9)
-        >>> len(found), [round(a) for a in rotation_distance(
+        >>> len(found), [round(a) for a in rotation_angle_error(
         ...     torch.eye(3, dtype=torch.float64), found.transforms[:, :3, :3]).tolist()]
         (3, [180, 180, 180])
     """
@@ -255,12 +231,12 @@ def near_symmetries(
         if float(overlap[k]) < min_overlap or len(kept) >= max_candidates:
             break
         # equal to the identity modulo a declared symmetry: the same answer, not a candidate
-        if float(rotation_distance(sym[:, :3, :3], T[k, :3, :3]).min()) < min_angle:
+        if float(rotation_angle_error(sym[:, :3, :3], T[k, :3, :3]).min()) < min_angle:
             continue
         if kept:
             # T_k ~ T_j S for a kept j and a declared S: the same candidate
             prev = T[kept][:, None, :3, :3] @ sym[None, :, :3, :3]  # (J, S, 3, 3)
-            if float(rotation_distance(prev, T[k, :3, :3]).min()) < min_angle:
+            if float(rotation_angle_error(prev, T[k, :3, :3]).min()) < min_angle:
                 continue
         kept.append(k)
     idx = torch.tensor(kept, dtype=torch.long, device=device)
