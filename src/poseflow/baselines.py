@@ -67,8 +67,8 @@ __all__ = ["BASELINE_VERIFIER", "ClassicBaseline"]
 
 #: The baseline's default verifier configuration: :class:`VerifierConfig()` but for
 #: ``refine_estimate``, off because the baseline's own ICP (up to 500 points, four scales of 30
-#: iterations) is finer than the verifier's, so its estimate competes as it is (devbench AR 0.840
-#: against 0.837 with the estimate refined again; see ``benchmarks/RESULTS.md``).
+#: iterations) is finer than the verifier's, so its estimate competes as it is (refining it again
+#: was measured no better, ``benchmarks/LOG.md``).
 BASELINE_VERIFIER = VerifierConfig(refine_estimate=False)
 
 

@@ -239,7 +239,7 @@ class FunFlow6DConfig:
         noise_conditioning: give each point's noise coordinates ``X(0)`` to the positional
             encoder, as the paper does. With them, ``X(1) - X(0) = (X(t) - X(0)) / t`` can be read
             off the input for ``t > 0``, so training concentrates on small ``t``; False replaces
-            them by zeros (see ``benchmarks/RESULTS.md`` for both).
+            them by zeros (both are measured in ``benchmarks/LOG.md``).
         time_sampler: training-time distribution (``"uniform"`` is the paper's; see
             :data:`~poseflow.flows.TIME_SAMPLERS`).
         solver: ODE solver (``"euler"`` is the paper's, also ``"midpoint"``, ``"heun"``,

@@ -15,7 +15,7 @@ observed clouds, the verifier's prepared objects and one batch of its renderings
 
 Ranking both estimators' poses as candidates of one incumbent was measured too and is worse where
 the flow's best-ranked hypothesis is a wrong turn: the baseline's pose then never gets its own
-near-symmetric candidates (``benchmarks/RESULTS.md``).
+near-symmetric candidates (``benchmarks/LOG.md``).
 
 Shape letters: ``B`` instances of an image.
 """
