@@ -38,10 +38,10 @@ def test_pose_demo_writes_results_timing_and_overlays(tmp_path, capsys):
 def test_the_shipped_model_has_the_demo_objects_prepared(tmp_path, monkeypatch):
     """The demo (and predict, bench) read every object of the shipped model from its cache."""
     import poseflow.models.objects
+    import poseflow.verify.objects
     from poseflow.assets import DEMO_CHECKPOINT
     from poseflow.cli.common import load_object_models, object_cache_dir
     from poseflow.data.synthetic import generate_dataset
-    from poseflow.verify import PoseVerifier
 
     def never(*args, **kwargs):
         raise AssertionError("an object of the shipped demo model was prepared again")
@@ -52,7 +52,7 @@ def test_the_shipped_model_has_the_demo_objects_prepared(tmp_path, monkeypatch):
     cache = object_cache_dir(DEMO_CHECKPOINT, root)
     assert cache.is_dir()
     monkeypatch.setattr(poseflow.models.objects, "prepare_object", never)
-    monkeypatch.setattr(PoseVerifier, "prepare", never)
+    monkeypatch.setattr(poseflow.verify.objects, "prepare_verifier_object", never)
     model = FunFlow6D.load(DEMO_CHECKPOINT)
     assert model.config.verification
     with warnings.catch_warnings():

@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import ast
 import math
-from pathlib import Path
 
 import pytest
 import torch
@@ -16,7 +14,6 @@ from poseflow.geometry.se3 import rotation_angle_error
 from poseflow.render import Light, Renderer
 from poseflow.verify import (
     PoseVerifier,
-    PreparedObject,
     VerifierConfig,
     axis_angle_matrix,
 )
@@ -252,24 +249,6 @@ def test_config_round_trips_and_rejects_unknown_names() -> None:
         VerifierConfig.from_dict({"no_such_field": 1})
 
 
-ALLOWED = {"geometry", "render", "data", "registration", "verify", "_checks", "errors"}
-
-
-def test_verify_imports_only_the_packages_below_it() -> None:
-    root = Path(__file__).resolve().parents[2] / "src" / "poseflow" / "verify"
-    for path in root.glob("*.py"):
-        for node in ast.walk(ast.parse(path.read_text())):
-            names = []
-            if isinstance(node, ast.ImportFrom) and node.module:
-                names = [node.module]
-            elif isinstance(node, ast.Import):
-                names = [a.name for a in node.names]
-            for name in names:
-                if name.startswith("poseflow"):
-                    part = name.split(".")[1] if "." in name else ""
-                    assert part in ALLOWED, f"{path.name} imports {name}"
-
-
 def test_object_without_near_symmetries_is_scored_alone() -> None:
     import open3d as o3d
 
@@ -329,27 +308,6 @@ def test_instances_without_an_estimate_come_back_unverified(
     none = verifier.verify(*args, estimated=torch.zeros(2, dtype=torch.bool))
     assert not none.valid.any() and (none.scores == 0).all() and torch.equal(none.poses, poses)
     assert none.hypotheses.shape == (2, 1, 4, 4) and none.score.evidence.shape[:2] == (2, 1)
-
-
-def test_prepared_objects_are_cached_on_disk(box: ObjectModel, tmp_path: Path) -> None:
-    cfg = VerifierConfig(num_points=256, turn_steps=4, max_candidates=4)
-    first = PoseVerifier(cfg).prepare(1, box, folder=tmp_path)
-    assert (tmp_path / "verifier.json").is_file()
-    again = PoseVerifier(cfg).prepare(1, box, folder=tmp_path)
-    for name in ("points", "normals", "colors", "albedo", "centroid", "candidates", "overlap"):
-        assert torch.equal(getattr(first, name), getattr(again, name)), name
-    assert again.diameter == first.diameter
-    # another configuration does not read it, and replaces it
-    other = PoseVerifier(VerifierConfig(**{**cfg.to_dict(), "num_points": 128}))
-    assert len(other.prepare(1, box, folder=tmp_path).points) == 128
-    assert PreparedObject.load(tmp_path, fingerprint=PoseVerifier(cfg).fingerprint()) is None
-    # a folder that cannot be written: a warning, and the object is kept in memory
-    blocked = tmp_path / "a_file"
-    blocked.write_text("")
-    verifier = PoseVerifier(cfg)
-    with pytest.warns(UserWarning, match="not cached"):
-        kept = verifier.prepare(1, box, folder=blocked / "obj")
-    assert verifier.objects[1] is kept
 
 
 def test_search_finds_a_pose_turned_far_from_every_candidate(

@@ -17,22 +17,18 @@ Shape letters: ``B`` instances, ``H`` hypotheses per instance, ``N`` observed po
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 
-from poseflow._cache import read_entry, write_entry
 from poseflow.data.objects import ObjectModel
 from poseflow.errors import ValueRangeError
 from poseflow.eval.predict import PoseEstimate
 from poseflow.eval.timing import stage
 from poseflow.geometry.se3 import inverse_transform
-from poseflow.models.objects import object_cache_entry
 from poseflow.verify import PoseVerifier
-from poseflow.verify import PreparedObject as VerifierObject
 
 __all__ = [
     "Proposals",
@@ -151,31 +147,18 @@ def prepare_verification(
         models: ``{obj_id: ObjectModel}`` (metres, with colours).
         cache_dir: the prepared objects' folder (shared with
             :func:`~poseflow.models.objects.prepare_objects`: the verifier's entries
-            ``obj_XXXXXX/<key>/`` are keyed by the mesh and :meth:`PoseVerifier.fingerprint
-            <poseflow.verify.PoseVerifier.fingerprint>` and sit beside the objects' own); None
-            keeps them in memory only. A cache folder that cannot be written gives a warning.
+            ``obj_XXXXXX/<key>/`` of :func:`~poseflow.verify.cached_verifier_object` sit beside
+            the objects' own); None keeps them in memory only. A cache folder that cannot be
+            written gives a warning.
         progress: show a progress bar.
     """
     from tqdm.auto import tqdm
 
-    fingerprint = verifier.fingerprint()
-    read = functools.partial(VerifierObject.load, fingerprint=fingerprint)
     for obj_id, model in tqdm(
         sorted(models.items()), desc="prepare verifier", disable=not progress
     ):
-        obj_id = int(obj_id)
-        verifier.objects.pop(obj_id, None)
-        entry = (
-            None if cache_dir is None else object_cache_entry(cache_dir, obj_id, model, fingerprint)
-        )
-        cached = None if entry is None else read_entry(entry, read, what=f"object {obj_id}")
-        if cached is not None:
-            verifier.objects[obj_id] = cached
-            continue
-        prepared = verifier.prepare(obj_id, model)
-        if entry is not None:
-            save = functools.partial(prepared.save, fingerprint=fingerprint)
-            write_entry(entry, save, what=f"object {obj_id}'s verifier data")
+        verifier.objects.pop(int(obj_id), None)
+        verifier.prepare(obj_id, model, cache_dir=cache_dir)
 
 
 def other_hypotheses(

@@ -36,6 +36,12 @@ Used on its own, with a user's hypotheses::
 """
 
 from poseflow.verify.config import VerifierConfig
+from poseflow.verify.objects import (
+    VerifierObject,
+    cached_verifier_object,
+    prepare_verifier_object,
+    verifier_fingerprint,
+)
 from poseflow.verify.render import (
     ObservedCrops,
     PointRendering,
@@ -61,7 +67,7 @@ from poseflow.verify.symmetry import (
     near_symmetries,
     revolution_axis,
 )
-from poseflow.verify.verifier import Hypotheses, PoseVerifier, PreparedObject, Verification
+from poseflow.verify.verifier import Hypotheses, PoseVerifier, Verification
 
 __all__ = [
     "Hypotheses",
@@ -69,23 +75,26 @@ __all__ = [
     "ObservedCrops",
     "PointRendering",
     "PoseVerifier",
-    "PreparedObject",
     "Verification",
     "VerifierConfig",
+    "VerifierObject",
     "VerifierScore",
     "appearance_agreement",
     "axis_angle_matrix",
     "balance_colors",
     "box_sum",
     "box_turns",
+    "cached_verifier_object",
     "crop_intrinsics",
     "crop_observation",
     "depth_agreement",
     "near_symmetries",
+    "prepare_verifier_object",
     "render_points",
     "revolution_axis",
     "score_renderings",
     "select_hypotheses",
     "silhouette_agreement",
+    "verifier_fingerprint",
     "visible_rendering",
 ]

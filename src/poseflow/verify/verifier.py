@@ -6,10 +6,8 @@ points, Hi x Wi the image.
 
 from __future__ import annotations
 
-import json
 import math
-import warnings
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
@@ -17,107 +15,18 @@ from typing import Any
 import torch
 
 from poseflow._checks import check_mask, check_same, check_tensor
-from poseflow.data.objects import ObjectModel, sample_surface
+from poseflow.data.objects import ObjectModel
 from poseflow.errors import ShapeError, ValueRangeError
-from poseflow.geometry.pointcloud import (
-    backproject_depth,
-    farthest_point_sample,
-    remove_statistical_outliers,
-)
+from poseflow.geometry.pointcloud import backproject_depth, remove_statistical_outliers
 from poseflow.geometry.se3 import inverse_transform
 from poseflow.registration.icp import multi_scale_icp
 from poseflow.verify.config import VerifierConfig
+from poseflow.verify.objects import VerifierObject, cached_verifier_object, verifier_fingerprint
 from poseflow.verify.render import crop_intrinsics, crop_observation, render_points
 from poseflow.verify.score import VerifierScore, score_renderings, select_hypotheses
-from poseflow.verify.symmetry import box_turns, near_symmetries
+from poseflow.verify.symmetry import box_turns
 
-__all__ = ["PREPARED_FORMAT", "Hypotheses", "PoseVerifier", "PreparedObject", "Verification"]
-
-#: Version of what :meth:`PoseVerifier.prepare` computes; part of the on-disk cache's key, so that
-#: a change of the near-symmetry search invalidates older caches.
-PREPARED_FORMAT = 1
-
-#: :class:`VerifierConfig` fields that a prepared object depends on.
-_PREPARE_FIELDS = (
-    "num_points",
-    "max_candidates",
-    "min_self_overlap",
-    "self_overlap_distance",
-    "min_candidate_angle",
-    "turn_steps",
-    "icp_distances",
-    "icp_iterations",
-    "icp_relative_rmse",
-)
-
-
-@dataclass
-class PreparedObject:
-    """What the verifier keeps per object (metres, model frame, float32 on the CPU).
-
-    Attributes:
-        points: evenly spread surface points ``(N, 3)``, drawn and ICP target, in
-            farthest-point order (every prefix is spread evenly too).
-        normals: outward unit normals ``(N, 3)``.
-        colors: albedo ``(N, 3)`` in ``[0, 1]``.
-        albedo: ``colors`` after a grey-world balance over the object ``(N, 3)`` (each channel
-            divided by its mean over the points): what is drawn.
-        centroid: centre of the points ``(3,)``.
-        diameter: the object's diameter.
-        candidates: near-symmetry transforms ``(C, 4, 4)``, ``C`` possibly 0.
-        overlap: self-overlap of each candidate ``(C,)``.
-    """
-
-    points: torch.Tensor
-    normals: torch.Tensor
-    colors: torch.Tensor
-    albedo: torch.Tensor
-    centroid: torch.Tensor
-    diameter: float
-    candidates: torch.Tensor
-    overlap: torch.Tensor
-
-    def save(self, folder: str | Path, *, fingerprint: Mapping[str, Any]) -> Path:
-        """Write the object to ``folder`` (``verifier.safetensors`` + ``verifier.json``).
-
-        Args:
-            folder: the folder (created).
-            fingerprint: what the object was prepared with (see :meth:`PoseVerifier.fingerprint`);
-                :meth:`load` returns the object only for an equal fingerprint.
-
-        Returns:
-            The folder.
-        """
-        from safetensors.torch import save_file
-
-        folder = Path(folder)
-        folder.mkdir(parents=True, exist_ok=True)
-        tensors = {
-            f.name: getattr(self, f.name).contiguous()
-            for f in fields(self)
-            if isinstance(getattr(self, f.name), torch.Tensor)
-        }
-        tmp = folder / "verifier.safetensors.tmp"
-        save_file(tensors, str(tmp))
-        tmp.replace(folder / "verifier.safetensors")
-        meta = {"diameter": self.diameter, "config": dict(fingerprint)}
-        (folder / "verifier.json").write_text(json.dumps(meta, indent=1))
-        return folder
-
-    @classmethod
-    def load(cls, folder: str | Path, *, fingerprint: Mapping[str, Any]) -> PreparedObject | None:
-        """Read an object written by :meth:`save`; None when absent or of another fingerprint."""
-        from safetensors.torch import load_file
-
-        folder = Path(folder)
-        meta_path, data_path = folder / "verifier.json", folder / "verifier.safetensors"
-        if not (meta_path.is_file() and data_path.is_file()):
-            return None
-        meta = json.loads(meta_path.read_text())
-        if meta.get("config") != json.loads(json.dumps(dict(fingerprint))):
-            return None
-        tensors = load_file(str(data_path))
-        return cls(diameter=float(meta["diameter"]), **tensors)
+__all__ = ["Hypotheses", "PoseVerifier", "Verification"]
 
 
 @dataclass
@@ -206,7 +115,7 @@ class PoseVerifier:
         if not isinstance(self.config, VerifierConfig):
             raise ValueRangeError(f"config must be a VerifierConfig, got {type(config).__name__}")
         self.seed = int(seed)
-        self.objects: dict[int, PreparedObject] = {}
+        self.objects: dict[int, VerifierObject] = {}
 
     def __repr__(self) -> str:
         return f"PoseVerifier({self.config!r}, objects={sorted(self.objects)})"
@@ -215,100 +124,43 @@ class PoseVerifier:
     # Per object
 
     def fingerprint(self) -> dict[str, Any]:
-        """What a prepared object depends on: the key of the on-disk cache of :meth:`prepare`.
+        """What a prepared object depends on besides the mesh (:func:`verifier_fingerprint`).
 
         Example:
             >>> PoseVerifier().fingerprint()["num_points"]
             4096
         """
-        out: dict[str, Any] = {"format": PREPARED_FORMAT, "seed": self.seed}
-        for name in _PREPARE_FIELDS:
-            value = getattr(self.config, name)
-            out[name] = list(value) if isinstance(value, tuple) else value
-        return out
+        return verifier_fingerprint(self.config, seed=self.seed)
 
     def prepare(
-        self, obj_id: int, model: ObjectModel, *, folder: str | Path | None = None
-    ) -> PreparedObject:
+        self, obj_id: int, model: ObjectModel, *, cache_dir: str | Path | None = None
+    ) -> VerifierObject:
         """Sample the object's surface and find its near-symmetries (once per object id).
 
         Args:
             obj_id: the id the object is known by in later calls.
             model: its :class:`~poseflow.data.objects.ObjectModel` (metres); its declared
                 symmetries are not returned as candidates.
-            folder: an on-disk cache of this object: read when it holds an object prepared
-                with the same :meth:`fingerprint`, else written after preparing (a folder that
-                cannot be written gives a warning, and the object is kept in memory only).
+            cache_dir: an on-disk cache of prepared objects, whose entries are keyed by the
+                mesh's content and scale and by :meth:`fingerprint`
+                (:func:`~poseflow.verify.cached_verifier_object`); None prepares without one.
 
         Returns:
-            The cached :class:`PreparedObject`.
+            The :class:`~poseflow.verify.VerifierObject` held under ``obj_id``: the one already
+            held (drop it from :attr:`objects` to prepare another mesh under that id), else the
+            cached or newly prepared one.
 
         Raises:
             DegenerateInputError: the mesh has no surface.
         """
         obj_id = int(obj_id)
-        if obj_id in self.objects:
-            return self.objects[obj_id]
-        if folder is not None:
-            cached = PreparedObject.load(folder, fingerprint=self.fingerprint())
-            if cached is not None:
-                self.objects[obj_id] = cached
-                return cached
-        prepared = self._prepare(model)
-        self.objects[obj_id] = prepared
-        if folder is not None:
-            try:
-                prepared.save(folder, fingerprint=self.fingerprint())
-            except OSError as exc:
-                warnings.warn(
-                    f"object {obj_id}: the verifier's preparation is not cached ({exc})",
-                    stacklevel=2,
-                )
-        return prepared
+        if obj_id not in self.objects:
+            self.objects[obj_id] = cached_verifier_object(
+                model, self.config, seed=self.seed, obj_id=obj_id, cache_dir=cache_dir
+            )
+        return self.objects[obj_id]
 
-    def _prepare(self, model: ObjectModel) -> PreparedObject:
-        """Surface samples, albedo and near-symmetries of one object."""
-        cfg = self.config
-        g = torch.Generator().manual_seed(self.seed)
-        pts, nrm, col = sample_surface(model.mesh, 4 * cfg.num_points, generator=g)
-        P = torch.from_numpy(pts)
-        idx, _ = farthest_point_sample(P[None], cfg.num_points, generator=g)
-        keep = idx[0]
-        points = P[keep]
-        normals = torch.nn.functional.normalize(torch.from_numpy(nrm)[keep], dim=-1)
-        colors = torch.from_numpy(col).to(torch.float64)[keep].clamp(0, 1)
-        balance = colors.mean(0).clamp_min(1e-6)
-        albedo = colors / balance
-        # self-ICP moves an eighth of the points (a random subset, still spread; at least 256)
-        # onto all of them
-        sub = torch.randperm(points.shape[0], generator=g)[: max(256, cfg.num_points // 8)]
-        found = near_symmetries(
-            points[sub],
-            normals[sub],
-            model.diameter,
-            surface=points,
-            declared=model.symmetries.to(torch.float64),
-            turn_steps=cfg.turn_steps,
-            min_overlap=cfg.min_self_overlap,
-            overlap_distance=cfg.self_overlap_distance,
-            min_angle=cfg.min_candidate_angle,
-            max_candidates=cfg.max_candidates,
-            icp_distances=cfg.icp_distances,
-            icp_iterations=2 * cfg.icp_iterations,
-            icp_relative_rmse=cfg.icp_relative_rmse,
-        )
-        return PreparedObject(
-            points=points.float(),
-            normals=normals.float(),
-            colors=colors.float(),
-            albedo=albedo.float(),
-            centroid=points.mean(0).float(),
-            diameter=float(model.diameter),
-            candidates=found.transforms.float(),
-            overlap=found.overlap.float(),
-        )
-
-    def _objects(self, obj_ids: Sequence[int] | torch.Tensor, B: int) -> list[PreparedObject]:
+    def _objects(self, obj_ids: Sequence[int] | torch.Tensor, B: int) -> list[VerifierObject]:
         ids = [int(o) for o in torch.as_tensor(obj_ids).reshape(-1).tolist()]
         if len(ids) != B:
             raise ShapeError(f"got {B} instances but {len(ids)} object ids")
@@ -318,7 +170,7 @@ class PoseVerifier:
         return [self.objects[o] for o in ids]
 
     def _stack(
-        self, objects: list[PreparedObject], like: torch.Tensor
+        self, objects: list[VerifierObject], like: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """Points, normals, albedo ``(B, N, 3)`` and diameters ``(B,)`` like ``like``."""
         kw = {"dtype": like.dtype, "device": like.device}
@@ -349,7 +201,7 @@ class PoseVerifier:
 
         Example:
             >>> v = PoseVerifier()
-            >>> v.objects[3] = PreparedObject(*[torch.zeros(1, 3)] * 4,
+            >>> v.objects[3] = VerifierObject(*[torch.zeros(1, 3)] * 4,
             ...                               torch.zeros(3), 0.1,
             ...                               torch.eye(4)[None].repeat(2, 1, 1), torch.ones(2))
             >>> v.expand(torch.eye(4)[None], [3]).poses.shape
