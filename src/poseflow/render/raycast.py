@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from poseflow._threads import get_num_threads
 from poseflow.errors import ShapeError, ValueRangeError
 from poseflow.render.mesh import TexturedMesh, as_textured_mesh
 
@@ -105,7 +106,8 @@ class Renderer:
         meshes: the meshes (:class:`~poseflow.render.mesh.TexturedMesh`, an object with a
             ``mesh`` attribute such as ``poseflow.data.objects.ObjectModel``, or a legacy
             Open3D ``TriangleMesh``), in metres.
-        nthreads: threads for Open3D's ray casting (0: all).
+        nthreads: threads for Open3D's ray casting; None (default): poseflow's setting at each
+            cast (:func:`poseflow.get_num_threads`); 0: every core.
 
     Example:
         >>> import open3d as o3d
@@ -118,7 +120,7 @@ class Renderer:
         (0.45, 0, torch.Size([48, 64, 3]))
     """
 
-    def __init__(self, meshes: Sequence[Any], *, nthreads: int = 0) -> None:
+    def __init__(self, meshes: Sequence[Any], *, nthreads: int | None = None) -> None:
         from poseflow.render.backend import import_open3d
 
         o3d = import_open3d("rendering")
@@ -126,7 +128,7 @@ class Renderer:
         self.meshes: list[TexturedMesh] = [as_textured_mesh(m) for m in meshes]
         if not self.meshes:
             raise ShapeError("Renderer needs at least one mesh")
-        self.nthreads = int(nthreads)
+        self.nthreads = None if nthreads is None else int(nthreads)
         self._scenes = []
         for m in self.meshes:
             scene = o3d.t.geometry.RaycastingScene()
@@ -290,7 +292,8 @@ class Renderer:
         rays = np.empty((*d_model.shape[:2], 6), dtype=np.float32)
         rays[..., :3] = origin
         rays[..., 3:] = d_model
-        return self._scenes[mesh_id].cast_rays(o3d.core.Tensor(rays), nthreads=self.nthreads)
+        nthreads = get_num_threads() if self.nthreads is None else self.nthreads
+        return self._scenes[mesh_id].cast_rays(o3d.core.Tensor(rays), nthreads=nthreads)
 
 
 def render(
