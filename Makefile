@@ -3,7 +3,9 @@ PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
-export OMP_NUM_THREADS ?= 2
+# One thread, the command line's own default (`poseflow COMMAND --help`, --threads): more threads
+# are slower while another process uses the cores. On free cores: make ... OMP_NUM_THREADS=N
+export OMP_NUM_THREADS ?= 1
 
 .PHONY: demo test test-slow lint docs bench bench-unseen bench-quick venv sysdeps clean wheel-check
 

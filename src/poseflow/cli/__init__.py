@@ -7,7 +7,9 @@ imported only when listed here, and its heavy imports happen inside its ``run`` 
 Exit codes: 0 on success, 1 when the run fails (a :class:`~poseflow.errors.PoseflowError`: a
 missing or malformed file, implausible units, a failed write), 2 for usage errors (argparse's, a
 :class:`~poseflow.errors.UsageError`, or a plain ``ValueRangeError``: an argument's value out of
-its range) and when no subcommand is given. Status lines and warnings go through
+its range) and when no subcommand is given. Every subcommand takes ``--threads N``
+(:func:`~poseflow.cli.common.add_threads_argument`), set through :func:`poseflow.num_threads`
+for the whole command. Status lines and warnings go through
 :mod:`logging` to stderr, written around the progress bars; results go to stdout.
 """
 
@@ -16,12 +18,19 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 
 from poseflow import __version__
 from poseflow.errors import PoseflowError, UsageError, ValueRangeError
 
-__all__ = ["EXIT_FAILED", "EXIT_USAGE", "build_parser", "is_usage_error", "main"]
+__all__ = [
+    "EXIT_FAILED",
+    "EXIT_USAGE",
+    "build_parser",
+    "is_usage_error",
+    "main",
+    "subcommand_parsers",
+]
 
 #: Subcommand modules under ``poseflow.cli``, in the order ``--help`` lists them.
 SUBCOMMANDS = (
@@ -43,8 +52,19 @@ EXIT_FAILED = 1
 EXIT_USAGE = 2
 
 
+def subcommand_parsers(parser: argparse.ArgumentParser) -> Iterator[argparse.ArgumentParser]:
+    """Every subcommand's parser under ``parser``, subcommands of subcommands included."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for command in action.choices.values():
+                yield command
+                yield from subcommand_parsers(command)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    """Build the argument parser with every subcommand registered."""
+    """Build the argument parser with every subcommand registered (each with ``--threads``)."""
+    from poseflow.cli.common import add_threads_argument
+
     parser = argparse.ArgumentParser(
         prog="poseflow",
         description="6D object pose estimation from RGBD images (FunFlow6D) and its parts.",
@@ -54,8 +74,11 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in SUBCOMMANDS:
         importlib.import_module(f"poseflow.cli.{name}").add_parser(sub)
-    for command in sub.choices.values():  # for the usage line of a usage error
-        command.set_defaults(parser=command)
+    for command in sub.choices.values():
+        command.set_defaults(parser=command)  # for the usage line of a usage error
+        add_threads_argument(command)
+        for nested in subcommand_parsers(command):
+            add_threads_argument(nested, nested=True)
     return parser
 
 
@@ -77,7 +100,7 @@ def is_usage_error(exc: BaseException) -> bool:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; returns the process exit code (see the module's docstring)."""
-    from poseflow.cli.common import command_output
+    from poseflow.cli.common import command_output, command_threads
 
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -86,7 +109,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_USAGE
     with command_output(args):
         try:
-            return int(args.run(args) or 0)
+            with command_threads(args):
+                return int(args.run(args) or 0)
         except (PoseflowError, OSError) as exc:
             usage = is_usage_error(exc)
             if usage:

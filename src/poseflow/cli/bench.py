@@ -102,7 +102,6 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     parser.add_argument(
         "--ar-tolerance", type=float, default=0.01, help="AR a setting may lose and still count"
     )
-    parser.add_argument("--threads", type=int, default=None, help="torch CPU threads")
     parser.add_argument("--no-eval", action="store_true", help="write the CSVs, skip the AR")
     parser.add_argument("--seed", type=int, default=7, help="seed of the data, noise and RANSAC")
     add_device_argument(parser)
@@ -278,6 +277,7 @@ def run(args: argparse.Namespace) -> int:
 
     import torch
 
+    from poseflow import get_num_threads
     from poseflow.cli.common import (
         load_model,
         load_object_models,
@@ -305,8 +305,6 @@ def run(args: argparse.Namespace) -> int:
     if args.hypotheses is not None:
         changes["num_hypotheses"] = args.hypotheses
     changes["verification"] = args.verify
-    if args.threads is not None:
-        torch.set_num_threads(args.threads)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     device = resolve_device(args.device)
@@ -341,7 +339,7 @@ def run(args: argparse.Namespace) -> int:
     if device.type == "cuda":
         where += f" ({torch.cuda.get_device_name(device)})"
     else:
-        where += f" ({platform.machine()}, {torch.get_num_threads()} threads)"
+        where += f" ({platform.machine()}, {get_num_threads()} threads)"
     first = next(iter(rows.values()))
     print(
         f"\nFunFlow6D on {where}: {first['num_images']} images, "

@@ -7,6 +7,7 @@
 - models: :func:`resolve_model` (``--model``: a folder, ``demo``, or by default the shipped demo
   model) and :func:`load_model` (a clear error for a truncated or malformed checkpoint);
 - ``--device``: :func:`add_device_argument` and :func:`resolve_device`;
+- ``--threads``: :func:`add_threads_argument` (every subcommand has it) and :func:`command_threads`;
 - the model configuration: :func:`add_config_arguments` registers ``--config`` (a JSON file of
   :class:`~poseflow.models.FunFlow6DConfig` fields), ``--preset`` and a few common fields as
   flags, and ``--set KEY=VALUE`` for any field; :func:`build_config` turns them into a config;
@@ -40,10 +41,12 @@ __all__ = [
     "add_config_arguments",
     "add_device_argument",
     "add_output_arguments",
+    "add_threads_argument",
     "build_config",
     "check_dataset",
     "check_writable",
     "command_output",
+    "command_threads",
     "config_requested",
     "dataset_fingerprint",
     "load_model",
@@ -366,6 +369,51 @@ def resolve_device(name: str) -> Any:
                 f"--device {device}: only {torch.cuda.device_count()} CUDA device(s) here"
             )
     return device
+
+
+# ------------------------------------------------------------------------------ threads
+
+
+def add_threads_argument(parser: argparse.ArgumentParser, *, nested: bool = False) -> None:
+    """Add ``--threads N`` to ``parser`` (every subcommand has it; :func:`command_threads` uses it).
+
+    Args:
+        parser: a subcommand's parser.
+        nested: ``parser`` is a subcommand of a subcommand (``demo registration``): its option
+            then only overrides the parent's when given.
+    """
+    group = parser.add_argument_group("threads")
+    group.add_argument(
+        "--threads",
+        type=positive_int,
+        default=argparse.SUPPRESS if nested else None,
+        metavar="N",
+        help="CPU threads of every pool poseflow runs work in: torch, numba, BLAS/OpenMP and "
+        "Open3D's ray casting (default: $OMP_NUM_THREADS if set, else 1; more threads are "
+        "faster only on cores that no other process is using)",
+    )
+
+
+@contextlib.contextmanager
+def command_threads(args: argparse.Namespace) -> Iterator[int]:
+    """Run a command on ``--threads`` threads, else :func:`~poseflow._threads.default_num_threads`.
+
+    Sets every pool through :func:`poseflow.num_threads` and restores them on exit, so that a
+    command run in-process (tests, benchmarks) leaves its caller's settings as they were.
+
+    Yields:
+        The number of threads.
+
+    Raises:
+        ValueRangeError: no ``--threads`` and ``OMP_NUM_THREADS`` is not a positive integer.
+    """
+    from poseflow import num_threads
+    from poseflow._threads import default_num_threads
+
+    threads = getattr(args, "threads", None)
+    threads = default_num_threads() if threads is None else threads
+    with num_threads(threads):
+        yield threads
 
 
 # ------------------------------------------------------------------------------ configuration
