@@ -11,9 +11,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from poseflow.errors import DegenerateInputError, ShapeError, ValueRangeError
+from poseflow.geometry.normals import _smallest_eigenvector
 from poseflow.geometry.pointcloud import (
-    _lexicographic_codes,
-    _smallest_eigenvector,
     backproject_depth,
     cloud_diameter,
     crop_box_around,
@@ -26,6 +25,7 @@ from poseflow.geometry.pointcloud import (
     remove_statistical_outliers,
     voxel_downsample,
 )
+from poseflow.geometry.sampling import _lexicographic_codes
 
 
 def make_K(g: torch.Generator, B: int, dtype: torch.dtype, skew: bool = False) -> torch.Tensor:

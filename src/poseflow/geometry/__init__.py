@@ -1,20 +1,11 @@
 """Geometry: SE(3) algebra and point-cloud primitives, batch-first, on any device and dtype."""
 
+from poseflow.geometry.crops import crop_box_around, crop_resize, crop_to_pixels, pixels_to_crop
 from poseflow.geometry.neighbors import NeighborIndex, NeighborTracker, nearest_neighbors
-from poseflow.geometry.pointcloud import (
-    BackprojectedCloud,
-    backproject_depth,
-    cloud_diameter,
-    crop_box_around,
-    crop_resize,
-    crop_to_pixels,
-    estimate_normals,
-    farthest_point_sample,
-    pixels_to_crop,
-    project_points,
-    remove_statistical_outliers,
-    voxel_downsample,
-)
+from poseflow.geometry.normals import estimate_normals
+from poseflow.geometry.pointcloud import cloud_diameter, remove_statistical_outliers
+from poseflow.geometry.projection import BackprojectedCloud, backproject_depth, project_points
+from poseflow.geometry.sampling import farthest_point_sample, voxel_downsample
 from poseflow.geometry.se3 import (
     compose,
     from_Rt,

@@ -1,6 +1,6 @@
 """Farthest-point sampling on the CPU, compiled with numba, with the torch loop's exact answers.
 
-:func:`poseflow.geometry.pointcloud.farthest_point_sample` runs a loop of tensor ops over the
+:func:`poseflow.geometry.sampling.farthest_point_sample` runs a loop of tensor ops over the
 ``M`` samples; on the CPU that loop costs one pass over every point per sample. This kernel
 gives the same indices (bit for bit, ties included) with far less work:
 

@@ -74,13 +74,8 @@ def build_trees(columns, valid, M, leaf_size):  # type: ignore[no-untyped-def]
         maxima).
     """
     B = valid.shape[0]
-    perm = np.empty(valid.sum(), np.int64)
-    P = 0
-    for b in range(B):
-        for m in range(M):
-            if valid[b, m]:
-                perm[P] = b * M + m
-                P += 1
+    perm = _valid_columns(valid, M)
+    P = perm.shape[0]
     cap = 2 * (P // max(1, leaf_size // 2)) + 2 * B + 2
     lo = np.empty(cap, np.int64)
     hi = np.empty(cap, np.int64)
@@ -108,20 +103,10 @@ def build_trees(columns, valid, M, leaf_size):  # type: ignore[no-untyped-def]
             top -= 1
             node = stack[top]
             a, z = lo[node], hi[node]
-            for c in range(3):
-                box[node, c] = np.inf
-                box[node, 3 + c] = -np.inf
-            for k in range(a, z):
-                for c in range(3):
-                    v = columns[c, perm[k]]
-                    box[node, c] = min(box[node, c], v)
-                    box[node, 3 + c] = max(box[node, 3 + c], v)
+            _fit_box(columns, perm, a, z, box[node])
             if z - a <= leaf_size:
                 continue
-            axis = 0
-            for c in range(1, 3):
-                if box[node, 3 + c] - box[node, c] > box[node, 3 + axis] - box[node, axis]:
-                    axis = c
+            axis = _widest_axis(box[node])
             if box[node, 3 + axis] - box[node, axis] <= 0:
                 continue  # all points coincide: a leaf, whatever its size
             mid = (a + z) // 2
@@ -132,12 +117,45 @@ def build_trees(columns, valid, M, leaf_size):  # type: ignore[no-untyped-def]
             stack[top], stack[top + 1] = n_nodes + 1, n_nodes
             top += 2
             n_nodes += 2
-    points = np.empty((perm.shape[0], 3))
-    for k in range(perm.shape[0]):
-        for c in range(3):
-            points[k, c] = columns[c, perm[k]]
+    points = np.ascontiguousarray(columns[:, perm].T)
     nodes = (lo[:n_nodes], hi[:n_nodes], left[:n_nodes], right[:n_nodes], box[:n_nodes])
     return perm, points, root, nodes
+
+
+@_jit
+def _valid_columns(valid, M):  # type: ignore[no-untyped-def]
+    """The columns ``b * M + m`` of the valid points ``(P,)``, item by item, in order."""
+    perm = np.empty(valid.sum(), np.int64)
+    P = 0
+    for b in range(valid.shape[0]):
+        for m in range(M):
+            if valid[b, m]:
+                perm[P] = b * M + m
+                P += 1
+    return perm
+
+
+@_jit
+def _fit_box(columns, perm, a, z, box):  # type: ignore[no-untyped-def]
+    """Write into ``box`` ``(6,)`` the bounds (minima, then maxima) of the points ``perm[a:z]``."""
+    for c in range(3):
+        box[c] = np.inf
+        box[3 + c] = -np.inf
+    for k in range(a, z):
+        for c in range(3):
+            v = columns[c, perm[k]]
+            box[c] = min(box[c], v)
+            box[3 + c] = max(box[3 + c], v)
+
+
+@_jit
+def _widest_axis(box):  # type: ignore[no-untyped-def]
+    """The coordinate along which the box ``(6,)`` (minima, then maxima) is widest."""
+    axis = 0
+    for c in range(1, 3):
+        if box[3 + c] - box[c] > box[3 + axis] - box[axis]:
+            axis = c
+    return axis
 
 
 @_jit
