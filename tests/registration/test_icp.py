@@ -299,20 +299,20 @@ def test_bad_inputs():
 def test_fixed_masked_steps_equal_the_early_exit_loop(device, dtype):
     # The CUDA path (fixed masked steps, graph-captured there) against the CPU loop whose batch
     # shrinks as instances stop; one hopeless instance (no pairs) and one masked half included.
-    from poseflow.registration.icp import _Problem, _run_scale, _run_scale_fixed, _Scale
+    from poseflow.registration._icp_loop import ICPProblem, Scale, run_scale, run_scale_fixed
 
     model, obs, half, pose, extent, g = _bumpy_clouds(3, 4, M=400)
     init = _perturbed(inverse_transform(pose), extent, 8.0, 0.05, g)
     init[3, :3, 3] += 10.0  # nothing within reach
     src, tgt = obs.to(dtype), model.to(dtype)
     mask = half.clone()
-    cpu = _Problem.make(src, tgt, init.to(dtype), mask, None)
-    scale = _Scale(0.03, 30, 1e-6, 1e-6)
-    ref = _run_scale(cpu, cpu.init, scale)
-    on = _Problem.make(
+    cpu = ICPProblem.make(src, tgt, init.to(dtype), mask, None)
+    scale = Scale(0.03, 30, 1e-6, 1e-6)
+    ref = run_scale(cpu, cpu.init, scale)
+    on = ICPProblem.make(
         src.to(device), tgt.to(device), init.to(device, dtype), mask.to(device), None
     )
-    out = _run_scale_fixed(on, on.init, scale, capture=device.type == "cuda")
+    out = run_scale_fixed(on, on.init, scale, capture=device.type == "cuda")
     tol = 1e-4 if dtype == torch.float32 else 1e-9
     assert torch.equal(out.valid.cpu(), ref.valid) and not bool(ref.valid[3])
     assert torch.equal(out.iterations.cpu(), ref.iterations)

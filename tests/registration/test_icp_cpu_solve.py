@@ -203,7 +203,7 @@ def test_multi_scale_equals_the_fixed_masked_steps(seed, dtype, monkeypatch):
     }
     ours = multi_scale_icp(source, target, init, **kw)
     monkeypatch.setattr(
-        module, "_scale", lambda p, T, s: module._run_scale_fixed(p, T, s, capture=False)
+        module, "_scale", lambda p, T, s: module.run_scale_fixed(p, T, s, capture=False)
     )
     fixed = multi_scale_icp(source, target, init, **kw)
     assert torch.equal(ours.num_iterations, fixed.num_iterations)

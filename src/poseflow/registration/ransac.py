@@ -139,41 +139,93 @@ def _register(
     source, target, w = check_pairs(source, target, None, mask)
     valid = w > 0
     B, N = source.shape[:2]
-    dtype, device = source.dtype, source.device
+    dtype = source.dtype
     s, H = sample_size, max_iterations
     tau2 = max_correspondence_distance**2
     n_valid = valid.sum(-1)
     possible = n_valid >= s
     if not bool(possible.any()):
-        return _invalid(B, N, dtype, device)
+        return _invalid(B, N, dtype, source.device)
 
     # Centre both clouds (on their valid points) so the expanded residuals keep precision.
     wn = (w / n_valid.clamp_min(1).to(dtype).unsqueeze(-1)).unsqueeze(-1)
     centre_s, centre_d = (wn * source).sum(1), (wn * target).sum(1)  # (B, 3)
     src = (source - centre_s.unsqueeze(1)) * w.unsqueeze(-1)
     dst = (target - centre_d.unsqueeze(1)) * w.unsqueeze(-1)
+    samples = _minimal_samples(valid, n_valid, H, s, generator)
+    counts, stop = _draw_hypotheses(src, dst, valid, samples, tau2, possible, confidence)
+
+    drawn = torch.arange(H, device=source.device).expand(B, H)
+    best = torch.where(drawn < stop[:, None], counts, -1).argmax(1)  # first of the maxima
+    best_samples = samples.gather(1, best.view(B, 1, 1).expand(B, 1, s))
+    R, t, ok = _hypotheses(src, dst, best_samples)
+    found = possible & ok[:, 0] & (counts.gather(1, best[:, None])[:, 0] >= s)
+    T, inliers, res2 = _refit(src, dst, from_Rt(R[:, 0], t[:, 0]), valid, tau2, found)
+    found &= inliers.sum(-1) >= s
+    # Undo the centring: x -> T (x - c_s) + c_d.
+    R, t = T[:, :3, :3], T[:, :3, 3]
+    t = t + centre_d - (R @ centre_s.unsqueeze(-1)).squeeze(-1)
+    return _finish(from_Rt(R, t), inliers, res2, n_valid, stop, found)
+
+
+def _minimal_samples(
+    valid: torch.Tensor,
+    n_valid: torch.Tensor,
+    H: int,
+    s: int,
+    generator: torch.Generator | None,
+) -> torch.Tensor:
+    """``H`` samples of ``s`` distinct valid pairs per instance, ``(B, H, s)`` indices into ``N``.
+
+    The same uniform draws for every instance, mapped to distinct ranks among that instance's
+    valid points, so an instance's result does not depend on the batch.
+    """
+    B, device = valid.shape[0], valid.device
+    gen_device = generator.device if generator is not None else device
+    u = torch.rand(H, s, generator=generator, dtype=torch.float64, device=gen_device)
+    ranks = _distinct_ranks(u.to(device), n_valid.clamp_min(s))  # (B, H, s)
+    order = torch.argsort((~valid).to(torch.uint8), dim=1, stable=True)  # valid points first
+    return order.gather(1, ranks.reshape(B, H * s)).reshape(B, H, s)
+
+
+def _residual_features(src: torch.Tensor, dst: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """The 17 residual features of every pair ``(B, 17, N)`` (see the module docstring).
+
+    Invalid pairs get a huge ``|s|^2 + |d|^2`` so that no hypothesis counts them as inliers.
+    """
+    B, N = valid.shape
     norms = src.square().sum(-1) + dst.square().sum(-1)
-    big = torch.finfo(dtype).max / 64  # never an inlier, no overflow in a 17-term sum
-    features = torch.cat(
+    big = torch.finfo(src.dtype).max / 64  # never an inlier, no overflow in a 17-term sum
+    return torch.cat(
         (
             (dst.unsqueeze(-1) * src.unsqueeze(-2)).reshape(B, N, 9),
             dst,
             src,
             torch.where(valid, norms, big).unsqueeze(-1),
-            torch.ones(B, N, 1, dtype=dtype, device=device),
+            torch.ones(B, N, 1, dtype=src.dtype, device=src.device),
         ),
         -1,
-    ).transpose(1, 2)  # (B, 17, N)
+    ).transpose(1, 2)
 
-    # Minimal samples: the same uniform draws for every instance, mapped to distinct ranks
-    # among that instance's valid points, so an instance's result does not depend on the batch.
-    gen_device = generator.device if generator is not None else device
-    u = torch.rand(H, s, generator=generator, dtype=torch.float64, device=gen_device)
-    ranks = _distinct_ranks(u.to(device), n_valid.clamp_min(s))  # (B, H, s)
-    order = torch.argsort((~valid).to(torch.uint8), dim=1, stable=True)  # valid points first
-    samples = order.gather(1, ranks.reshape(B, H * s)).reshape(B, H, s)
 
-    counts = torch.full((B, H), -1, dtype=torch.int32, device=device)
+def _draw_hypotheses(
+    src: torch.Tensor,
+    dst: torch.Tensor,
+    valid: torch.Tensor,
+    samples: torch.Tensor,
+    tau2: float,
+    possible: torch.Tensor,
+    confidence: float,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Inlier counts ``(B, H)`` of the samples' hypotheses and how many each instance drew ``(B,)``.
+
+    Hypotheses are solved and scored in chunks that double in size, over the instances that have
+    not reached ``confidence``; counts not drawn are -1.
+    """
+    (B, H, s), N = samples.shape, valid.shape[1]
+    n_valid = valid.sum(-1)
+    features = _residual_features(src, dst, valid)
+    counts = torch.full((B, H), -1, dtype=torch.int32, device=src.device)
     stop = torch.where(possible, H, 0)
     done, chunk = 0, min(_FIRST_CHUNK, H)
     max_chunk = max(_FIRST_CHUNK, _CHUNK_ELEMENTS // max(1, B * N))
@@ -188,20 +240,27 @@ def _register(
         if confidence < 1:
             stop = _stopping_points(counts[:, :done], n_valid, s, confidence, possible, H)
             drawing = (stop > done).nonzero()[:, 0]
+    return counts, stop
 
-    drawn = torch.arange(H, device=device).expand(B, H)
-    best = torch.where(drawn < stop[:, None], counts, -1).argmax(1)  # first of the maxima
-    best_samples = samples.gather(1, best.view(B, 1, 1).expand(B, 1, s))
-    R, t, ok = _hypotheses(src, dst, best_samples)
-    T = from_Rt(R[:, 0], t[:, 0])
-    found = possible & ok[:, 0] & (counts.gather(1, best[:, None])[:, 0] >= s)
 
-    # Refit on the inlier set until it stops changing: each round lowers the truncated cost
-    # sum_n min(r_n^2, tau^2), so this settles (a few rounds) on a least-squares optimum.
+def _refit(
+    src: torch.Tensor,
+    dst: torch.Tensor,
+    T: torch.Tensor,
+    valid: torch.Tensor,
+    tau2: float,
+    found: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Refit the ``found`` instances' ``T`` on their inliers until the inlier sets stop changing.
+
+    Each round lowers the truncated cost ``sum_n min(r_n^2, tau^2)``, so this settles (a few
+    rounds) on a least-squares optimum. Returns ``T`` ``(B, 4, 4)``, the inliers ``(B, N)`` and
+    the squared residuals ``(B, N)``.
+    """
     inliers, res2 = _inliers(src, dst, T, valid, tau2)
     active = found.clone()
     for _ in range(_MAX_REFITS):
-        T_new, ok_new = solve_procrustes(src, dst, inliers.to(dtype))
+        T_new, ok_new = solve_procrustes(src, dst, inliers.to(src.dtype))
         inliers_new, res2_new = _inliers(src, dst, T_new, valid, tau2)
         accept = active & ok_new
         T = torch.where(accept[:, None, None], T_new, T)
@@ -210,13 +269,7 @@ def _register(
         res2 = torch.where(accept[:, None], res2_new, res2)
         if not bool(active.any()):
             break
-
-    n_in = inliers.sum(-1)
-    found &= n_in >= s
-    # Undo the centring: x -> T (x - c_s) + c_d.
-    R, t = T[:, :3, :3], T[:, :3, 3]
-    t = t + centre_d - (R @ centre_s.unsqueeze(-1)).squeeze(-1)
-    return _finish(from_Rt(R, t), inliers, res2, n_valid, stop, found)
+    return T, inliers, res2
 
 
 class RANSACProcrustes(Solver[RegistrationResult]):
