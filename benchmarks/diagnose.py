@@ -62,7 +62,7 @@ from poseflow.flows import get_sampler
 from poseflow.models import INFERENCE_FIELDS, FunFlow6D
 from poseflow.models.objects import select_objects
 from poseflow.models.pose import select_hypotheses, solve_pose
-from poseflow.models.verification import other_hypotheses, rank_hypotheses
+from poseflow.models.verification import other_hypotheses, rank_estimate
 from poseflow.verify import VerifierConfig
 
 VARIANTS = (
@@ -268,7 +268,7 @@ def diagnose(args: argparse.Namespace, out: Path) -> dict:
             extra = extra_mask = None
             if cfg.verify_hypotheses:  # as FunFlow6D.estimate
                 extra, extra_mask = other_hypotheses(*solved, H)
-                shipped, extra, extra_mask = rank_hypotheses(
+                shipped, extra, extra_mask = rank_estimate(
                     model.verifier, shipped, extra, extra_mask, rgb, depth, K, masks, obj_ids
                 )
             ver = model.verifier.verify(

@@ -49,7 +49,7 @@ from poseflow.verify import (
     crop_observation,
     render_points,
     score_renderings,
-    select_hypotheses,
+    select_significant,
 )
 
 
@@ -179,7 +179,7 @@ def compare_renderers(verifier: PoseVerifier, models: dict, batches: list, repea
         total_diff += (s_points.total - s_rays.total).abs().flatten().tolist()
         same_best += (s_points.total.argmax(-1) == s_rays.total.argmax(-1)).tolist()
         choice = [
-            select_hypotheses(x, significance=cfg.significance)[0] for x in (s_points, s_rays)
+            select_significant(x, significance=cfg.significance)[0] for x in (s_points, s_rays)
         ]
         same_choice += (choice[0] == choice[1]).tolist()
     return {

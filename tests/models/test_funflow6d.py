@@ -11,7 +11,7 @@ from poseflow.eval.predict import PoseEstimate
 from poseflow.eval.timing import StageTimer
 from poseflow.geometry.se3 import rotation_angle_error, transform_points, translation_error
 from poseflow.models import FunFlow6D, FunFlow6DConfig
-from poseflow.models.verification import rank_hypotheses
+from poseflow.models.verification import rank_estimate
 from poseflow.verify import PoseVerifier
 
 
@@ -310,7 +310,7 @@ def test_the_verifier_ranks_the_hypotheses_before_expanding_the_best(tiny_model,
     extra_mask = torch.tensor([[True, True], [True, False]])  # instance 1: the truth is padding
     estimate = PoseEstimate(off, torch.tensor([0.9, 0.8]), torch.tensor([True, True]))
     args = (scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 1])
-    ranked, rest, rest_mask = rank_hypotheses(verifier, estimate, extra, extra_mask, *args)
+    ranked, rest, rest_mask = rank_estimate(verifier, estimate, extra, extra_mask, *args)
     assert torch.equal(ranked.poses[0], truth[0])  # swapped in
     assert torch.equal(rest[0, 1], off[0]) and rest_mask[0].all()  # the pick is a candidate
     assert not torch.equal(ranked.poses[1], truth[1])  # padding never wins
@@ -320,7 +320,7 @@ def test_the_verifier_ranks_the_hypotheses_before_expanding_the_best(tiny_model,
     after = torch.cat((ranked.poses[:, None], rest), 1).flatten(-2).sort(1).values
     assert torch.equal(before, after)
     invalid = PoseEstimate(off, estimate.scores, torch.tensor([False, True]))
-    kept, _, _ = rank_hypotheses(verifier, invalid, extra, extra_mask, *args)
+    kept, _, _ = rank_estimate(verifier, invalid, extra, extra_mask, *args)
     assert torch.equal(kept.poses[0], off[0])  # an instance without an estimate is left alone
 
 
@@ -336,7 +336,7 @@ def test_the_ranking_rescores_its_coarse_best_on_the_full_grid(tiny_model, scene
     mask = torch.ones(2, len(shifts), dtype=torch.bool)
     images = (scene["rgb"], scene["depth"], scene["K"], scene["masks"])
     estimate = PoseEstimate(poses[:, 0], torch.ones(2), torch.ones(2, dtype=torch.bool))
-    ranked, _, _ = rank_hypotheses(verifier, estimate, poses[:, 1:], mask[:, 1:], *images, [1, 1])
+    ranked, _, _ = rank_estimate(verifier, estimate, poses[:, 1:], mask[:, 1:], *images, [1, 1])
     boxes = verifier.crop_boxes(poses[:, 0], [1, 1], scene["K"], scene["masks"])
     coarse = verifier.score(*images, [1, 1], poses, mask, boxes=boxes,
                             crop_size=verifier.config.coarse_crop_size).total  # fmt: skip

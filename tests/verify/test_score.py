@@ -18,7 +18,7 @@ from poseflow.verify import (
     balance_colors,
     depth_agreement,
     score_renderings,
-    select_hypotheses,
+    select_significant,
     silhouette_agreement,
     visible_rendering,
 )
@@ -160,7 +160,7 @@ def test_empty_mask_or_no_depth_is_flagged_and_finite() -> None:
         value = getattr(out, field)
         assert torch.isfinite(value).all()
         assert (value[~out.valid] == 0).all()
-    index, stat = select_hypotheses(out, significance=0.01)
+    index, stat = select_significant(out, significance=0.01)
     assert index.tolist() == [0, 0, 0] and torch.isfinite(stat).all()
 
 
@@ -194,7 +194,7 @@ def test_selection_keeps_estimate_against_noise(seed: int, G: int) -> None:
     base = 0.5 + torch.rand(200, 1, G, generator=g, dtype=torch.float64)
     noise = 0.05 * torch.randn(200, 3, G, generator=g, dtype=torch.float64)
     ev = torch.cat((base, base + noise), dim=1)  # (200, 4, G)
-    index, _ = select_hypotheses(make_score(ev), significance=0.01)
+    index, _ = select_significant(make_score(ev), significance=0.01)
     # level 1 % over the instances (plus the t vs normal quantile slack at small G)
     assert (index != 0).float().mean() < 0.05
 
@@ -204,7 +204,7 @@ def test_selection_takes_a_clear_winner_and_the_best_of_several() -> None:
     base = 0.5 + torch.rand(1, 1, 40, generator=g, dtype=torch.float64)
     noise = 0.01 * torch.randn(1, 3, 40, generator=g, dtype=torch.float64)
     ev = torch.cat((base, base + noise + torch.tensor([0.0, 0.05, 0.1]).reshape(1, 3, 1)), 1)
-    index, stat = select_hypotheses(make_score(ev), significance=0.01)
+    index, stat = select_significant(make_score(ev), significance=0.01)
     assert index.tolist() == [3]
     assert stat[0, 0] == 0 and stat[0, 2] > 5 and stat[0, 3] > stat[0, 2]
 
@@ -214,7 +214,7 @@ def test_selection_replaces_an_invalid_estimate_and_ignores_invalid_candidates()
     valid = torch.tensor([[False, True, True], [True, False, False]])
     ev[0, 2] += 1.0
     ev[1, 1] += 5.0  # invalid candidate: never chosen
-    index, stat = select_hypotheses(make_score(ev, valid), significance=0.01)
+    index, stat = select_significant(make_score(ev, valid), significance=0.01)
     assert index.tolist() == [2, 0]
     assert stat[1, 1] == 0
 
@@ -225,15 +225,15 @@ def test_bonferroni_makes_many_candidates_harder() -> None:
     e = torch.randn(30, generator=g, dtype=torch.float64)
     e = (e - e.mean()) / e.std()
     lift = base + 0.03 * (2.2 / 30**0.5 + e)  # per-block gains with t = 2.2 exactly
-    _, stat = select_hypotheses(make_score(torch.cat((base, lift), 1)), significance=0.05)
+    _, stat = select_significant(make_score(torch.cat((base, lift), 1)), significance=0.05)
     assert float(stat[0, 1]) == pytest.approx(2.2)
     one = torch.special.ndtri(torch.tensor(1 - 0.05)).item()
     many = torch.special.ndtri(torch.tensor(1 - 0.05 / 20)).item()
     assert one < 2.2 < many  # passes alone, fails among 20 candidates
     ev_one = torch.cat((base, lift), 1)
     ev_many = torch.cat((base, lift, base.expand(1, 19, 30) - 1.0), 1)
-    assert select_hypotheses(make_score(ev_one), significance=0.05)[0].item() == 1
-    assert select_hypotheses(make_score(ev_many), significance=0.05)[0].item() == 0
+    assert select_significant(make_score(ev_one), significance=0.05)[0].item() == 1
+    assert select_significant(make_score(ev_many), significance=0.05)[0].item() == 0
 
 
 def test_bad_arguments_raise() -> None:
@@ -243,5 +243,5 @@ def test_bad_arguments_raise() -> None:
     with pytest.raises(ValueRangeError):
         score(render, obs, weights=(0.0, 0.0, 0.0))
     with pytest.raises(ValueRangeError):
-        select_hypotheses(make_score(torch.ones(1, 2, 4)), significance=1.5)
+        select_significant(make_score(torch.ones(1, 2, 4)), significance=1.5)
     assert math.isfinite(float(score(render, obs).total))

@@ -290,6 +290,31 @@ def test_extra_hypotheses_compete_with_the_near_symmetric_candidates(
         verifier.verify(*args, extra=true[None])
 
 
+def test_ranking_makes_the_best_hypothesis_the_estimate(
+    verifier: PoseVerifier, scene: dict[str, torch.Tensor]
+) -> None:
+    true, flipped = box_pose(), box_pose() @ half_turn([1.0, 0, 0])
+    off = box_pose(0.02)  # 2 cm off
+    masks = scene["masks"].repeat(2, 1, 1)
+    poses = torch.stack((flipped, flipped))
+    extra = torch.stack((off, true))[None].repeat(2, 1, 1, 1)  # (2, 2, 4, 4): the truth second
+    images = (scene["rgb"], scene["depth"], K, masks, [1, 1])
+    ranked = verifier.rank_hypotheses(
+        *images, poses, extra=extra, estimated=torch.tensor([True, False])
+    )
+    assert ranked.poses.shape == (2, 3, 4, 4) and ranked.mask.tolist() == [
+        [True] * 3,
+        [False, True, True],
+    ]
+    assert torch.equal(ranked.poses[0, 0], true) and torch.equal(ranked.poses[0, 2], flipped)
+    assert torch.equal(ranked.poses[1], torch.cat((poses[1:], extra[1])))  # no estimate: left
+    # the incumbent a ranking keeps is the estimate verify then holds its contest around
+    out = verifier.verify(*images, ranked.poses[:, 0], extra=ranked.poses[:, 1:])
+    assert float(rotation_angle_error(out.poses[0, :3, :3], true[:3, :3])) < 1.0
+    no_extra = verifier.rank_hypotheses(*images, poses, extra=extra[:, :0])
+    assert torch.equal(no_extra.poses, poses[:, None]) and no_extra.mask.all()
+
+
 def test_instances_without_an_estimate_come_back_unverified(
     verifier: PoseVerifier, scene: dict[str, torch.Tensor]
 ) -> None:

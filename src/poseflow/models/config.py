@@ -261,7 +261,7 @@ class FunFlow6DConfig:
             :data:`~poseflow.models.checkpoint.CHECKPOINT_FIELDS_ADDED`).
         verify_hypotheses: give the verifier all ``num_hypotheses`` solved hypotheses of an
             instance: its coarse score picks the one expanded with near-symmetric candidates
-            (:func:`~poseflow.models.verification.rank_hypotheses`), the others are candidates.
+            (:func:`~poseflow.models.verification.rank_estimate`), the others are candidates.
         verifier: the verifier's configuration (a mapping is read with
             :meth:`VerifierConfig.from_dict`).
         net: the free sizes of the trainable network (a mapping is read with

@@ -4,11 +4,12 @@ The :class:`~poseflow.verify.PoseVerifier` is training-free: :func:`prepare_veri
 it every object (surface samples with colour and the near-symmetries, cached on disk beside the
 object's other prepared data, in an entry keyed by the mesh and the verifier's fingerprint),
 and :func:`verify_estimate` checks the poses of one image after the best hypothesis of each
-instance was selected (optionally by the verifier itself, :func:`rank_hypotheses`): each pose is
-expanded with its object's near-symmetric candidates (and, optionally, the instance's other
-hypotheses, :func:`other_hypotheses`), the best candidates are
-refined by ICP of the observed cloud, all are rendered and compared with the image, and a
-candidate replaces the pose only where it explains the image clearly better. The verifier's
+instance was selected (optionally by the verifier itself,
+:meth:`~poseflow.verify.PoseVerifier.rank_hypotheses`): each pose is expanded with its object's
+near-symmetric candidates (and, optionally, the instance's other hypotheses,
+:func:`other_hypotheses`), the best candidates are refined by ICP of the observed cloud, all are
+rendered and compared with the image, and a candidate replaces the pose only where it explains
+the image clearly better. The verifier's
 score becomes the estimate's score. The stage is reported to the active timer as
 ``verification``.
 
@@ -35,7 +36,7 @@ __all__ = [
     "keep_better",
     "other_hypotheses",
     "prepare_verification",
-    "rank_hypotheses",
+    "rank_estimate",
     "verify_estimate",
     "verify_proposals",
 ]
@@ -53,7 +54,8 @@ class Proposals:
             registers; None lifts them from the depth.
         observed_mask: ``(B, N)`` bool, their valid points (None with ``observed``).
         rank: whether the verifier ranks the incumbent and ``others`` on its coarse score first
-            (:func:`rank_hypotheses`) instead of keeping the incumbent as it is.
+            (:meth:`~poseflow.verify.PoseVerifier.rank_hypotheses`) instead of keeping the
+            incumbent as it is.
 
     Example:
         >>> est = PoseEstimate(torch.eye(4)[None], torch.ones(1), torch.tensor([False]))
@@ -197,7 +199,7 @@ def other_hypotheses(
     return poses, ok
 
 
-def rank_hypotheses(
+def rank_estimate(
     verifier: PoseVerifier,
     estimate: PoseEstimate,
     extra: torch.Tensor,
@@ -210,14 +212,8 @@ def rank_hypotheses(
 ) -> tuple[PoseEstimate, torch.Tensor, torch.Tensor]:
     """Make each instance's best hypothesis by the verifier's score its estimate.
 
-    The estimator's own score (geometric agreement of a few points) ranks hypotheses that
-    differ by a near-symmetry poorly; the verifier's depth, silhouette and appearance terms
-    rank them on what the image shows: all on the coarse grid of
-    :meth:`~poseflow.verify.PoseVerifier.verify`'s first pass and, where
-    ``config.rank_top_k`` is positive, the best ``rank_top_k`` of them again on the full grid,
-    which resolves thin parts (a handle) that decide between turns of a nearly symmetric
-    object. The chosen one is then
-    expanded with its near-symmetric candidates and is the incumbent of the verifier's test.
+    :meth:`PoseVerifier.rank_hypotheses <poseflow.verify.PoseVerifier.rank_hypotheses>` of the
+    estimate's poses and validity.
 
     Args:
         verifier: a verifier with every object of ``obj_ids`` prepared.
@@ -232,45 +228,15 @@ def rank_hypotheses(
 
     Returns:
         ``(estimate, extra, extra_mask)`` with each instance's best hypothesis swapped into
-        the estimate (an instance whose estimate is invalid is left as it is).
+        the estimate (an instance whose estimate is invalid is left as it is); the estimate's
+        scores and validity are kept.
     """
-    B = len(estimate.poses)
-    if B == 0 or extra.shape[1] == 0:
-        return estimate, extra, extra_mask
-    ids = [int(o) for o in torch.as_tensor(obj_ids).reshape(-1).tolist()]
-    poses = torch.cat((estimate.poses[:, None], extra), dim=1)  # (B, 1 + E, 4, 4)
-    mask = torch.cat((estimate.valid[:, None], extra_mask), dim=1)
-    boxes = verifier.crop_boxes(estimate.poses, ids, K.to(poses.dtype), masks)
-    score = verifier.score(
-        rgb, depth, K, masks, ids, poses, mask, boxes=boxes,
-        crop_size=verifier.config.coarse_crop_size,
+    ranked = verifier.rank_hypotheses(
+        rgb, depth, K, masks, obj_ids, estimate.poses,
+        extra=extra, extra_mask=extra_mask, estimated=estimate.valid,
     )  # fmt: skip
-    total = torch.where(score.valid & mask, score.total, -torch.inf)
-    best = total.argmax(1)
-    top = min(verifier.config.rank_top_k, total.shape[1])
-    if top > 1:
-        idx = total.topk(top, dim=1).indices  # (B, top)
-        kept = torch.isfinite(total.gather(1, idx)) & estimate.valid[:, None]
-        # the estimate leads the batch, unscored, so that the tolerances scaled by the first
-        # hypothesis' depth are those of the coarse pass
-        fine = verifier.score(
-            rgb, depth, K, masks, ids,
-            torch.cat((estimate.poses[:, None],
-                       poses.gather(1, idx[..., None, None].expand(-1, -1, 4, 4))), dim=1),
-            torch.cat((torch.zeros_like(kept[:, :1]), kept), dim=1), boxes=boxes,
-        )  # fmt: skip
-        fine_total = torch.where(fine.valid[:, 1:] & kept, fine.total[:, 1:], -torch.inf)
-        fine_best = idx.gather(1, fine_total.argmax(1, keepdim=True))[:, 0]
-        # where the full grid sees none of them, the coarse choice stands
-        best = torch.where(torch.isfinite(fine_total).any(1), fine_best, best)
-    best = torch.where(estimate.valid, best, 0)
-    rows = torch.arange(B, device=poses.device)
-    swapped = poses.clone()
-    swapped[rows, 0], swapped[rows, best] = poses[rows, best], poses[rows, 0]
-    flags = mask.clone()
-    flags[rows, 0], flags[rows, best] = mask[rows, best], mask[rows, 0]
-    chosen = PoseEstimate(swapped[:, 0], estimate.scores, estimate.valid)
-    return chosen, swapped[:, 1:], flags[:, 1:]
+    chosen = PoseEstimate(ranked.poses[:, 0], estimate.scores, estimate.valid)
+    return chosen, ranked.poses[:, 1:], ranked.mask[:, 1:]
 
 
 def verify_estimate(
@@ -337,8 +303,8 @@ def verify_proposals(
 ) -> PoseEstimate:
     """Choose and verify each instance's pose among its proposals, in one verification.
 
-    With ``proposals.rank`` (and candidates to rank), :func:`rank_hypotheses` makes the best
-    proposal by the verifier's coarse score the incumbent first; then :func:`verify_estimate`
+    With ``proposals.rank`` (and candidates to rank), :func:`rank_estimate` makes the best
+    proposal by the verifier's score the incumbent first; then :func:`verify_estimate`
     checks it against its near-symmetric candidates and the other proposals.
 
     Args:
@@ -358,7 +324,7 @@ def verify_proposals(
         extra = extra_mask = None
     elif proposals.rank:
         with stage("verification"):
-            est, extra, extra_mask = rank_hypotheses(
+            est, extra, extra_mask = rank_estimate(
                 verifier, est, extra, extra_mask, rgb, depth, K, masks, obj_ids
             )
     return verify_estimate(

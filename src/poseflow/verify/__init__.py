@@ -11,6 +11,14 @@ that still scores low (``search_below``) is searched over every orientation
 (:meth:`PoseVerifier.search`): turned by the flips and quarter turns of the object's box
 (:func:`box_turns`), the best turns refined by ICP and tested in the same way.
 
+The parts: :func:`prepare_verifier_object` prepares what the verifier keeps per object
+(:class:`VerifierObject`, cached on disk by :func:`cached_verifier_object`); :class:`PoseScorer`
+expands, refines and scores hypotheses; :class:`PoseVerifier` runs those steps as one contest to
+verify, search and rank hypotheses (:meth:`PoseVerifier.rank_hypotheses`) and returns
+:class:`Hypotheses` and :class:`Verification`; :func:`score_renderings` and
+:func:`select_significant` are the scoring rule and the test of a candidate, :func:`render_points`
+the renderer, :func:`near_symmetries` the search for near-symmetries.
+
 Used on its own, with a user's hypotheses::
 
     import torch
@@ -50,16 +58,18 @@ from poseflow.verify.render import (
     crop_observation,
     render_points,
 )
+from poseflow.verify.results import Hypotheses, Verification
 from poseflow.verify.score import (
     VerifierScore,
     appearance_agreement,
     balance_colors,
     depth_agreement,
     score_renderings,
-    select_hypotheses,
+    select_significant,
     silhouette_agreement,
     visible_rendering,
 )
+from poseflow.verify.scorer import PoseScorer
 from poseflow.verify.symmetry import (
     NearSymmetries,
     axis_angle_matrix,
@@ -67,13 +77,14 @@ from poseflow.verify.symmetry import (
     near_symmetries,
     revolution_axis,
 )
-from poseflow.verify.verifier import Hypotheses, PoseVerifier, Verification
+from poseflow.verify.verifier import PoseVerifier
 
 __all__ = [
     "Hypotheses",
     "NearSymmetries",
     "ObservedCrops",
     "PointRendering",
+    "PoseScorer",
     "PoseVerifier",
     "Verification",
     "VerifierConfig",
@@ -93,7 +104,7 @@ __all__ = [
     "render_points",
     "revolution_axis",
     "score_renderings",
-    "select_hypotheses",
+    "select_significant",
     "silhouette_agreement",
     "verifier_fingerprint",
     "visible_rendering",

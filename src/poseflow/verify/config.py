@@ -57,7 +57,7 @@ class VerifierConfig:
             ``360 / turn_steps`` degrees); half-turns about axes perpendicular to each principal
             axis are tried every ``360 / turn_steps`` degrees too.
         rank_top_k: hypotheses of an instance that
-            :func:`~poseflow.models.verification.rank_hypotheses` scores again on the full grid,
+            :meth:`~poseflow.verify.PoseVerifier.rank_hypotheses` scores again on the full grid,
             the best of its coarse scoring (the coarse grid barely resolves a thin part such as
             a mug's handle); 0 or 1 ranks on the coarse grid alone. 4 raised devbench's mug by 0.03
             AR and lowered a textured cylinder of another mesh set by 0.05 (three seeds each),

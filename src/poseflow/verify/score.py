@@ -24,7 +24,7 @@ by pixel, and is a mean over a set of pixels, as in the VSD error of the BOP ben
 
 The total is the weighted mean of the three terms. Because each term is a sum over pixels, the
 total splits exactly into the contributions of ``G`` blocks of pixels, kept as
-:attr:`VerifierScore.evidence`. :func:`select_hypotheses` uses them to decide whether a candidate
+:attr:`VerifierScore.evidence`. :func:`select_significant` uses them to decide whether a candidate
 really beats the estimate: a one-sided paired test on the per-block differences, so the margin a
 candidate must clear is the spread of the score itself on that instance, not a constant.
 """
@@ -46,7 +46,7 @@ __all__ = [
     "balance_colors",
     "depth_agreement",
     "score_renderings",
-    "select_hypotheses",
+    "select_significant",
     "silhouette_agreement",
     "visible_rendering",
 ]
@@ -83,6 +83,22 @@ class VerifierScore:
 
     def __len__(self) -> int:
         return int(self.total.shape[0])
+
+    @classmethod
+    def zeros(cls, B: int, H: int, G: int, *, like: torch.Tensor) -> VerifierScore:
+        """The score of ``B x H`` unscored hypotheses on ``G`` blocks: zeros, all invalid.
+
+        Every field is a tensor of its own (in ``like``'s dtype and device), so that it can be
+        written into.
+
+        Example:
+            >>> VerifierScore.zeros(2, 3, 4, like=torch.zeros(1)).evidence.shape
+            torch.Size([2, 3, 4])
+        """
+        zeros = [like.new_zeros(B, H) for _ in range(4)]
+        flags = torch.zeros(B, H, dtype=torch.bool, device=like.device)
+        support = torch.zeros(B, H, G, dtype=torch.bool, device=like.device)
+        return cls(*zeros, flags, like.new_zeros(B, H, G), support)
 
 
 def visible_rendering(
@@ -363,7 +379,7 @@ def score_renderings(
     )
 
 
-def select_hypotheses(
+def select_significant(
     score: VerifierScore, *, significance: float
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Pick, per instance, hypothesis 0 (the estimate) unless a candidate clearly beats it.
@@ -393,7 +409,7 @@ def select_hypotheses(
         >>> ev = torch.tensor([[[0.1, 0.1, 0.1, 0.1], [0.2, 0.21, 0.19, 0.2]]])
         >>> s = VerifierScore(*[torch.zeros(1, 2)] * 3, ev.sum(-1),
         ...                   torch.ones(1, 2, dtype=torch.bool), ev, ev > 0)
-        >>> index, t = select_hypotheses(s, significance=0.01)
+        >>> index, t = select_significant(s, significance=0.01)
         >>> index.tolist(), round(t[0, 1].item(), 1)
         ([1], 24.5)
     """
