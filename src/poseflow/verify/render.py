@@ -182,11 +182,31 @@ def render_points(
         raise ValueRangeError(f"size must be an int >= 1, got {size!r}")
     if isinstance(fill_passes, bool) or not isinstance(fill_passes, int) or fill_passes < 0:
         raise ValueRangeError(f"fill_passes must be an int >= 0, got {fill_passes!r}")
-    B, N, H, C, S = sizes["B"], sizes["N"], sizes["H"], sizes["C"], size
-    dtype, device = points.dtype, points.device
+    B, H, S = sizes["B"], sizes["H"], size
     surface = _per_instance(surface_tolerance, B, points, "surface_tolerance")
     occlusion = _per_instance(occlusion_tolerance, B, points, "occlusion_tolerance")
+    zbuf, csum, ccount = _splat(points, normals, colors, poses, K, S, point_mask, surface)
+    return _close_gaps(zbuf, csum, ccount, occlusion, H, S, fill_passes)
 
+
+def _splat(
+    points: torch.Tensor,
+    normals: torch.Tensor,
+    colors: torch.Tensor,
+    poses: torch.Tensor,
+    K: torch.Tensor,
+    S: int,
+    point_mask: torch.Tensor | None,
+    surface: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Project the points into the crops: the z-buffer and each pixel's front surface.
+
+    Returns:
+        The z-buffer ``(B H S S,)`` (inf where empty), and the colour sums ``(B H S S, C)`` and
+        counts ``(B H S S,)`` of the points within ``surface`` of each pixel's nearest.
+    """
+    (B, N, C), H = colors.shape, poses.shape[1]
+    dtype, device = points.dtype, points.device
     R, t = poses[..., :3, :3], poses[..., :3, 3]
     cam = points[:, None] @ R.transpose(-1, -2) + t[..., None, :]  # (B, H, N, 3)
     facing = ((normals[:, None] @ R.transpose(-1, -2)) * cam).sum(-1) < 0
@@ -211,7 +231,24 @@ def render_points(
     csum.index_add_(0, pix[front], col)
     ccount = torch.zeros(B * H * S * S, dtype=dtype, device=device)
     ccount.index_add_(0, pix[front], torch.ones_like(zk[front]))
+    return zbuf, csum, ccount
 
+
+def _close_gaps(
+    zbuf: torch.Tensor,
+    csum: torch.Tensor,
+    ccount: torch.Tensor,
+    occlusion: torch.Tensor,
+    H: int,
+    S: int,
+    fill_passes: int,
+) -> PointRendering:
+    """The rendering of :func:`_splat`'s buffers ``(B H S S, ...)``, its gaps closed.
+
+    Back surfaces seen through gaps between samples are dropped, and the pixels that fell between
+    samples filled.
+    """
+    B, C, dtype = occlusion.shape[0], csum.shape[1], zbuf.dtype
     zimg = zbuf.reshape(B * H, 1, S, S)
     drawn = torch.isfinite(zimg)
     # Back surfaces seen through gaps between samples: far behind a neighbour's nearest depth.
@@ -302,23 +339,32 @@ def crop_observation(
     if rgb is not None:
         check_tensor(rgb, "rgb", (3, "Hi", "Wi"), floating=False, sizes=sizes)
         check_same(("boxes", boxes), ("rgb", rgb), dtype=False)
-        img = rgb.to(dtype) / 255.0 if not rgb.is_floating_point() else rgb.to(dtype)
-        f = int(min(max_supersampling, max(1, math.ceil(float(step.max())))))
-        j = torch.arange(S * f, dtype=dtype, device=boxes.device)
-        sub = step / f
-        gu = boxes[:, None, 0] + (j[None] + 0.5) * sub[:, None, 0]  # (B, S f)
-        gv = boxes[:, None, 1] + (j[None] + 0.5) * sub[:, None, 1]
-        gx = (gu + 0.5) / Wi * 2 - 1  # grid_sample, align_corners=False
-        gy = (gv + 0.5) / Hi * 2 - 1
-        grid = torch.stack(
-            (gx[:, None, :].expand(-1, S * f, -1), gy[:, :, None].expand(-1, -1, S * f)), -1
-        )
-        samples = F.grid_sample(
-            img[None], grid.reshape(1, B * S * f, S * f, 2), align_corners=False
-        )  # (1, 3, B S f, S f)
-        samples = samples.reshape(3, B, S * f, S * f).transpose(0, 1)
-        color = F.avg_pool2d(samples, f) if f > 1 else samples
+        color = _crop_color(rgb, boxes, S, max_supersampling)
     return ObservedCrops(depth=dc, mask=mc, color=color)
+
+
+def _crop_color(
+    rgb: torch.Tensor, boxes: torch.Tensor, S: int, max_supersampling: int
+) -> torch.Tensor:
+    """The colour of :func:`crop_observation`'s crops ``(B, 3, S, S)``, supersampled."""
+    (_, Hi, Wi), B, dtype = rgb.shape, boxes.shape[0], boxes.dtype
+    step = (boxes[:, 2:] - boxes[:, :2]) / S  # (B, 2)
+    img = rgb.to(dtype) / 255.0 if not rgb.is_floating_point() else rgb.to(dtype)
+    f = int(min(max_supersampling, max(1, math.ceil(float(step.max())))))
+    j = torch.arange(S * f, dtype=dtype, device=boxes.device)
+    sub = step / f
+    gu = boxes[:, None, 0] + (j[None] + 0.5) * sub[:, None, 0]  # (B, S f)
+    gv = boxes[:, None, 1] + (j[None] + 0.5) * sub[:, None, 1]
+    gx = (gu + 0.5) / Wi * 2 - 1  # grid_sample, align_corners=False
+    gy = (gv + 0.5) / Hi * 2 - 1
+    grid = torch.stack(
+        (gx[:, None, :].expand(-1, S * f, -1), gy[:, :, None].expand(-1, -1, S * f)), -1
+    )
+    samples = F.grid_sample(
+        img[None], grid.reshape(1, B * S * f, S * f, 2), align_corners=False
+    )  # (1, 3, B S f, S f)
+    samples = samples.reshape(3, B, S * f, S * f).transpose(0, 1)
+    return F.avg_pool2d(samples, f) if f > 1 else samples
 
 
 def box_sum(images: torch.Tensor, window: int) -> torch.Tensor:

@@ -317,7 +317,7 @@ def score_renderings(
     sizes = check_tensor(rendering.depth, "rendering.depth", ("B", "H", "S", "S"))
     check_tensor(observed.depth, "observed.depth", ("B", "S", "S"), sizes=sizes)
     check_mask(observed.mask, "observed.mask", ("B", "S", "S"), sizes)
-    B, H, S = sizes["B"], sizes["H"], sizes["S"]
+    S = sizes["S"]
     if hypothesis_mask is not None:
         check_mask(hypothesis_mask, "hypothesis_mask", ("B", "H"), sizes)
     if S % block_size:
@@ -345,8 +345,6 @@ def score_renderings(
     else:
         app = torch.zeros_like(rendering.depth)
 
-    n_d = support_d.sum((-2, -1)).to(dtype)
-    n_s = union.sum((-2, -1)).to(dtype)
     valid = (
         o_mask.any(-1).any(-1)[:, None]
         & (o_mask & (o_depth > 0)).any(-1).any(-1)[:, None]
@@ -354,6 +352,24 @@ def score_renderings(
     )
     if hypothesis_mask is not None:
         valid &= hypothesis_mask
+    return _block_terms(agree, support_d, inter, union, app, valid, (wd, ws, wa), block_size)
+
+
+def _block_terms(
+    agree: torch.Tensor,
+    support_d: torch.Tensor,
+    inter: torch.Tensor,
+    union: torch.Tensor,
+    app: torch.Tensor,
+    valid: torch.Tensor,
+    weights: tuple[float, float, float],
+    block_size: int,
+) -> VerifierScore:
+    """The score of per-pixel terms ``(B, H, S, S)``: their means and the blocks' evidence."""
+    (B, H, S, _), dtype = app.shape, app.dtype
+    wd, ws, wa = weights
+    n_d = support_d.sum((-2, -1)).to(dtype)
+    n_s = union.sum((-2, -1)).to(dtype)
     total_w = wd + ws + wa
     per_pixel = (
         wd * agree.to(dtype) / n_d.clamp_min(1)[..., None, None]

@@ -23,6 +23,7 @@ from __future__ import annotations
 import itertools
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 
@@ -207,24 +208,54 @@ def near_symmetries(
     surface = points if surface is None else surface
     check_tensor(surface, "surface", ("M", 3), finite=True)
     seeds = _seeds(points, normals, turn_steps)  # (K, 4, 4)
-    K = seeds.shape[0]
-    refined = multi_scale_icp(
-        points[None].expand(K, -1, -1),
-        surface[None].expand(K, -1, -1),
-        seeds,
-        max_correspondence_distances=[f * diameter for f in icp_distances],
-        max_iterations=icp_iterations,
-        relative_rmse=icp_relative_rmse * diameter,
-    )
-    T = torch.where(refined.valid[:, None, None], refined.transformation, seeds)
-    moved = points[None] @ T[:, :3, :3].transpose(1, 2) + T[:, None, :3, 3]
-    dist, _ = nearest_neighbors(moved, surface[None].expand(K, -1, -1))
-    overlap = (dist[..., 0] <= overlap_distance * diameter).to(dtype).mean(-1)
-
+    icp = {
+        "max_correspondence_distances": [f * diameter for f in icp_distances],
+        "max_iterations": icp_iterations,
+        "relative_rmse": icp_relative_rmse * diameter,
+    }
+    T, overlap = _self_overlap(points, surface, seeds, overlap_distance * diameter, icp)
     sym = torch.eye(4, dtype=dtype, device=device)[None]
     if declared is not None:
         check_tensor(declared, "declared", ("S", 4, 4), finite=True)
         sym = torch.cat((sym, declared.to(dtype=dtype, device=device)))
+    idx = _distinct(T, overlap, sym, min_overlap, min_angle, max_candidates)
+    return NearSymmetries(transforms=T[idx], overlap=overlap[idx])
+
+
+def _self_overlap(
+    points: torch.Tensor,
+    surface: torch.Tensor,
+    seeds: torch.Tensor,
+    distance: float,
+    icp: dict[str, Any],
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The seeds ``(K, 4, 4)`` refined by ICP of the points onto the surface, and their overlap.
+
+    The overlap ``(K,)`` is the fraction of the moved points within ``distance`` of the surface.
+    """
+    K = seeds.shape[0]
+    refined = multi_scale_icp(
+        points[None].expand(K, -1, -1), surface[None].expand(K, -1, -1), seeds, **icp
+    )
+    T = torch.where(refined.valid[:, None, None], refined.transformation, seeds)
+    moved = points[None] @ T[:, :3, :3].transpose(1, 2) + T[:, None, :3, 3]
+    dist, _ = nearest_neighbors(moved, surface[None].expand(K, -1, -1))
+    return T, (dist[..., 0] <= distance).to(points.dtype).mean(-1)
+
+
+def _distinct(
+    T: torch.Tensor,
+    overlap: torch.Tensor,
+    sym: torch.Tensor,
+    min_overlap: float,
+    min_angle: float,
+    max_candidates: int,
+) -> torch.Tensor:
+    """The transforms ``T`` ``(K, 4, 4)`` kept as candidates, most overlapping first ``(C,)``.
+
+    Each overlaps at least ``min_overlap``, is no declared symmetry ``sym`` ``(S, 4, 4)`` (the
+    identity included) and no kept one times a declared symmetry, up to ``min_angle``.
+    """
     order = torch.argsort(overlap, descending=True, stable=True)
     kept: list[int] = []
     for k in order.tolist():
@@ -239,8 +270,7 @@ def near_symmetries(
             if float(rotation_angle_error(prev, T[k, :3, :3]).min()) < min_angle:
                 continue
         kept.append(k)
-    idx = torch.tensor(kept, dtype=torch.long, device=device)
-    return NearSymmetries(transforms=T[idx], overlap=overlap[idx])
+    return torch.tensor(kept, dtype=torch.long, device=T.device)
 
 
 def revolution_axis(
