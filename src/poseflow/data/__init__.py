@@ -29,6 +29,7 @@ from poseflow.data.demo_objects import (
     demo_objects,
     write_demo_models,
 )
+from poseflow.data.depth_noise import DepthNoise
 from poseflow.data.frame import (
     Frame,
     read_color,
@@ -48,7 +49,8 @@ from poseflow.data.objects import (
     write_bop_models,
 )
 from poseflow.data.rle import rle_decode, rle_encode
-from poseflow.data.synthetic import DepthNoise, SyntheticObject, generate_dataset
+from poseflow.data.synthetic import generate_dataset
+from poseflow.data.synthetic_objects import SyntheticObject
 
 __all__ = [
     "DEMO_OBJECT_NAMES",

@@ -331,6 +331,40 @@ def _detections_of(
     return stacked, ids, scores, sources
 
 
+def _camera_depth_scale(depth_scale: float | None, bop_scale: float, source: str | None) -> float:
+    """The depth scale to use, metres per unit, given a BOP camera entry's (mm per unit).
+
+    The given ``depth_scale`` wins, with a warning (to the caller of :func:`read_frame`) when it
+    disagrees with the camera's.
+    """
+    from_camera = bop_scale / 1000.0  # BOP: millimetres per unit, poseflow: metres
+    if depth_scale is None:
+        return from_camera
+    if not math.isclose(depth_scale, from_camera, rel_tol=1e-6):
+        warnings.warn(
+            f"depth_scale {depth_scale:g} (m per unit, --depth-scale) overrides the "
+            f"depth_scale {bop_scale:g} (mm per unit, i.e. {from_camera:g} m) of "
+            f"{source or 'the camera entry'}; omit it to use the camera's",
+            stacklevel=3,
+        )
+    return depth_scale
+
+
+def _ids_of_masks(obj_ids: Sequence[int] | int | None, n: int) -> list[int]:
+    """One object id per mask: 1 by default, one id for all, or one each."""
+    if obj_ids is None:
+        ids = [1] * n
+    elif isinstance(obj_ids, int):
+        ids = [obj_ids] * n
+    else:
+        ids = [int(o) for o in obj_ids]
+        if len(ids) == 1:
+            ids = ids * n
+    if len(ids) != n:
+        raise ShapeError(f"got {n} masks but {len(ids)} object ids")
+    return ids
+
+
 def read_frame(
     rgb: str | Path,
     depth: str | Path,
@@ -379,16 +413,7 @@ def read_frame(
     color = read_color(rgb)
     raw_K, bop_scale, source = _camera_entry(K, im_id)
     if bop_scale is not None:
-        from_camera = bop_scale / 1000.0  # BOP: millimetres per unit, poseflow: metres
-        if depth_scale is None:
-            depth_scale = from_camera
-        elif not math.isclose(depth_scale, from_camera, rel_tol=1e-6):
-            warnings.warn(
-                f"depth_scale {depth_scale:g} (m per unit, --depth-scale) overrides the "
-                f"depth_scale {bop_scale:g} (mm per unit, i.e. {from_camera:g} m) of "
-                f"{source or 'the camera entry'}; omit it to use the camera's",
-                stacklevel=2,
-            )
+        depth_scale = _camera_depth_scale(depth_scale, bop_scale, source)
     d, scale = read_metric_depth(depth, depth_scale=depth_scale)
     if tuple(color.shape[1:]) != tuple(d.shape):
         raise ShapeError(
@@ -398,16 +423,7 @@ def read_frame(
     height, width = d.shape
     intrinsics = _check_K(raw_K, width, height, source)
     m = read_masks(list(masks), width, height)
-    if obj_ids is None:
-        ids = [1] * len(m)
-    elif isinstance(obj_ids, int):
-        ids = [obj_ids] * len(m)
-    else:
-        ids = [int(o) for o in obj_ids]
-        if len(ids) == 1:
-            ids = ids * len(m)
-    if len(ids) != len(m):
-        raise ShapeError(f"got {len(m)} masks but {len(ids)} object ids")
+    ids = _ids_of_masks(obj_ids, len(m))
     scores = [1.0] * len(m)
     sources = [str(p) for p in masks]
     if detections is not None:

@@ -115,7 +115,26 @@ class _PlyElement:
 
 
 def _read_ply(path: Path) -> TexturedMesh:
-    data = path.read_bytes()
+    """A PLY mesh, ASCII or binary, with the normals, colours and texture it holds."""
+    fmt, texture_file, elements, body = _ply_header(path.read_bytes(), path)
+    if fmt == "ascii":
+        try:
+            tables = _ply_ascii(body, elements, path)
+        except (ValueError, IndexError) as e:
+            raise MeshFormatError(f"{path}: malformed ASCII data ({e})") from e
+    else:
+        order = "<" if fmt == "binary_little_endian" else ">"
+        try:
+            tables = _ply_binary(body, elements, order, path)
+        except ValueError as e:  # numpy: buffer too small
+            raise MeshFormatError(f"{path}: truncated or malformed binary data ({e})") from e
+    if "vertex" not in tables or "face" not in tables:
+        raise MeshFormatError(f"{path}: a mesh PLY needs vertex and face elements")
+    return _ply_mesh(tables["vertex"], tables["face"], texture_file, path)
+
+
+def _ply_header(data: bytes, path: Path) -> tuple[str, str | None, list[_PlyElement], bytes]:
+    """A PLY's format, texture file and elements, and the body that follows the header."""
     end = data.find(b"end_header")
     if not data.startswith(b"ply") or end < 0:
         raise MeshFormatError(f"{path}: not a PLY file")
@@ -147,20 +166,13 @@ def _read_ply(path: Path) -> TexturedMesh:
             elements[-1].props.append(prop)
     if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
         raise MeshFormatError(f"{path}: unknown PLY format {fmt!r}")
-    if fmt == "ascii":
-        try:
-            tables = _ply_ascii(body, elements, path)
-        except (ValueError, IndexError) as e:
-            raise MeshFormatError(f"{path}: malformed ASCII data ({e})") from e
-    else:
-        order = "<" if fmt == "binary_little_endian" else ">"
-        try:
-            tables = _ply_binary(body, elements, order, path)
-        except ValueError as e:  # numpy: buffer too small
-            raise MeshFormatError(f"{path}: truncated or malformed binary data ({e})") from e
-    if "vertex" not in tables or "face" not in tables:
-        raise MeshFormatError(f"{path}: a mesh PLY needs vertex and face elements")
-    vert, face = tables["vertex"], tables["face"]
+    return fmt, texture_file, elements, body
+
+
+def _ply_mesh(
+    vert: dict[str, Any], face: dict[str, Any], texture_file: str | None, path: Path
+) -> TexturedMesh:
+    """The mesh of a PLY's ``vertex`` and ``face`` columns (by property name)."""
     try:
         v = np.stack([np.asarray(vert[a], np.float64) for a in "xyz"], axis=1)
     except KeyError as e:

@@ -24,8 +24,7 @@ from __future__ import annotations
 
 import json
 import math
-import re
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -33,22 +32,17 @@ from typing import Any
 import numpy as np
 import torch
 from PIL import Image
-from scipy import ndimage
 
-from poseflow._units import check_diameter_units
-from poseflow.data._arrays import as_numpy
-from poseflow.data.bop import (
-    BOPWriter,
-    ModelInfo,
-    TestTarget,
-    read_models_info,
-    write_models_info,
-    write_test_targets,
+from poseflow.data.bop import BOPWriter, TestTarget, write_test_targets
+from poseflow.data.depth_noise import DepthNoise
+from poseflow.data.scene_layout import Placed, look_at, place_on_plane, rot_z
+from poseflow.data.synthetic_objects import (
+    SyntheticObject,
+    load_synthetic_objects,
+    write_synthetic_models,
 )
-from poseflow.errors import OutputExistsError, ShapeError, ValueRangeError
-from poseflow.geometry.pointcloud import cloud_diameter
-from poseflow.geometry.se3 import quaternion_to_rotation
-from poseflow.render.mesh import TexturedMesh, as_textured_mesh
+from poseflow.errors import OutputExistsError, ValueRangeError
+from poseflow.render.mesh import TexturedMesh
 from poseflow.render.raycast import Light, Renderer
 
 __all__ = ["DepthNoise", "SyntheticObject", "generate_dataset", "procedural_texture"]
@@ -57,135 +51,6 @@ __all__ = ["DepthNoise", "SyntheticObject", "generate_dataset", "procedural_text
 KINECT_FOCAL_640 = 572.4
 
 _SPLIT_CODES = {"train": 0, "test": 1}
-
-
-@dataclass(frozen=True)
-class DepthNoise:
-    """Depth-sensor corruption: depth- and angle-dependent Gaussian noise plus missing pixels.
-
-    The noise follows the axial model measured for the Kinect by Nguyen, Izadi and Lovell (2012),
-    ``sigma(z, a) = sigma_base + sigma_quadratic (z - reference_depth)^2
-    + sigma_angle / sqrt(z) * a^2 / (pi/2 - a)^2`` metres, with ``a`` the angle between the
-    surface normal and the viewing ray. Measurements are removed (depth 0) at grazing angles
-    (probability rising linearly from 0 at ``grazing_start_deg`` to 1 at ``grazing_end_deg``), in
-    a band of ``edge_width`` pixels along depth discontinuities larger than ``edge_jump`` metres or
-    against the background (with probability ``edge_dropout``), and anywhere with probability
-    ``random_dropout``.
-
-    Example:
-        >>> noise = DepthNoise()
-        >>> depth = torch.full((20, 20), 0.8)
-        >>> normals = torch.zeros(20, 20, 3); normals[..., 2] = -1.0
-        >>> K = torch.tensor([[50.0, 0, 9.5], [0, 50.0, 9.5], [0, 0, 1]])
-        >>> noisy = noise.apply(depth, normals, K, rng=0)
-        >>> bool(((noisy - depth).abs() < 0.02).all()), noisy.dtype
-        (True, torch.float32)
-    """
-
-    sigma_base: float = 0.0012
-    sigma_quadratic: float = 0.0019
-    reference_depth: float = 0.4
-    sigma_angle: float = 0.0001
-    grazing_start_deg: float = 70.0
-    grazing_end_deg: float = 85.0
-    edge_jump: float = 0.01
-    edge_width: int = 1
-    edge_dropout: float = 0.8
-    random_dropout: float = 0.001
-
-    def __post_init__(self) -> None:
-        for name in ("sigma_base", "sigma_quadratic", "sigma_angle", "edge_jump"):
-            if not getattr(self, name) >= 0:
-                raise ValueRangeError(f"{name} must be non-negative, got {getattr(self, name)}")
-        for name in ("edge_dropout", "random_dropout"):
-            if not 0 <= getattr(self, name) <= 1:
-                raise ValueRangeError(f"{name} must lie in [0, 1], got {getattr(self, name)}")
-        if not 0 <= self.grazing_start_deg < self.grazing_end_deg <= 90:
-            raise ValueRangeError("need 0 <= grazing_start_deg < grazing_end_deg <= 90")
-        if self.edge_width < 0:
-            raise ValueRangeError(f"edge_width must be >= 0, got {self.edge_width}")
-
-    def sigma(self, depth: np.ndarray, angle: np.ndarray) -> np.ndarray:
-        """Standard deviation in metres for depths and incidence angles (radians), numpy."""
-        a = np.minimum(angle, np.deg2rad(89.0))
-        z = np.maximum(depth, 1e-6)
-        return (
-            self.sigma_base
-            + self.sigma_quadratic * (z - self.reference_depth) ** 2
-            + self.sigma_angle / np.sqrt(z) * a**2 / (np.pi / 2 - a) ** 2
-        )
-
-    def apply(
-        self,
-        depth: torch.Tensor | np.ndarray,
-        normals: torch.Tensor | np.ndarray,
-        K: torch.Tensor | np.ndarray,
-        *,
-        rng: np.random.Generator | int | None = None,
-    ) -> torch.Tensor:
-        """Corrupt a clean depth map.
-
-        Args:
-            depth: clean z-depth ``(H, W)`` in metres, 0 where nothing was hit.
-            normals: camera-frame unit normals ``(H, W, 3)`` (the renderer's ``normals``).
-            K: intrinsics ``(3, 3)``.
-            rng: numpy generator or seed.
-
-        Returns:
-            Noisy depth ``(H, W)`` float32 in metres, 0 where missing.
-        """
-        d = as_numpy(depth, np.float64)
-        n = as_numpy(normals, np.float64)
-        if d.ndim != 2 or n.shape != (*d.shape, 3):
-            raise ShapeError(f"depth must be (H, W) and normals (H, W, 3), got {d.shape} {n.shape}")
-        rng = np.random.default_rng(rng)
-        h, w = d.shape
-        hit = np.isfinite(d) & (d > 0)
-        Kinv = np.linalg.inv(as_numpy(K, np.float64).reshape(3, 3))
-        uu, vv = np.meshgrid(np.arange(w), np.arange(h))
-        rays = np.stack([uu, vv, np.ones_like(uu)], axis=-1).astype(np.float64) @ Kinv.T
-        rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
-        cos = np.abs(np.einsum("hwc,hwc->hw", rays, n))
-        angle = np.arccos(np.clip(cos, 0.0, 1.0))
-        out = d + rng.standard_normal(d.shape) * self.sigma(d, angle)
-        a0, a1 = np.deg2rad(self.grazing_start_deg), np.deg2rad(self.grazing_end_deg)
-        p_drop = np.clip((angle - a0) / (a1 - a0), 0.0, 1.0)
-        drop = rng.random(d.shape) < np.maximum(p_drop, self.random_dropout)
-        if self.edge_width > 0 and self.edge_dropout > 0:
-            z = np.where(hit, d, np.inf)
-            edge = np.zeros_like(hit)
-            for axis in (0, 1):
-                with np.errstate(invalid="ignore"):
-                    diff = np.abs(np.diff(z, axis=axis))
-                jump = ~(diff <= self.edge_jump)  # inf - inf is nan: background stays no-edge
-                both_bg = ~hit[1:, :] & ~hit[:-1, :] if axis == 0 else ~hit[:, 1:] & ~hit[:, :-1]
-                jump &= ~both_bg
-                if axis == 0:
-                    edge[1:, :] |= jump
-                    edge[:-1, :] |= jump
-                else:
-                    edge[:, 1:] |= jump
-                    edge[:, :-1] |= jump
-            if self.edge_width > 1:
-                edge = ndimage.binary_dilation(edge, iterations=self.edge_width - 1)
-            drop |= edge & (rng.random(d.shape) < self.edge_dropout)
-        out = np.where(hit & ~drop & (out > 0), out, 0.0)
-        return torch.from_numpy(out.astype(np.float32))
-
-
-@dataclass(frozen=True)
-class SyntheticObject:
-    """An object to place in synthetic scenes: a mesh in metres and its BOP model info.
-
-    Attributes:
-        obj_id: BOP object id (1-based).
-        mesh: the textured mesh, model frame, metres.
-        info: diameter, bounding box and symmetries written to ``models_info.json``.
-    """
-
-    obj_id: int
-    mesh: TexturedMesh
-    info: ModelInfo
 
 
 def procedural_texture(rng: np.random.Generator | int | None, size: int = 256) -> np.ndarray:
@@ -336,96 +201,6 @@ def _distractor_pool(rng: np.random.Generator, count: int, size_range: tuple[flo
     return pool
 
 
-def _rot_z(a: float) -> np.ndarray:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
-#: Rotations bringing each of the six model axes (+x, -x, +y, -y, +z, -z) to point down (-z).
-_FACE_DOWN = [
-    np.array([[0, 0, 1], [0, 1, 0], [-1, 0, 0]], float),  # +x -> -z
-    np.array([[0, 0, -1], [0, 1, 0], [1, 0, 0]], float),  # -x -> -z
-    np.array([[1, 0, 0], [0, 0, 1], [0, -1, 0]], float),  # +y -> -z
-    np.array([[1, 0, 0], [0, 0, -1], [0, 1, 0]], float),  # -y -> -z
-    np.array([[1, 0, 0], [0, -1, 0], [0, 0, -1]], float),  # +z -> -z
-    np.eye(3),  # -z -> -z
-]
-
-
-def _rest_rotation(rng: np.random.Generator, tilt_prob: float) -> np.ndarray:
-    """A resting orientation: a random face down with random yaw, or any orientation."""
-    if rng.random() < tilt_prob:
-        return quaternion_to_rotation(rng.standard_normal(4))
-    return _rot_z(rng.uniform(0, 2 * np.pi)) @ _FACE_DOWN[int(rng.integers(6))]
-
-
-@dataclass
-class _Placed:
-    mesh_index: int  # index into the renderer's meshes
-    obj_id: int  # 0 for the plane and distractors
-    pose_world: np.ndarray  # (4, 4) model-to-world
-
-
-def _layout(
-    rng: np.random.Generator,
-    meshes: Sequence[TexturedMesh],
-    chosen: Sequence[int],
-    obj_ids: Sequence[int],
-    *,
-    tilt_prob: float,
-    clutter: float,
-) -> tuple[list[_Placed], float]:
-    """Place meshes on the plane z = 0 without overlapping footprints; returns them and a radius."""
-    rests = []
-    for m in chosen:
-        R = _rest_rotation(rng, tilt_prob)
-        v = meshes[m].vertices @ R.T
-        centre = 0.5 * (v.max(0) + v.min(0))
-        foot = float(np.linalg.norm(v[:, :2] - centre[:2], axis=1).max())
-        rests.append((R, v.min(0)[2], centre, foot))
-    area = sum(r[3] ** 2 for r in rests)
-    radius = max(math.sqrt(area / max(clutter, 1e-3)), max(r[3] for r in rests))
-    placed: list[_Placed] = []
-    circles: list[tuple[np.ndarray, float]] = []
-    order = np.argsort([-r[3] for r in rests])  # big first
-    for k in order:
-        R, zmin, centre, foot = rests[k]
-        r_place = radius
-        for attempt in range(200):
-            xy = rng.uniform(-1, 1, 2) * r_place
-            if np.linalg.norm(xy) > r_place:
-                continue
-            if all(np.linalg.norm(xy - c) >= 0.95 * (foot + f) for c, f in circles):
-                break
-            if attempt % 40 == 39:
-                r_place *= 1.2
-        circles.append((xy, foot))
-        T = np.eye(4)
-        T[:3, :3] = R
-        T[:3, 3] = [xy[0] - centre[0], xy[1] - centre[1], -zmin]
-        placed.append(_Placed(chosen[k], obj_ids[k], T))
-    spread = max(float(np.linalg.norm(c) + f) for c, f in circles)
-    return placed, spread
-
-
-def _look_at(eye: np.ndarray, target: np.ndarray, roll: float) -> np.ndarray:
-    """World-to-camera transform (OpenCV camera: x right, y down, z forward), z up in the world."""
-    f = target - eye
-    f /= np.linalg.norm(f)
-    up = np.array([0.0, 0.0, 1.0])
-    r = np.cross(f, up)
-    if np.linalg.norm(r) < 1e-6:
-        r = np.array([1.0, 0.0, 0.0])
-    r /= np.linalg.norm(r)
-    d = np.cross(f, r)
-    R_c2w = np.stack([r, d, f], axis=1)
-    R_w2c = _rot_z(roll) @ R_c2w.T
-    T = np.eye(4)
-    T[:3, :3] = R_w2c
-    T[:3, 3] = -R_w2c @ eye
-    return T
-
-
 def _background(rng: np.random.Generator, height: int, width: int) -> np.ndarray:
     tex = procedural_texture(rng, 128)
     return np.asarray(Image.fromarray(tex).resize((width, height), Image.BILINEAR))
@@ -441,104 +216,6 @@ def _random_light(rng: np.random.Generator) -> Light:
         diffuse=float(rng.uniform(0.5, 0.9)),
         color=tuple(float(x) for x in tint),
     )
-
-
-# --------------------------------------------------------------------------------------------
-# Objects
-# --------------------------------------------------------------------------------------------
-
-
-def _info_of(obj: Any, mesh: TexturedMesh) -> ModelInfo:
-    """models_info entry of an object: its own (an ``ObjectModel``) or measured from the mesh."""
-    if hasattr(obj, "model_info"):
-        return obj.model_info()
-    lo, hi = mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)
-    diameter = float(cloud_diameter(torch.from_numpy(mesh.vertices)[None])[0])
-    return ModelInfo(diameter=diameter, min_xyz=lo, size_xyz=hi - lo)
-
-
-def _load_objects(objects: Any, mesh_scale: float = 1.0) -> list[SyntheticObject]:
-    if objects is None:
-        from poseflow.data.demo_objects import demo_objects
-
-        objects = demo_objects(num_points=64)  # only the meshes and model infos are used
-    from_folder = isinstance(objects, (str, Path))
-    if from_folder:
-        objects = _load_mesh_folder(Path(objects), mesh_scale)  # checked file by file
-    items = list(objects.items()) if isinstance(objects, Mapping) else list(enumerate(objects, 1))
-    if not items:
-        raise ValueRangeError("generate_dataset needs at least one object")
-    out = []
-    for obj_id, obj in items:
-        if isinstance(obj, SyntheticObject):
-            out.append(obj)  # keeps its own id
-            continue
-        mesh = as_textured_mesh(obj)
-        out.append(SyntheticObject(int(obj_id), mesh, _info_of(obj, mesh)))
-    for o in [] if from_folder else out:
-        where = f"object {o.obj_id} (a mesh passed in memory: scale it to metres first)"
-        check_diameter_units(_diameter(o.mesh), scale_name="its scale", where=where)
-    ids = [o.obj_id for o in out]
-    if len(set(ids)) != len(ids) or min(ids) < 1:
-        raise ValueRangeError(f"object ids must be distinct and >= 1, got {ids}")
-    return out
-
-
-def _diameter(mesh: TexturedMesh) -> float:
-    return float(cloud_diameter(torch.from_numpy(np.ascontiguousarray(mesh.vertices))[None])[0])
-
-
-def _load_mesh_folder(folder: Path, scale: float) -> dict[int, Any]:
-    """Meshes of a folder keyed by object id.
-
-    Files named like BOP models (``obj_000005.ply``) keep their id, and their entry of a
-    ``models_info.json`` beside them (symmetries, diameter) is used; other files are numbered
-    1, 2, ... in name order.
-
-    Raises:
-        UnitsError: a scaled mesh has an implausible diameter (the message names the file and
-            the ``--mesh-scale`` to set).
-    """
-    from poseflow.data.objects import load_mesh
-
-    def load(p: Path) -> TexturedMesh:
-        mesh = load_mesh(p, scale=scale)
-        check_diameter_units(
-            _diameter(mesh), scale_name="--mesh-scale", api_name="mesh_scale", scale=scale,
-            where=str(p),
-        )  # fmt: skip
-        return mesh
-
-    if not folder.is_dir():
-        raise ValueRangeError(f"objects must be a folder of meshes, {folder} is not a folder")
-    paths = sorted(p for p in folder.iterdir() if p.suffix.lower() in (".ply", ".obj"))
-    if not paths:
-        raise ValueRangeError(f"no .ply or .obj meshes in {folder}")
-    bop_ids = [re.fullmatch(r"obj_(\d+)", p.stem) for p in paths]
-    if all(bop_ids):
-        infos = {}
-        if (folder / "models_info.json").is_file():
-            infos = read_models_info(folder / "models_info.json")
-        out: dict[int, Any] = {}
-        for p, match in zip(paths, bop_ids):
-            obj_id = int(match.group(1))  # type: ignore[union-attr]
-            mesh = load(p)
-            if obj_id in infos:
-                out[obj_id] = SyntheticObject(obj_id, mesh, infos[obj_id])
-            else:
-                out[obj_id] = mesh
-        return out
-    return {i: load(p) for i, p in enumerate(paths, 1)}
-
-
-def _write_models(root: Path, objects: Sequence[SyntheticObject]) -> None:
-    from poseflow.data.objects import write_bop_model
-
-    infos = {o.obj_id: o.info for o in objects}
-    for folder in ("models", "models_eval"):
-        for o in objects:
-            write_bop_model(root / folder / f"obj_{o.obj_id:06d}.ply", o.mesh)
-        write_models_info(root / folder / "models_info.json", infos)
 
 
 # --------------------------------------------------------------------------------------------
@@ -571,7 +248,7 @@ def generate_dataset(
     max_roll_deg: float = 15.0,
     tilt_prob: float = 0.3,
     clutter: float = 0.5,
-    depth_noise: DepthNoise | None = DepthNoise(),
+    depth_noise: DepthNoise | None = DepthNoise(),  # noqa: B008 (frozen, so shared safely)
     rgb_noise: float = 2.0,
     depth_scale: float = 0.1,
     min_target_visib: float = 0.1,
@@ -646,149 +323,257 @@ def generate_dataset(
     ):
         if isinstance(value, bool) or not isinstance(value, int) or value < 0:
             raise ValueRangeError(f"{name} must be a non-negative integer, got {value!r}")
-    if width < 8 or height < 8:
-        raise ValueRangeError(f"image size must be at least 8x8, got {width}x{height}")
-    if images_per_scene < 1:
-        raise ValueRangeError(f"images_per_scene must be >= 1, got {images_per_scene}")
-    n_obj = _range(objects_per_image, "objects_per_image")
-    if n_obj[0] < 1:
-        raise ValueRangeError(f"objects_per_image must be >= 1, got {objects_per_image!r}")
-    n_dis = _range(distractors_per_image, "distractors_per_image")
-    dist = _range(camera_distance, "camera_distance")
-    elev = _range(elevation_deg, "elevation_deg")
-    if dist[0] <= 0 or elev[1] > 90:
-        raise ValueRangeError("camera_distance must be positive and elevation_deg within [0, 90]")
-    if not 0 < clutter <= 1:
-        raise ValueRangeError(f"clutter must lie in (0, 1], got {clutter}")
-
+    settings = _Settings.checked(
+        width=width, height=height, images_per_scene=images_per_scene,
+        objects_per_image=objects_per_image, distractors_per_image=distractors_per_image,
+        camera_distance=camera_distance, elevation_deg=elevation_deg, clutter=clutter, seed=seed,
+        focal=focal, max_roll_deg=max_roll_deg, tilt_prob=tilt_prob, depth_noise=depth_noise,
+        rgb_noise=rgb_noise, depth_scale=depth_scale, min_target_visib=min_target_visib,
+        image_ext=image_ext,
+    )  # fmt: skip
     root = Path(out_dir)
     if root.is_dir() and any(root.iterdir()) and not overwrite:
         raise OutputExistsError(
             f"{root} is not empty: a new dataset would mix with what it holds; choose an empty "
             "or new folder, or pass overwrite=True (--overwrite for poseflow synth)"
         )
-    objs = _load_objects(objects, mesh_scale)
+    objs = load_synthetic_objects(objects, mesh_scale)
     root.mkdir(parents=True, exist_ok=True)
-    f = KINECT_FOCAL_640 * width / 640.0 if focal is None else float(focal)
-    K = np.array([[f, 0.0, (width - 1) / 2], [0.0, f, (height - 1) / 2], [0.0, 0.0, 1.0]])
-
-    # fixed pools: the meshes are built into the renderer once
-    pool_rng = np.random.default_rng([seed, 99])
-    largest = max(float(np.linalg.norm(o.mesh.extent())) for o in objs)
-    plane_size = 4.0 * (dist[1] + largest)
-    planes = [
-        _plane_mesh(plane_size, 2.0 * largest, procedural_texture(pool_rng, 256)) for _ in range(6)
-    ]
-    distractors = _distractor_pool(pool_rng, 12, (0.3 * largest, 0.8 * largest))
-    meshes = [o.mesh for o in objs] + planes + distractors
-    renderer = Renderer(meshes)
-    first_plane, first_distractor = len(objs), len(objs) + len(planes)
-
-    max_range = 65535 * depth_scale / 1000.0  # what a 16-bit depth PNG can hold, metres
-    _write_models(root, objs)
-    (root / "camera.json").write_text(
-        json.dumps(
-            {
-                "cx": K[0, 2],
-                "cy": K[1, 2],
-                "fx": f,
-                "fy": f,
-                "width": width,
-                "height": height,
-                "depth_scale": depth_scale,
-            },
-            indent=2,
-        )
-    )
+    pools = _Pools.build(objs, seed, settings.distance[1])  # the renderer holds every mesh
+    write_synthetic_models(root, objs)
+    settings.write_camera(root / "camera.json")
     from tqdm.auto import tqdm
 
     bar = tqdm(total=num_train_images + num_test_images, disable=not progress, unit="img")
     targets: list[TestTarget] = []
     for split, count in (("train", num_train_images), ("test", num_test_images)):
-        writer = BOPWriter(root, split, image_ext=image_ext, depth_scale=depth_scale)
-        code = _SPLIT_CODES[split]
-        for scene_id in range(math.ceil(count / images_per_scene)):
-            srng = np.random.default_rng([seed, code, scene_id])
-            k = int(srng.integers(int(n_obj[0]), int(n_obj[1]) + 1))
-            if k <= len(objs):
-                chosen = list(srng.choice(len(objs), size=k, replace=False))
-            else:
-                chosen = list(srng.permutation(len(objs))) + list(
-                    srng.integers(len(objs), size=k - len(objs))
-                )
-            n_d = int(srng.integers(int(n_dis[0]), int(n_dis[1]) + 1))
-            d_chosen = [
-                first_distractor + int(i) for i in srng.integers(len(distractors), size=n_d)
-            ]
-            all_chosen = [int(c) for c in chosen] + d_chosen
-            ids = [objs[int(c)].obj_id for c in chosen] + [0] * n_d
-            placed, spread = _layout(
-                srng, meshes, all_chosen, ids, tilt_prob=tilt_prob, clutter=clutter
-            )
-            plane_pose = np.eye(4)
-            plane_pose[:3, :3] = _rot_z(srng.uniform(0, 2 * np.pi))
-            plane_pose[:2, 3] = srng.uniform(-1, 1, 2) * largest
-            placed.append(_Placed(first_plane + int(srng.integers(len(planes))), 0, plane_pose))
-            objects_placed = [p for p in placed if p.obj_id > 0]
-            centre = np.mean([p.pose_world[:3, 3] for p in objects_placed], axis=0)
-            centre[2] = 0.25 * largest  # about mid-height of the objects
-            n_images = min(images_per_scene, count - scene_id * images_per_scene)
-            for im_id in range(n_images):
-                irng = np.random.default_rng([seed, code, scene_id, im_id])
-                az = irng.uniform(0, 2 * np.pi)
-                el = np.deg2rad(irng.uniform(*elev))
-                r = max(irng.uniform(*dist), 1.5 * largest)
-                eye = centre + r * np.array(
-                    [np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)]
-                )
-                target = centre + np.append(irng.uniform(-0.25, 0.25, 2) * spread, 0.0)
-                T_w2c = _look_at(eye, target, np.deg2rad(irng.uniform(-1, 1) * max_roll_deg))
-                poses = np.stack([T_w2c @ p.pose_world for p in placed])
-                out = renderer.render(
-                    poses,
-                    K,
-                    width,
-                    height,
-                    object_ids=[p.mesh_index for p in placed],
-                    light=_random_light(irng),
-                    background=_background(irng, height, width),
-                )
-                depth = out.depth
-                if depth_noise is not None:
-                    depth = depth_noise.apply(depth, out.normals, K, rng=irng)
-                depth = torch.where(depth <= max_range, depth, torch.zeros_like(depth))
-                rgb = out.rgb.numpy().astype(np.float64)
-                if rgb_noise > 0:
-                    rgb = rgb + irng.normal(0.0, rgb_noise, rgb.shape)
-                rgb8 = np.clip(np.round(rgb), 0, 255).astype(np.uint8)
-                sel = [i for i, p in enumerate(placed) if p.obj_id > 0]
-                masks = out.masks_full[sel]
-                visib = out.masks_visible[sel]
-                writer.add_image(
-                    scene_id,
-                    im_id,
-                    K=K,
-                    rgb=rgb8,
-                    depth=depth,
-                    obj_ids=[placed[i].obj_id for i in sel],
-                    poses=poses[sel],
-                    masks=masks,
-                    masks_visib=visib,
-                    R_w2c=T_w2c[:3, :3],
-                    t_w2c=T_w2c[:3, 3],
-                )
-                if split == "test":
-                    full = masks.flatten(1).sum(1).double()
-                    fract = visib.flatten(1).sum(1).double() / full.clamp(min=1)
-                    counts: dict[int, int] = {}
-                    for i, fr in zip(sel, fract.tolist()):
-                        if fr >= min_target_visib:
-                            counts[placed[i].obj_id] = counts.get(placed[i].obj_id, 0) + 1
-                    targets += [
-                        TestTarget(scene_id, im_id, o, c) for o, c in sorted(counts.items())
-                    ]
-                bar.update(1)
-            writer.flush()
+        targets += _render_split(root, split, count, pools, settings, bar)
     bar.close()
     write_test_targets(root / "test_targets_bop19.json", targets)
     return root
+
+
+@dataclass(frozen=True)
+class _Settings:
+    """The checked options of :func:`generate_dataset` that scenes and images are drawn with."""
+
+    width: int
+    height: int
+    K: np.ndarray  # (3, 3) intrinsics shared by all images
+    seed: int
+    images_per_scene: int
+    objects_per_image: tuple[float, float]  # inclusive ranges
+    distractors_per_image: tuple[float, float]
+    distance: tuple[float, float]  # metres
+    elevation_deg: tuple[float, float]
+    max_roll_deg: float
+    tilt_prob: float
+    clutter: float
+    depth_noise: DepthNoise | None
+    rgb_noise: float
+    depth_scale: float  # millimetres per unit of the depth PNGs
+    min_target_visib: float
+    image_ext: str
+
+    @classmethod
+    def checked(
+        cls,
+        *,
+        width: int,
+        height: int,
+        images_per_scene: int,
+        objects_per_image: int | tuple[int, int],
+        distractors_per_image: int | tuple[int, int],
+        camera_distance: tuple[float, float],
+        elevation_deg: tuple[float, float],
+        clutter: float,
+        focal: float | None,
+        **rest: Any,
+    ) -> _Settings:
+        """The settings from :func:`generate_dataset`'s arguments, checked; ``rest`` as given."""
+        if width < 8 or height < 8:
+            raise ValueRangeError(f"image size must be at least 8x8, got {width}x{height}")
+        if images_per_scene < 1:
+            raise ValueRangeError(f"images_per_scene must be >= 1, got {images_per_scene}")
+        n_obj = _range(objects_per_image, "objects_per_image")
+        if n_obj[0] < 1:
+            raise ValueRangeError(f"objects_per_image must be >= 1, got {objects_per_image!r}")
+        n_dis = _range(distractors_per_image, "distractors_per_image")
+        dist = _range(camera_distance, "camera_distance")
+        elev = _range(elevation_deg, "elevation_deg")
+        if dist[0] <= 0 or elev[1] > 90:
+            raise ValueRangeError(
+                "camera_distance must be positive and elevation_deg within [0, 90]"
+            )
+        if not 0 < clutter <= 1:
+            raise ValueRangeError(f"clutter must lie in (0, 1], got {clutter}")
+        f = KINECT_FOCAL_640 * width / 640.0 if focal is None else float(focal)
+        K = np.array([[f, 0.0, (width - 1) / 2], [0.0, f, (height - 1) / 2], [0.0, 0.0, 1.0]])
+        return cls(
+            width=width, height=height, K=K, images_per_scene=images_per_scene,
+            objects_per_image=n_obj, distractors_per_image=n_dis, distance=dist,
+            elevation_deg=elev, clutter=clutter, **rest,
+        )  # fmt: skip
+
+    @property
+    def max_range(self) -> float:
+        """The largest depth a 16-bit depth PNG holds, metres; farther depths are missing."""
+        return 65535 * self.depth_scale / 1000.0
+
+    def write_camera(self, path: Path) -> None:
+        """Write the dataset's ``camera.json`` (BOP layout)."""
+        K = self.K
+        camera = {"cx": K[0, 2], "cy": K[1, 2], "fx": K[0, 0], "fy": K[1, 1]}
+        camera.update(width=self.width, height=self.height, depth_scale=self.depth_scale)
+        path.write_text(json.dumps(camera, indent=2))
+
+
+@dataclass(frozen=True)
+class _Pools:
+    """The meshes scenes are built from, in one renderer: objects, support planes, distractors."""
+
+    meshes: list[TexturedMesh]
+    renderer: Renderer
+    obj_ids: list[int]  # of the object meshes, which come first
+    planes: range  # mesh indices
+    distractors: range
+    largest: float  # the largest object extent, metres
+
+    @classmethod
+    def build(cls, objs: Sequence[SyntheticObject], seed: int, max_distance: float) -> _Pools:
+        """Draw the planes and distractors (sized after the largest object) from ``seed``."""
+        rng = np.random.default_rng([seed, 99])
+        largest = max(float(np.linalg.norm(o.mesh.extent())) for o in objs)
+        plane_size = 4.0 * (max_distance + largest)
+        planes = [
+            _plane_mesh(plane_size, 2.0 * largest, procedural_texture(rng, 256)) for _ in range(6)
+        ]
+        distractors = _distractor_pool(rng, 12, (0.3 * largest, 0.8 * largest))
+        meshes = [o.mesh for o in objs] + planes + distractors
+        n, n_p = len(objs), len(planes)
+        return cls(
+            meshes, Renderer(meshes), [o.obj_id for o in objs], range(n, n + n_p),
+            range(n + n_p, len(meshes)), largest,
+        )  # fmt: skip
+
+
+@dataclass(frozen=True)
+class _Image:
+    """One rendered image and its object instances (``B`` of them)."""
+
+    rgb: np.ndarray  # (H, W, 3) uint8
+    depth: torch.Tensor  # (H, W) metres, 0 where missing
+    obj_ids: list[int]
+    poses: np.ndarray  # (B, 4, 4) model-to-camera
+    masks: torch.Tensor  # (B, H, W) bool, full silhouettes
+    masks_visib: torch.Tensor  # (B, H, W) bool, visible parts
+
+
+def _render_split(
+    root: Path, split: str, count: int, pools: _Pools, s: _Settings, bar: Any
+) -> list[TestTarget]:
+    """Render and write the ``count`` images of ``split``; the test targets among them."""
+    writer = BOPWriter(root, split, image_ext=s.image_ext, depth_scale=s.depth_scale)
+    code = _SPLIT_CODES[split]
+    targets: list[TestTarget] = []
+    for scene_id in range(math.ceil(count / s.images_per_scene)):
+        placed, centre, spread = _draw_scene(
+            np.random.default_rng([s.seed, code, scene_id]), pools, s
+        )
+        for im_id in range(min(s.images_per_scene, count - scene_id * s.images_per_scene)):
+            rng = np.random.default_rng([s.seed, code, scene_id, im_id])
+            T_w2c = _draw_camera(rng, centre, spread, pools.largest, s)
+            image = _render_image(rng, pools.renderer, placed, T_w2c, s)
+            writer.add_image(
+                scene_id, im_id, K=s.K, rgb=image.rgb, depth=image.depth, obj_ids=image.obj_ids,
+                poses=image.poses, masks=image.masks, masks_visib=image.masks_visib,
+                R_w2c=T_w2c[:3, :3], t_w2c=T_w2c[:3, 3],
+            )  # fmt: skip
+            if split == "test":
+                targets += _test_targets(scene_id, im_id, image, s.min_target_visib)
+            bar.update(1)
+        writer.flush()
+    return targets
+
+
+def _draw_scene(
+    rng: np.random.Generator, pools: _Pools, s: _Settings
+) -> tuple[list[Placed], np.ndarray, float]:
+    """One layout on a support plane: the placed meshes, the centre ``(3,)`` and the spread.
+
+    Objects are drawn without replacement while there are enough, then repeated.
+    """
+    n = len(pools.obj_ids)
+    k = int(rng.integers(int(s.objects_per_image[0]), int(s.objects_per_image[1]) + 1))
+    if k <= n:
+        chosen = list(rng.choice(n, size=k, replace=False))
+    else:
+        chosen = list(rng.permutation(n)) + list(rng.integers(n, size=k - n))
+    n_d = int(rng.integers(int(s.distractors_per_image[0]), int(s.distractors_per_image[1]) + 1))
+    d_chosen = [pools.distractors[int(i)] for i in rng.integers(len(pools.distractors), size=n_d)]
+    ids = [pools.obj_ids[int(c)] for c in chosen] + [0] * n_d
+    placed, spread = place_on_plane(
+        rng, pools.meshes, [int(c) for c in chosen] + d_chosen, ids, tilt_prob=s.tilt_prob,
+        clutter=s.clutter,
+    )  # fmt: skip
+    plane_pose = np.eye(4)
+    plane_pose[:3, :3] = rot_z(rng.uniform(0, 2 * np.pi))
+    plane_pose[:2, 3] = rng.uniform(-1, 1, 2) * pools.largest
+    placed.append(Placed(pools.planes[int(rng.integers(len(pools.planes)))], 0, plane_pose))
+    centre = np.mean([p.pose_world[:3, 3] for p in placed if p.obj_id > 0], axis=0)
+    centre[2] = 0.25 * pools.largest  # about mid-height of the objects
+    return placed, centre, spread
+
+
+def _draw_camera(
+    rng: np.random.Generator, centre: np.ndarray, spread: float, largest: float, s: _Settings
+) -> np.ndarray:
+    """A world-to-camera transform ``(4, 4)`` on the viewpoint sphere around ``centre``."""
+    az = rng.uniform(0, 2 * np.pi)
+    el = np.deg2rad(rng.uniform(*s.elevation_deg))
+    r = max(rng.uniform(*s.distance), 1.5 * largest)
+    eye = centre + r * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+    target = centre + np.append(rng.uniform(-0.25, 0.25, 2) * spread, 0.0)
+    return look_at(eye, target, np.deg2rad(rng.uniform(-1, 1) * s.max_roll_deg))
+
+
+def _render_image(
+    rng: np.random.Generator,
+    renderer: Renderer,
+    placed: Sequence[Placed],
+    T_w2c: np.ndarray,
+    s: _Settings,
+) -> _Image:
+    """Render the placed meshes from ``T_w2c`` under a random light, with sensor noise."""
+    poses = np.stack([T_w2c @ p.pose_world for p in placed])
+    out = renderer.render(
+        poses, s.K, s.width, s.height, object_ids=[p.mesh_index for p in placed],
+        light=_random_light(rng), background=_background(rng, s.height, s.width),
+    )  # fmt: skip
+    depth = out.depth
+    if s.depth_noise is not None:
+        depth = s.depth_noise.apply(depth, out.normals, s.K, rng=rng)
+    depth = torch.where(depth <= s.max_range, depth, torch.zeros_like(depth))
+    rgb = out.rgb.numpy().astype(np.float64)
+    if s.rgb_noise > 0:
+        rgb = rgb + rng.normal(0.0, s.rgb_noise, rgb.shape)
+    sel = [i for i, p in enumerate(placed) if p.obj_id > 0]
+    return _Image(
+        rgb=np.clip(np.round(rgb), 0, 255).astype(np.uint8),
+        depth=depth,
+        obj_ids=[placed[i].obj_id for i in sel],
+        poses=poses[sel],
+        masks=out.masks_full[sel],
+        masks_visib=out.masks_visible[sel],
+    )
+
+
+def _test_targets(scene_id: int, im_id: int, image: _Image, min_visib: float) -> list[TestTarget]:
+    """The image's test targets: per object, its instances at least ``min_visib`` visible."""
+    full = image.masks.flatten(1).sum(1).double()
+    fract = image.masks_visib.flatten(1).sum(1).double() / full.clamp(min=1)
+    counts: dict[int, int] = {}
+    for obj_id, fr in zip(image.obj_ids, fract.tolist()):
+        if fr >= min_visib:
+            counts[obj_id] = counts.get(obj_id, 0) + 1
+    return [TestTarget(scene_id, im_id, o, c) for o, c in sorted(counts.items())]
