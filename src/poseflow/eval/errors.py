@@ -62,6 +62,14 @@ def _check_poses(T_est: torch.Tensor, T_gt: torch.Tensor) -> int:
     return sizes["B"]
 
 
+def _check_vertices(points: torch.Tensor, T_est: torch.Tensor) -> None:
+    """Check model vertices ``(N, 3)``: finite, at least one, on ``T_est``'s device and dtype."""
+    check_tensor(points, "points", ("N", 3), finite=True)
+    check_same(("T_est", T_est), ("points", points))
+    if points.shape[0] == 0:
+        raise ShapeError("points must hold at least one vertex")
+
+
 def _symmetries_or_identity(symmetries: torch.Tensor | None, like: torch.Tensor) -> torch.Tensor:
     if symmetries is None:
         return torch.eye(4, dtype=like.dtype, device=like.device)[None]
@@ -106,10 +114,7 @@ def mssd(
         tensor([0.0200])
     """
     B = _check_poses(T_est, T_gt)
-    check_tensor(points, "points", ("N", 3), finite=True)
-    check_same(("T_est", T_est), ("points", points))
-    if points.shape[0] == 0:
-        raise ShapeError("points must hold at least one vertex")
+    _check_vertices(points, T_est)
     S = _symmetries_or_identity(symmetries, T_est)
     # Centre the vertices so that the quadratic form is well conditioned.
     centre = points.mean(0)
@@ -195,10 +200,7 @@ def mspd(
         tensor([5.])
     """
     B = _check_poses(T_est, T_gt)
-    check_tensor(points, "points", ("N", 3), finite=True)
-    check_same(("T_est", T_est), ("points", points))
-    if points.shape[0] == 0:
-        raise ShapeError("points must hold at least one vertex")
+    _check_vertices(points, T_est)
     if K.dim() == 2:
         check_tensor(K, "K", (3, 3), finite=True)
         K = K.expand(B, 3, 3)

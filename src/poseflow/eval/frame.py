@@ -126,25 +126,7 @@ def estimate_frame(
             torch.zeros(0, dtype=torch.bool),
         )
     if diameters is not None:
-        check_depth_extent(
-            frame.depth,
-            frame.K,
-            frame.masks,
-            [float(diameters.get(int(o), float("nan"))) for o in frame.obj_ids.tolist()],
-            where="the frame's depth",
-            scale_name="depth_scale=",
-            scale=frame.depth_scale,
-        )
-        for i in range(B):
-            obj = int(frame.obj_ids[i])
-            d = frame.depth[frame.masks[i]]
-            d = d[torch.isfinite(d) & (d > 0)]
-            if obj in diameters and d.numel():
-                check_size_against_depth(
-                    float(diameters[obj]),
-                    float(d.median()),
-                    where=f"object {obj} ({frame.sources[i] if i < len(frame.sources) else i})",
-                )
+        _check_units(frame, diameters)
     start = time.perf_counter()
     est = estimator(frame.rgb, frame.depth, frame.K, frame.masks, frame.obj_ids)
     seconds = time.perf_counter() - start
@@ -155,12 +137,53 @@ def estimate_frame(
     checked = invalidate_implausible(
         PoseEstimate(poses, est.scores.detach().to("cpu", torch.float64), found)
     )
+    return FramePoses(
+        frame.obj_ids.clone(),
+        poses,
+        checked.scores,
+        checked.valid,
+        _notes(poses, found),
+        list(frame.sources),
+        seconds,
+    )
+
+
+def _check_units(frame: Frame, diameters: Mapping[int, float]) -> None:
+    """Check the frame's masked depth against its objects' diameters (``{obj_id: metres}``).
+
+    Raises:
+        UnitsError: the depth inside the masks spans far more or less than the objects, or an
+            object is larger than twice the median depth of its mask.
+    """
+    check_depth_extent(
+        frame.depth,
+        frame.K,
+        frame.masks,
+        [float(diameters.get(int(o), float("nan"))) for o in frame.obj_ids.tolist()],
+        where="the frame's depth",
+        scale_name="depth_scale=",
+        scale=frame.depth_scale,
+    )
+    for i in range(len(frame)):
+        obj = int(frame.obj_ids[i])
+        d = frame.depth[frame.masks[i]]
+        d = d[torch.isfinite(d) & (d > 0)]
+        if obj in diameters and d.numel():
+            check_size_against_depth(
+                float(diameters[obj]),
+                float(d.median()),
+                where=f"object {obj} ({frame.sources[i] if i < len(frame.sources) else i})",
+            )
+
+
+def _notes(poses: torch.Tensor, found: torch.Tensor) -> list[str]:
+    """Why each pose ``(B, 4, 4)`` is invalid ('' if valid), given the estimator's ``found``."""
     finite = torch.isfinite(poses).flatten(1).all(1)
     z = poses[:, 2, 3]
     # an estimator that applied the rule itself returns a rejected pose flagged invalid
     behind = finite & ~in_front_of_camera(poses) & (found | (z < 0))
     notes = []
-    for i in range(B):
+    for i in range(poses.shape[0]):
         if bool(behind[i]):
             notes.append(f"the pose puts the object behind the camera (t_z = {float(z[i]):g} m)")
         elif not bool(found[i]):
@@ -169,15 +192,7 @@ def estimate_frame(
             notes.append("the pose is not finite")
         else:
             notes.append("")
-    return FramePoses(
-        frame.obj_ids.clone(),
-        poses,
-        checked.scores,
-        checked.valid,
-        notes,
-        list(frame.sources),
-        seconds,
-    )
+    return notes
 
 
 def write_poses_json(

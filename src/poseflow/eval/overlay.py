@@ -16,7 +16,7 @@ import math
 import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -198,20 +198,15 @@ def overlay_poses(
 ) -> torch.Tensor:
     """Outline models in estimated poses (and GT poses) over a grey image, with a legend.
 
-    Each estimate gets a colour (:data:`ESTIMATE_COLORS` in turn, or ``color``), a light tint of
-    its visible surface and an outline inside its visible silhouette; an invalid one a dashed
-    outline and no tint. Ground-truth silhouettes are outlined just outside, in ``gt_color``.
-    The legend lists ``method``, then per estimate its colour, ``mesh_names[object_ids[i]]``,
-    ``scores[i]`` and valid/invalid, then the ground truth's colour; it is left out when it would
-    cover more than half of the picture's height or 60 % of its width (a tiny picture).
+    Estimates (colours :data:`ESTIMATE_COLORS` in turn) are tinted and outlined inside their
+    visible silhouettes, invalid ones dashed and not tinted; the ground truth is outlined just
+    outside. The legend is left out where it would cover over half the height or 60 % of the width.
 
     Args:
-        image: the input image, ``(H, W, 3)`` or ``(H, W)`` uint8, or ``(3, H, W)`` float in
-            ``[0, 1]`` (a BOP sample's ``rgb``).
+        image: the image, ``(H, W, 3)`` or ``(H, W)`` uint8, or ``(3, H, W)`` float in ``[0, 1]``.
         K: intrinsics ``(3, 3)``.
         meshes: the object meshes in metres (anything :class:`~poseflow.render.Renderer` takes).
-        poses: estimated model-to-camera poses ``(n, 4, 4)``; one that is not finite (an
-            instance with no estimate) is listed in the legend but not drawn.
+        poses: estimated model-to-camera poses ``(n, 4, 4)``; a non-finite one is listed, not drawn.
         object_ids: index into ``meshes`` of each pose (default ``0 .. n-1``).
         gt_poses: ground-truth poses ``(m, 4, 4)``, or None.
         gt_object_ids: index into ``meshes`` of each GT pose (default ``0 .. m-1``).
@@ -223,8 +218,7 @@ def overlay_poses(
         method: the name of the method, the legend's title.
         scores: the confidence of each pose ``(n,)``, shown in the legend.
         valid: the validity of each pose ``(n,)`` (default: all valid).
-        mesh_names: the name of each mesh in the legend, e.g. ``["obj 1", "obj 5"]`` (default
-            ``mesh 0``, ``mesh 1``, ...).
+        mesh_names: each mesh's name in the legend (default ``mesh 0``, ``mesh 1``, ...).
         legend: draw the legend.
 
     Returns:
@@ -248,68 +242,151 @@ def overlay_poses(
         raise ValueRangeError(f"alpha must lie in [0, 1], got {alpha}")
     if outline_width < 1:
         raise ValueRangeError(f"outline_width must be >= 1, got {outline_width}")
+    grey = _grey(image)
+    H, W = grey.shape[:2]
+    ren = renderer if renderer is not None else Renderer(meshes)
+    est = _Estimates.of(poses, object_ids, scores, valid, color)
+    out, edges, covered = _tint_estimates(grey, ren, K, est, alpha, outline_width)
+    gt = _gt_outline(ren, K, gt_poses, gt_object_ids, outline_width, H, W)
+    if gt is not None:
+        edges.insert(0, (gt[0], gt_color))
+        covered |= gt[1]
+    pic = _paint(out, edges)
+    if not legend or (est.poses.shape[0] == 0 and gt is None):
+        return pic
+    entries = _legend_entries(est, method, mesh_names, None if gt is None else gt_color, H)
+    return _draw_legend(pic, entries, covered)
+
+
+def _grey(image: torch.Tensor | np.ndarray) -> torch.Tensor:
+    """The image in grey, ``(H, W, 3)`` float32 in ``[0, 255]``."""
     img = as_uint8_image(image).to(torch.float32)
     H, W = img.shape[:2]
-    grey = (img @ torch.tensor([0.299, 0.587, 0.114]))[..., None].expand(H, W, 3)
+    return (img @ torch.tensor([0.299, 0.587, 0.114]))[..., None].expand(H, W, 3)
+
+
+def _paint(
+    picture: torch.Tensor, edges: Sequence[tuple[torch.Tensor, tuple[int, int, int]]]
+) -> torch.Tensor:
+    """Paint each outline ``(edge (H, W), colour)`` in turn; the picture as ``(H, W, 3)`` uint8."""
+    for edge, c in edges:
+        picture = torch.where(edge[..., None], torch.tensor(c, dtype=torch.float32), picture)
+    return picture.round().clamp(0, 255).to(torch.uint8)
+
+
+class _Estimates(NamedTuple):
+    """The ``n`` estimates of a picture and what the legend says of each."""
+
+    poses: torch.Tensor  # (n, 4, 4), model to camera; not finite: listed, not drawn
+    ids: list[int]  # the mesh of each
+    colours: list[tuple[int, int, int]]
+    valid: list[bool]
+    scores: list[float] | None
+
+    @classmethod
+    def of(
+        cls,
+        poses: torch.Tensor | np.ndarray,
+        object_ids: Sequence[int] | None,
+        scores: Sequence[float] | torch.Tensor | None,
+        valid: Sequence[bool] | torch.Tensor | None,
+        color: tuple[int, int, int] | None,
+    ) -> _Estimates:
+        """The estimates of :func:`overlay_poses`'s arguments, checked to be one per pose."""
+        T = torch.as_tensor(poses).reshape(-1, 4, 4)
+        n = T.shape[0]
+        ids = list(range(n)) if object_ids is None else [int(i) for i in object_ids]
+        score_list = _per_pose(scores, n, "scores")
+        valid_list = [bool(v) for v in _per_pose(valid, n, "valid") or [True] * n]
+        colours = [color or ESTIMATE_COLORS[i % len(ESTIMATE_COLORS)] for i in range(n)]
+        return cls(T, ids, colours, valid_list, score_list)
+
+
+def _tint_estimates(
+    grey: torch.Tensor, renderer: Renderer, K: Any, est: _Estimates, alpha: float, width: int
+) -> tuple[torch.Tensor, list[tuple[torch.Tensor, tuple[int, int, int]]], torch.Tensor]:
+    """The estimates drawn on the grey picture ``(H, W, 3)``: tinted surfaces (valid ones only).
+
+    Returns the tinted picture ``(H, W, 3)`` float, the outlines to draw ``[(edge (H, W),
+    colour)]`` (dashed for invalid estimates) and the pixels the estimates cover ``(H, W)``.
+    """
+    H, W = grey.shape[:2]
     out = grey.clone()
-    ren = renderer if renderer is not None else Renderer(meshes)
-    T = torch.as_tensor(poses).reshape(-1, 4, 4)
-    n = T.shape[0]
-    ids = list(range(n)) if object_ids is None else [int(i) for i in object_ids]
-    score_list = _per_pose(scores, n, "scores")
-    valid_list = [bool(v) for v in _per_pose(valid, n, "valid") or [True] * n]
-    colours = [color or ESTIMATE_COLORS[i % len(ESTIMATE_COLORS)] for i in range(n)]
     covered = torch.zeros(H, W, dtype=torch.bool)
     edges: list[tuple[torch.Tensor, tuple[int, int, int]]] = []
-    drawn = [i for i in range(n) if bool(torch.isfinite(T[i]).all())]  # NaN: listed, not drawn
-    if drawn:
-        r = ren.render(T[drawn], K, W, H, object_ids=[ids[i] for i in drawn], rgb=False)
-        # Headlight shading from the camera-facing normals: |n_z| is 1 facing the camera.
-        shade = (0.35 + 0.65 * r.normals[..., 2].abs()).clamp(0, 1)[..., None]
-        dashes = _dashes(H, W)
-        for i, visible in zip(drawn, r.masks_visible):
-            c = torch.tensor(colours[i], dtype=torch.float32)
-            covered |= visible
-            if valid_list[i]:
-                tint = (1 - alpha) * grey + alpha * c * shade
-                out = torch.where(visible[..., None], tint, out)
-                edges.append((_outline(visible, outline_width), colours[i]))
-            else:
-                edges.append((_outline(visible, outline_width) & dashes, colours[i]))
-    gt_drawn = False
-    if gt_poses is not None:
-        G = torch.as_tensor(gt_poses).reshape(-1, 4, 4)
-        if G.shape[0]:
-            gids = list(range(G.shape[0])) if gt_object_ids is None else list(gt_object_ids)
-            r = ren.render(G, K, W, H, object_ids=gids, rgb=False)
-            edge = torch.zeros(H, W, dtype=torch.bool)
-            for m in r.masks_full:
-                edge |= _outline(m, outline_width, outside=True)
-                covered |= m
-            edges.insert(0, (edge, gt_color))
-            gt_drawn = True
-    for edge, c in edges:
-        out = torch.where(edge[..., None], torch.tensor(c, dtype=torch.float32), out)
-    pic = out.round().clamp(0, 255).to(torch.uint8)
-    if not legend or (n == 0 and not gt_drawn):
-        return pic
+    drawn = [i for i in range(len(est.colours)) if bool(torch.isfinite(est.poses[i]).all())]
+    if not drawn:
+        return out, edges, covered
+    r = renderer.render(
+        est.poses[drawn], K, W, H, object_ids=[est.ids[i] for i in drawn], rgb=False
+    )
+    # Headlight shading from the camera-facing normals: |n_z| is 1 facing the camera.
+    shade = (0.35 + 0.65 * r.normals[..., 2].abs()).clamp(0, 1)[..., None]
+    dashes = _dashes(H, W)
+    for i, visible in zip(drawn, r.masks_visible):
+        c = torch.tensor(est.colours[i], dtype=torch.float32)
+        covered |= visible
+        if est.valid[i]:
+            tint = (1 - alpha) * grey + alpha * c * shade
+            out = torch.where(visible[..., None], tint, out)
+            edges.append((_outline(visible, width), est.colours[i]))
+        else:
+            edges.append((_outline(visible, width) & dashes, est.colours[i]))
+    return out, edges, covered
+
+
+def _gt_outline(
+    renderer: Renderer,
+    K: Any,
+    gt_poses: torch.Tensor | np.ndarray | None,
+    gt_object_ids: Sequence[int] | None,
+    width: int,
+    H: int,
+    W: int,
+) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """The bands just outside the ground-truth silhouettes and the pixels those cover.
+
+    Both ``(H, W)`` bool; None when there is no ground-truth pose.
+    """
+    if gt_poses is None:
+        return None
+    G = torch.as_tensor(gt_poses).reshape(-1, 4, 4)
+    if not G.shape[0]:
+        return None
+    gids = list(range(G.shape[0])) if gt_object_ids is None else list(gt_object_ids)
+    edge = torch.zeros(H, W, dtype=torch.bool)
+    covered = torch.zeros(H, W, dtype=torch.bool)
+    for m in renderer.render(G, K, W, H, object_ids=gids, rgb=False).masks_full:
+        edge |= _outline(m, width, outside=True)
+        covered |= m
+    return edge, covered
+
+
+def _legend_entries(
+    est: _Estimates,
+    method: str | None,
+    mesh_names: Sequence[str] | None,
+    gt_color: tuple[int, int, int] | None,
+    H: int,
+) -> list[tuple[tuple[int, int, int] | None, str, bool]]:
+    """The legend's lines ``(colour or None, text, dashed)``, cut to what ``H`` pixels hold."""
     entries: list[tuple[tuple[int, int, int] | None, str, bool]] = []
     if method:
         entries.append((None, method, False))
-    for i in range(n):
-        name = mesh_names[ids[i]] if mesh_names is not None else f"mesh {ids[i]}"
-        text = name
-        if score_list is not None and math.isfinite(score_list[i]):
-            text += f"  score {score_list[i]:.2f}"
-        text += "  valid" if valid_list[i] else "  INVALID"
-        entries.append((colours[i], text, not valid_list[i]))
-    if gt_drawn:
+    for i, colour in enumerate(est.colours):
+        obj = est.ids[i]
+        text = mesh_names[obj] if mesh_names is not None else f"mesh {obj}"
+        if est.scores is not None and math.isfinite(est.scores[i]):
+            text += f"  score {est.scores[i]:.2f}"
+        text += "  valid" if est.valid[i] else "  INVALID"
+        entries.append((colour, text, not est.valid[i]))
+    if gt_color is not None:
         entries.append((gt_color, "ground truth", False))
     max_lines = max(1, (H // 2) // (max(10, round(H / 40)) + 3))
     if len(entries) > max_lines:
         rest = len(entries) - (max_lines - 1)
         entries = [*entries[: max_lines - 1], (None, f"... {rest} more", False)]
-    return _draw_legend(pic, entries, covered)
+    return entries
 
 
 def write_overlay(path: str | os.PathLike[str], *args: Any, **kwargs: Any) -> torch.Tensor:

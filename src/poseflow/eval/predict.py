@@ -12,6 +12,8 @@ import os
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
+from math import nan
+from typing import Any
 
 import torch
 
@@ -177,78 +179,142 @@ def predict_dataset(
     from tqdm.auto import tqdm
 
     ds = dataset if isinstance(dataset, BOPDataset) else BOPDataset(dataset, split)
-    if targets is None and (ds.root / "test_targets_bop19.json").is_file():
-        targets = [Target(t.scene_id, t.im_id, t.obj_id, t.inst_count) for t in ds.test_targets()]
-    images: dict[tuple[int, int], set[int] | None] = {}
-    if targets is None:
-        images = {(s, i): None for s in ds.scene_ids for i in ds.scene(s).im_ids}
-    else:
-        for t in targets:
-            images.setdefault((t.scene_id, t.im_id), set()).add(t.obj_id)  # type: ignore[union-attr]
-    by_image: dict[tuple[int, int], list[Detection]] = {}
-    for d in detections or ():
-        by_image.setdefault((d.scene_id, d.im_id), []).append(d)
+    keys = sorted(_images_to_predict(ds, targets).items())[:max_images]
+    by_image = _by_image(detections or ())
     known = None if object_ids is None else {int(o) for o in object_ids}
     if diameters is None:
-        info = ds.root / "models" / "models_info.json"
-        diameters = {o: m.diameter for o, m in ds.models_info().items()} if info.is_file() else {}
-    keys = sorted(images.items())[:max_images]
+        diameters = _model_diameters(ds)
     parts = []
     for (s, i), wanted in tqdm(keys, desc="predict", disable=not progress):
         if before_image is not None:
             before_image(s, i)
         scene = ds.scene(s)
-
-        def usable(obj_id: int, wanted: set[int] | None = wanted) -> bool:
-            return (wanted is None or obj_id in wanted) and (known is None or obj_id in known)
-
-        if detections is None:
-            gts = scene.gt_of(i)
-            sel = [g for g, gt in enumerate(gts) if usable(gt.obj_id)]
-            obj_ids = [gts[g].obj_id for g in sel]
-            masks = [scene.load_mask(i, g, visible=True) for g in sel]
-            mask_names = [str(scene.mask_path(i, g, visible=True)) for g in sel]
-        else:
-            dets = [d for d in by_image.get((s, i), []) if usable(d.obj_id)]
-            obj_ids = [d.obj_id for d in dets]
-            masks = [d.mask() for d in dets]
-            mask_names = [f"the detection mask of obj {d.obj_id}" for d in dets]
+        dets = None if detections is None else by_image.get((s, i), [])
+        obj_ids, masks, mask_names = _instances(scene, i, dets, wanted, known)
         if not masks:
             continue
-        depth = scene.load_depth_image(i)
-        rgb = scene.load_rgb_image(i) if load_rgb else None
-        _check_sizes(scene, i, depth, rgb, masks, mask_names)
-        K = _checked_K(scene, i, depth)
+        depth, rgb, K = _read_image(scene, i, load_rgb, masks, mask_names)
         stacked = torch.stack(masks)
         if diameters:
-            check_depth_extent(
-                depth,
-                K,
-                stacked,
-                [float(diameters.get(o, float("nan"))) for o in obj_ids],
-                where=f"scene {s} image {i} (depth {scene.depth_path(i)})",
-                scale_name=f"the depth_scale of image {i} in {scene.path / 'scene_camera.json'} to",
-                scale=float(scene.camera[i].depth_scale),
-            )
-        start = time.perf_counter()
-        if timer is None:
-            est = estimator(rgb, depth, K, stacked, obj_ids)
-        else:
-            with timer.active(), timer.image():
-                est = estimator(rgb, depth, K, stacked, obj_ids)
-        elapsed = time.perf_counter() - start
-        est = invalidate_implausible(est)
+            _check_depth(scene, i, depth, K, stacked, [diameters.get(o, nan) for o in obj_ids])
+        est, elapsed = _timed(estimator, timer, rgb, depth, K, stacked, obj_ids)
         ok = est.valid.cpu()
-        if not bool(ok.any()):
-            continue
-        k = int(ok.sum())
-        ids = [o for o, v in zip(obj_ids, ok.tolist()) if v]
-        parts.append(
-            PoseResults.from_columns(
-                [s] * k, [i] * k, ids, est.scores.cpu()[ok], est.poses.cpu()[ok], elapsed
-            )
-        )
+        if bool(ok.any()):
+            k, ids = int(ok.sum()), [o for o, v in zip(obj_ids, ok.tolist()) if v]
+            scores, poses = est.scores.cpu()[ok], est.poses.cpu()[ok]
+            parts.append(PoseResults.from_columns([s] * k, [i] * k, ids, scores, poses, elapsed))
     return PoseResults.concat(parts)
+
+
+def _timed(
+    estimator: Estimator, timer: StageTimer | None, *inputs: Any
+) -> tuple[PoseEstimate, float]:
+    """The estimate of one image, vetted by :func:`invalidate_implausible`, and its seconds.
+
+    With a ``timer``, the call runs in ``timer.image()`` with the timer active.
+    """
+    start = time.perf_counter()
+    if timer is None:
+        est = estimator(*inputs)
+    else:
+        with timer.active(), timer.image():
+            est = estimator(*inputs)
+    elapsed = time.perf_counter() - start
+    return invalidate_implausible(est), elapsed
+
+
+def _images_to_predict(
+    ds: BOPDataset, targets: Sequence[Target] | None
+) -> dict[tuple[int, int], set[int] | None]:
+    """The images to predict, each with its target objects (None: every instance).
+
+    The targets default to the dataset's ``test_targets_bop19.json`` when present, else every
+    image of the split.
+    """
+    if targets is None and (ds.root / "test_targets_bop19.json").is_file():
+        targets = [Target(t.scene_id, t.im_id, t.obj_id, t.inst_count) for t in ds.test_targets()]
+    if targets is None:
+        return {(s, i): None for s in ds.scene_ids for i in ds.scene(s).im_ids}
+    images: dict[tuple[int, int], set[int] | None] = {}
+    for t in targets:
+        images.setdefault((t.scene_id, t.im_id), set()).add(t.obj_id)  # type: ignore[union-attr]
+    return images
+
+
+def _by_image(detections: Sequence[Detection]) -> dict[tuple[int, int], list[Detection]]:
+    """The detections grouped by ``(scene_id, im_id)``, in their order."""
+    by_image: dict[tuple[int, int], list[Detection]] = {}
+    for d in detections:
+        by_image.setdefault((d.scene_id, d.im_id), []).append(d)
+    return by_image
+
+
+def _model_diameters(ds: BOPDataset) -> dict[int, float]:
+    """``{obj_id: diameter}`` in metres from ``models/models_info.json``; ``{}`` without it."""
+    if not (ds.root / "models" / "models_info.json").is_file():
+        return {}
+    return {o: m.diameter for o, m in ds.models_info().items()}
+
+
+def _instances(
+    scene: BOPScene,
+    im_id: int,
+    detections: Sequence[Detection] | None,
+    wanted: set[int] | None,
+    known: set[int] | None,
+) -> tuple[list[int], list[torch.Tensor], list[str]]:
+    """The instances of an image to estimate: object ids, masks ``(H, W)`` and the masks' names.
+
+    From the ground truth's visible masks, or from ``detections`` (those of the image) if given;
+    only objects in ``wanted`` (the image's targets) and ``known`` (the estimator's), None: any.
+    """
+
+    def usable(obj_id: int) -> bool:
+        return (wanted is None or obj_id in wanted) and (known is None or obj_id in known)
+
+    if detections is None:
+        gts = scene.gt_of(im_id)
+        sel = [g for g, gt in enumerate(gts) if usable(gt.obj_id)]
+        obj_ids = [gts[g].obj_id for g in sel]
+        masks = [scene.load_mask(im_id, g, visible=True) for g in sel]
+        return obj_ids, masks, [str(scene.mask_path(im_id, g, visible=True)) for g in sel]
+    dets = [d for d in detections if usable(d.obj_id)]
+    names = [f"the detection mask of obj {d.obj_id}" for d in dets]
+    return [d.obj_id for d in dets], [d.mask() for d in dets], names
+
+
+def _read_image(
+    scene: BOPScene,
+    im_id: int,
+    load_rgb: bool,
+    masks: Sequence[torch.Tensor],
+    mask_names: Sequence[str],
+) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
+    """An image's depth ``(H, W)``, colour ``(3, H, W)`` (if ``load_rgb``) and checked ``K``."""
+    depth = scene.load_depth_image(im_id)
+    rgb = scene.load_rgb_image(im_id) if load_rgb else None
+    _check_sizes(scene, im_id, depth, rgb, masks, mask_names)
+    return depth, rgb, _checked_K(scene, im_id, depth)
+
+
+def _check_depth(
+    scene: BOPScene,
+    im_id: int,
+    depth: torch.Tensor,
+    K: torch.Tensor,
+    masks: torch.Tensor,
+    diameters: Sequence[float],
+) -> None:
+    """:func:`~poseflow._units.check_depth_extent` naming the image and its depth scale."""
+    check_depth_extent(
+        depth,
+        K,
+        masks,
+        [float(d) for d in diameters],
+        where=f"scene {scene.scene_id} image {im_id} (depth {scene.depth_path(im_id)})",
+        scale_name=f"the depth_scale of image {im_id} in {scene.path / 'scene_camera.json'} to",
+        scale=float(scene.camera[im_id].depth_scale),
+    )
 
 
 def _check_sizes(

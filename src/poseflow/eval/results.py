@@ -202,51 +202,19 @@ def read_results(path: str | os.PathLike[str]) -> PoseResults:
             R without 9 or t without 3 numbers, a non-finite number, an R that is not a rotation
             (the message names the file and line), or different times for one image.
     """
-    if not os.path.isfile(path):
-        raise MissingFileError(
-            f"results file {path} does not exist (write one with `poseflow predict`, or pass "
-            "--run-baseline to `poseflow eval`)"
-        )
-    try:
-        with open(path, encoding="utf-8-sig") as f:
-            lines = [ln.strip() for ln in f]
-    except UnicodeDecodeError as exc:
-        raise ResultsFormatError(f"{path} is not a text (UTF-8/ASCII) CSV file: {exc}") from None
+    lines = _lines(path)
     if not lines or lines[0] != HEADER:
         got = lines[0] if lines else "an empty file"
         raise ResultsFormatError(f"{path}: the header must be exactly {HEADER!r}, got {got!r}")
     ints: list[tuple[int, int, int]] = []
     scores, times, mats = [], [], []
     for n, line in enumerate(lines[1:], 2):
-        if not line:
-            continue
-        fields = line.split(",")
-        if len(fields) != 7:
-            raise ResultsFormatError(
-                f"{path}:{n}: expected 7 comma-separated fields, got {len(fields)}"
-            )
-        where = f"{path}:{n}"
-        ints.append(
-            (
-                _parse(int, fields[0], where, "scene_id"),
-                _parse(int, fields[1], where, "im_id"),
-                _parse(int, fields[2], where, "obj_id"),
-            )
-        )
-        score = _parse(float, fields[3], where, "score")
-        R = [_parse(float, x, where, "R") for x in fields[4].split()]
-        t = [_parse(float, x, where, "t") for x in fields[5].split()]
-        time = _parse(float, fields[6], where, "time")
-        if len(R) != 9 or len(t) != 3:
-            raise ResultsFormatError(
-                f"{where}: R needs 9 numbers and t 3, got {len(R)} and {len(t)}"
-            )
-        if not all(math.isfinite(x) for x in (score, time, *R, *t)):
-            raise ResultsFormatError(f"{where}: non-finite number")
-        _check_rotation(R, where)
-        scores.append(score)
-        times.append(time)
-        mats.append([*R[0:3], t[0] / 1000.0, *R[3:6], t[1] / 1000.0, *R[6:9], t[2] / 1000.0])
+        if line:
+            ids, score, time, mat = _parse_line(line, f"{path}:{n}")
+            ints.append(ids)
+            scores.append(score)
+            times.append(time)
+            mats.append(mat)
     poses = torch.zeros(len(mats), 4, 4, dtype=torch.float64)
     if mats:
         poses[:, :3, :] = torch.tensor(mats, dtype=torch.float64).reshape(-1, 3, 4)
@@ -265,6 +233,51 @@ def read_results(path: str | os.PathLike[str]) -> PoseResults:
     except ValueRangeError as exc:
         raise ResultsFormatError(f"{path}: {exc}") from None
     return out
+
+
+def _lines(path: str | os.PathLike[str]) -> list[str]:
+    """The stripped lines of a text file (a UTF-8 byte-order mark dropped)."""
+    if not os.path.isfile(path):
+        raise MissingFileError(
+            f"results file {path} does not exist (write one with `poseflow predict`, or pass "
+            "--run-baseline to `poseflow eval`)"
+        )
+    try:
+        with open(path, encoding="utf-8-sig") as f:
+            return [ln.strip() for ln in f]
+    except UnicodeDecodeError as exc:
+        raise ResultsFormatError(f"{path} is not a text (UTF-8/ASCII) CSV file: {exc}") from None
+
+
+def _parse_line(line: str, where: str) -> tuple[tuple[int, int, int], float, float, list[float]]:
+    """One result: ``(scene_id, im_id, obj_id)``, score, time and the pose's top 3 rows in metres.
+
+    Raises:
+        ResultsFormatError: naming ``where`` (file and line), for any malformed field.
+    """
+    fields = line.split(",")
+    if len(fields) != 7:
+        raise ResultsFormatError(f"{where}: expected 7 comma-separated fields, got {len(fields)}")
+    ids = (
+        _parse(int, fields[0], where, "scene_id"),
+        _parse(int, fields[1], where, "im_id"),
+        _parse(int, fields[2], where, "obj_id"),
+    )
+    score = _parse(float, fields[3], where, "score")
+    R = [_parse(float, x, where, "R") for x in fields[4].split()]
+    t = [_parse(float, x, where, "t") for x in fields[5].split()]
+    time = _parse(float, fields[6], where, "time")
+    if len(R) != 9 or len(t) != 3:
+        raise ResultsFormatError(f"{where}: R needs 9 numbers and t 3, got {len(R)} and {len(t)}")
+    if not all(math.isfinite(x) for x in (score, time, *R, *t)):
+        raise ResultsFormatError(f"{where}: non-finite number")
+    _check_rotation(R, where)
+    return (
+        ids,
+        score,
+        time,
+        [*R[0:3], t[0] / 1000.0, *R[3:6], t[1] / 1000.0, *R[6:9], t[2] / 1000.0],
+    )
 
 
 def _parse(kind: type, text: str, where: str, field: str) -> Any:

@@ -132,8 +132,13 @@ class SceneView:
         return int(self.rgb.shape[1]), int(self.rgb.shape[0])
 
 
+def _float64(x: Any) -> np.ndarray:
+    """A tensor, array or nested sequence as a float64 numpy array."""
+    return np.asarray(torch.as_tensor(x).detach().cpu(), dtype=np.float64)
+
+
 def _as_pose(pose: Any) -> np.ndarray:
-    T = np.asarray(torch.as_tensor(pose).detach().cpu(), dtype=np.float64)
+    T = _float64(pose)
     if T.shape != (4, 4):
         raise ShapeError(f"a pose must have shape (4, 4), got {T.shape}")
     return T
@@ -338,7 +343,32 @@ def build_scene(
         >>> len(view.cloud), [m.name for m in view.estimates + view.ground_truth]
         (48, ['est_0_obj_000007', 'gt_0_obj_000007'])
     """
-    P = np.asarray(torch.as_tensor(poses).detach().cpu(), dtype=np.float64).reshape(-1, 4, 4)
+    estimates = _place_estimates(meshes, poses, obj_ids, scores, valid)
+    truth: tuple[PosedMesh, ...] = ()
+    if gt_poses is not None:
+        truth = _place_ground_truth(meshes, gt_poses, gt_obj_ids, gt_color)
+    cloud = backproject_rgbd(rgb, depth, K, stride=stride, max_points=max_points)
+    K64 = _float64(K).reshape(3, 3)
+    return SceneView(
+        rgb=as_uint8_image(rgb).numpy(),
+        K=K64,
+        cloud=cloud,
+        estimates=estimates,
+        ground_truth=truth,
+        method=method,
+        name=name,
+    )
+
+
+def _place_estimates(
+    meshes: Mapping[int, Any],
+    poses: torch.Tensor | np.ndarray,
+    obj_ids: Sequence[int] | torch.Tensor,
+    scores: Sequence[float] | torch.Tensor | None,
+    valid: Sequence[bool] | torch.Tensor | None,
+) -> tuple[PosedMesh, ...]:
+    """The estimates placed, ``est_<i>_obj_<id>``, with their scores (default NaN) and validity."""
+    P = _float64(poses).reshape(-1, 4, 4)
     n = P.shape[0]
     ids = _rows(obj_ids, n, "obj_ids", np.int64)
     sc = np.full(n, np.nan) if scores is None else _rows(scores, n, "scores", np.float64)
@@ -346,7 +376,7 @@ def build_scene(
     missing = sorted({int(o) for o in ids} - {int(o) for o in meshes})
     if missing:
         raise ValueRangeError(f"no mesh given for objects {missing}")
-    estimates = tuple(
+    return tuple(
         place_mesh(
             meshes[int(o)],
             P[i],
@@ -357,29 +387,25 @@ def build_scene(
         )
         for i, o in enumerate(ids)
     )
-    truth: tuple[PosedMesh, ...] = ()
-    if gt_poses is not None:
-        G = np.asarray(torch.as_tensor(gt_poses).detach().cpu(), dtype=np.float64).reshape(-1, 4, 4)
-        if gt_obj_ids is None:
-            raise ShapeError("gt_poses needs gt_obj_ids")
-        gids = _rows(gt_obj_ids, G.shape[0], "gt_obj_ids", np.int64)
-        truth = tuple(
-            place_mesh(
-                meshes[int(o)], G[j], obj_id=int(o), name=f"gt_{j}_obj_{int(o):06d}", color=gt_color
-            )
-            for j, o in enumerate(gids)
-            if int(o) in meshes  # a GT object without a mesh is not drawn
+
+
+def _place_ground_truth(
+    meshes: Mapping[int, Any],
+    gt_poses: torch.Tensor | np.ndarray,
+    gt_obj_ids: Sequence[int] | torch.Tensor | None,
+    color: tuple[int, int, int] | None,
+) -> tuple[PosedMesh, ...]:
+    """The ground truth placed, ``gt_<j>_obj_<id>``; an object without a mesh is left out."""
+    G = _float64(gt_poses).reshape(-1, 4, 4)
+    if gt_obj_ids is None:
+        raise ShapeError("gt_poses needs gt_obj_ids")
+    gids = _rows(gt_obj_ids, G.shape[0], "gt_obj_ids", np.int64)
+    return tuple(
+        place_mesh(
+            meshes[int(o)], G[j], obj_id=int(o), name=f"gt_{j}_obj_{int(o):06d}", color=color
         )
-    cloud = backproject_rgbd(rgb, depth, K, stride=stride, max_points=max_points)
-    K64 = np.asarray(torch.as_tensor(K).detach().cpu(), dtype=np.float64).reshape(3, 3)
-    return SceneView(
-        rgb=as_uint8_image(rgb).numpy(),
-        K=K64,
-        cloud=cloud,
-        estimates=estimates,
-        ground_truth=truth,
-        method=method,
-        name=name,
+        for j, o in enumerate(gids)
+        if int(o) in meshes
     )
 
 
@@ -458,25 +484,7 @@ def write_recording(
     )
     for group, meshes in (("estimates", view.estimates), ("ground_truth", view.ground_truth)):
         for m in meshes:
-            entity = f"world/{group}/{m.name}"
-            values: dict[str, Any] = {"obj_id": m.obj_id}
-            if m.score is not None:
-                values.update(score=m.score, valid=m.valid, method=view.method)
-            rec.log(
-                entity,
-                rr.Mesh3D(
-                    vertex_positions=m.vertices.astype(np.float32),
-                    triangle_indices=m.triangles.astype(np.uint32),
-                    vertex_colors=m.colors,
-                ),
-                rr.AnyValues(**values),
-                static=True,
-            )
-            rec.log(
-                f"{entity}/label",
-                rr.Points3D(m.vertices.mean(0, keepdims=True), labels=[m.label], radii=0.002),
-                static=True,
-            )
+            _log_mesh(rec, rr, f"world/{group}/{m.name}", m, view.method)
     rec.log(
         "description", rr.TextDocument(_describe(view), media_type="text/markdown"), static=True
     )
@@ -485,6 +493,28 @@ def write_recording(
     if not path.is_file():
         raise PoseflowError(f"Rerun wrote no recording at {path} (is RERUN=off set?)")
     return path
+
+
+def _log_mesh(rec: Any, rr: Any, entity: str, m: PosedMesh, method: str) -> None:
+    """Log a posed mesh with its values at ``entity`` and its label at ``<entity>/label``."""
+    values: dict[str, Any] = {"obj_id": m.obj_id}
+    if m.score is not None:
+        values.update(score=m.score, valid=m.valid, method=method)
+    rec.log(
+        entity,
+        rr.Mesh3D(
+            vertex_positions=m.vertices.astype(np.float32),
+            triangle_indices=m.triangles.astype(np.uint32),
+            vertex_colors=m.colors,
+        ),
+        rr.AnyValues(**values),
+        static=True,
+    )
+    rec.log(
+        f"{entity}/label",
+        rr.Points3D(m.vertices.mean(0, keepdims=True), labels=[m.label], radii=0.002),
+        static=True,
+    )
 
 
 def _trimesh() -> Any:
