@@ -78,6 +78,12 @@ def _fix(name: str, scale: float, suggested: float | None, api_name: str | None 
     return fix + ("" if scale == 1.0 else f"; it is {scale:g}")
 
 
+def _implausible(what: str, value: float, bounds: tuple[float, float], advice: str) -> UnitsError:
+    """``what`` of ``value`` m lies outside ``bounds`` (metres): the error, with ``advice``."""
+    low, high = bounds
+    return UnitsError(f"{what} of {value:g} m, outside the plausible {low:g}-{high:g} m: {advice}")
+
+
 def check_depth_units(
     depth: torch.Tensor,
     *,
@@ -120,11 +126,8 @@ def check_depth_units(
     low, high = DEPTH_RANGE
     if not low <= median <= high:
         guess = "millimetres read as metres? " if median > high else "metres read as millimetres? "
-        suggested = _suggest(median, low, high, scale, 1.0)
-        raise UnitsError(
-            f"{where} has a median depth of {median:g} m, outside the plausible {low:g}-{high:g} "
-            f"m: {guess}{_fix(scale_name, scale, suggested, api_name)}"
-        )
+        fix = _fix(scale_name, scale, _suggest(median, low, high, scale, 1.0), api_name)
+        raise _implausible(f"{where} has a median depth", median, DEPTH_RANGE, guess + fix)
     return median
 
 
@@ -164,11 +167,8 @@ def check_diameter_units(
     low, high = DIAMETER_RANGE
     if not (math.isfinite(diameter) and low <= diameter <= high):
         guess = "is the mesh in millimetres? " if diameter > high else ""
-        suggested = _suggest(diameter, low, high, scale, 0.1)
-        raise UnitsError(
-            f"{where} has a diameter of {diameter:g} m, outside the plausible {low:g}-{high:g} "
-            f"m: {guess}{_fix(scale_name, scale, suggested, api_name)}"
-        )
+        fix = _fix(scale_name, scale, _suggest(diameter, low, high, scale, 0.1), api_name)
+        raise _implausible(f"{where} has a diameter", diameter, DIAMETER_RANGE, guess + fix)
     return diameter
 
 
@@ -236,20 +236,12 @@ def check_depth_extent(
     """Check that the depth inside each mask spans about as much as its object.
 
     Each mask's valid depth is back-projected and its robust extent (twice the 90th percentile
-    of the distances to the median point) compared with the object's diameter. A depth in the
-    wrong unit scales every extent by the same factor (10 for a depth in 0.1 mm read as
-    millimetres, 1000 for millimetres read as metres), while the median depth alone can still
-    look plausible. The image is judged on its instances with at least ``min_points`` valid
-    pixels:
-
-    - too large: the median ratio exceeds 3 (:data:`EXTENT_RATIO_RANGE`): no visible part is
-      larger than its object, and the median ignores a single mask that strays onto the
-      background;
-    - too small: even the largest ratio is below 1/20, or below 1/3 while the median masked
-      depth is nearer than :data:`NEAR_DEPTH`. A visible part can be much smaller than its
-      object (an occluded instance, a thin object seen end-on), so one instance that shows a
-      fair part of its object is enough to pass, and between 1/20 and 1/3 (what an instance
-      one-tenth visible spans) only a depth that is also implausibly near is an error.
+    of the distances to the median point) compared with the object's diameter: a depth in the
+    wrong unit scales every extent by one factor (10 for 0.1 mm read as millimetres), while its
+    median alone can still look plausible. Judged on the instances with at least ``min_points``
+    valid pixels, the depth is too large when the median ratio exceeds 3, too small when even
+    the largest is below 1/20, or below 1/3 with the masked depth nearer than
+    :data:`NEAR_DEPTH` (:data:`EXTENT_RATIO_RANGE` says why).
 
     Args:
         depth: depth ``(H, W)``, metres; 0 or NaN where missing.
@@ -293,48 +285,76 @@ def check_depth_extent(
     B = masks.shape[0]
     if diam.numel() != B:
         raise ShapeError(f"{where}: {B} masks but {diam.numel()} diameters")
-    ratios = torch.full((B,), float("nan"), dtype=torch.float64)
     if B == 0:
-        return ratios
-    Kt = torch.as_tensor(_nested_floats(K), dtype=torch.float64).reshape(3, 3)
-    fx, fy, cx, cy = (float(Kt[0, 0]), float(Kt[1, 1]), float(Kt[0, 2]), float(Kt[1, 2]))
-    ok = torch.isfinite(d) & (d > 0)
-    for i in range(B):
-        v, u = torch.nonzero(masks[i].to(d.device) & ok, as_tuple=True)
-        if v.numel() < min_points or not (math.isfinite(diam[i]) and diam[i] > 0):
-            continue
-        z = d[v, u].double()
-        pts = torch.stack([(u.double() - cx) * z / fx, (v.double() - cy) * z / fy, z], dim=1)
-        ratios[i] = _extent(pts) / float(diam[i])
+        return torch.full((B,), float("nan"), dtype=torch.float64)
+    valid = torch.isfinite(d) & (d > 0)
+    ratios = _extent_ratios(d, valid, K, masks, diam, min_points)
     judged = ratios[torch.isfinite(ratios)]
     if judged.numel() == 0:
         return ratios
     low, high = EXTENT_RATIO_RANGE
     if float(judged.max()) < 1.0 / high and low <= float(judged.max()):
-        counted = torch.isfinite(ratios).to(masks.device)
-        inside = masks[counted].any(dim=0).to(d.device) & ok
+        inside = masks[torch.isfinite(ratios).to(masks.device)].any(dim=0).to(d.device) & valid
         if float(d[inside].median()) < NEAR_DEPTH:
             low = 1.0 / high
+    if float(judged.median()) > high or float(judged.max()) < low:
+        raise _extent_error(judged, low, where, scale_name, scale, api_name)
+    return ratios
+
+
+def _extent_ratios(
+    d: torch.Tensor,
+    valid: torch.Tensor,
+    K: Any,
+    masks: torch.Tensor,
+    diameters: torch.Tensor,
+    min_points: int,
+) -> torch.Tensor:
+    """Extent over diameter ``(B,)`` float64 of each mask's valid depth, NaN where not judged.
+
+    ``d`` ``(H, W)`` is the depth, ``valid`` ``(H, W)`` its finite positive pixels; an instance
+    with fewer than ``min_points`` of them, or without a positive diameter, is not judged.
+    """
+    ratios = torch.full((masks.shape[0],), float("nan"), dtype=torch.float64)
+    Kt = torch.as_tensor(_nested_floats(K), dtype=torch.float64).reshape(3, 3)
+    fx, fy, cx, cy = (float(Kt[0, 0]), float(Kt[1, 1]), float(Kt[0, 2]), float(Kt[1, 2]))
+    for i in range(masks.shape[0]):
+        v, u = torch.nonzero(masks[i].to(d.device) & valid, as_tuple=True)
+        if v.numel() < min_points or not (math.isfinite(diameters[i]) and diameters[i] > 0):
+            continue
+        z = d[v, u].double()
+        pts = torch.stack([(u.double() - cx) * z / fx, (v.double() - cy) * z / fy, z], dim=1)
+        ratios[i] = _extent(pts) / float(diameters[i])
+    return ratios
+
+
+def _extent_error(
+    judged: torch.Tensor,
+    low: float,
+    where: str,
+    scale_name: str | None,
+    scale: float,
+    api_name: str | None,
+) -> UnitsError:
+    """The error for judged extent ratios ``(n,)`` too large (median) or below ``low`` (max)."""
     n = judged.numel()
     of = "one instance" if n == 1 else f"{n} instances"
     typical, largest = float(judged.median()), float(judged.max())
-    if typical > high:
+    if typical > EXTENT_RATIO_RANGE[1]:
         factor = 10.0 ** max(1, round(math.log10(typical)))
         spans = f"{typical:.3g} times" + (" (the median)" if n > 1 else "")
         why = "more than a visible part of an object can (unless the masks are of other objects)"
         size = "large"
-    elif largest < low:
+    else:
         factor = 10.0 ** min(-1, round(math.log10(largest)))
         spans = f"at most {largest:.3g} times"
         why = "far less than the visible part of an object does"
         size = "small"
-    else:
-        return ratios
     if scale_name is None:
         fix = f"multiply the depth by {1.0 / factor:g} (poseflow takes depth in metres)"
     else:
         fix = _fix(scale_name, scale, scale / factor, api_name)
-    raise UnitsError(
+    return UnitsError(
         f"{where}: the depth inside the masks spans {spans} the objects' diameters ({of}), "
         f"{why}: is the depth {max(factor, 1.0 / factor):g} times too {size}? {fix}"
     )
