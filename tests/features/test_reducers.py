@@ -23,10 +23,10 @@ from poseflow.features.reducers import (
     PCAReducer,
     Reducer,
     UMAPReducer,
-    _membership,
     find_ab_params,
     load_reducer,
 )
+from poseflow.features.umap_transform import fuzzy_membership
 
 
 def _clusters(n: int, g: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -161,7 +161,7 @@ def test_find_ab_params_matches_umap_defaults() -> None:
 def test_membership_sums_to_log2_k() -> None:
     d = torch.rand(50, 30, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
     d, _ = d.sort(dim=1)
-    w = _membership(d, math.log2(30))
+    w = fuzzy_membership(d, math.log2(30))
     assert torch.allclose(w.sum(dim=1), torch.full((50,), math.log2(30), dtype=torch.float64))
     assert bool((w[:, :-1] >= w[:, 1:]).all())  # closer neighbours weigh more
 

@@ -1,7 +1,7 @@
 """Lifting pixel features to points: the target crop and the query's multi-view bank.
 
 Target (paper, "Feature extraction"): the square crop of the RGB image centred on the projection of
-the target cloud's barycentre (:func:`~poseflow.geometry.pointcloud.crop_box_around`), resized to
+the target cloud's barycentre (:func:`~poseflow.geometry.crops.crop_box_around`), resized to
 the encoder's input size; the feature map is sampled bilinearly at every point's pixel.
 
 Query: the textured model is rendered from ``num_views`` viewpoints on a sphere (Fibonacci
@@ -40,13 +40,9 @@ from torch.nn import functional as F
 from poseflow._checks import check_mask, check_tensor
 from poseflow.errors import DegenerateInputError, ShapeError, ValueRangeError
 from poseflow.features.appearance import AppearanceEncoder, features_at
+from poseflow.geometry.crops import crop_box_around, crop_resize, pixels_to_crop
 from poseflow.geometry.neighbors import nearest_neighbors
-from poseflow.geometry.pointcloud import (
-    crop_box_around,
-    crop_resize,
-    pixels_to_crop,
-    project_points,
-)
+from poseflow.geometry.projection import project_points
 
 __all__ = [
     "QueryFeatureBank",
@@ -430,42 +426,56 @@ def lift_query_features(
     n_views = len(poses)
     visible = torch.zeros(len(pts), n_views, dtype=torch.bool)
     features: torch.Tensor | None = None
+    tolerance = visibility_tolerance * diameter
     for start in range(0, n_views, batch_size):
         chunk = range(start, min(n_views, start + batch_size))
-        crops, boxes, uvs, seen = [], [], [], []
-        for k in chunk:
-            out = renderer.render(poses[k][None], K, size, size)
-            cam = pts @ poses[k, :3, :3].T + poses[k, :3, 3]
-            uv = project_points(cam[None], K)[0]
-            pix = uv.round().long()
-            inside = (pix >= 0).all(dim=1) & (pix[:, 0] < size) & (pix[:, 1] < size)
-            pix = pix.clamp(0, size - 1)
-            depth = out.depth.double()[pix[:, 1], pix[:, 0]]
-            vis = (
-                inside
-                & (depth > 0)
-                & ((cam[:, 2] - depth).abs() <= visibility_tolerance * diameter)
-            )
-            if int(vis.sum()) < 3:
-                vis = torch.zeros_like(vis)
-                box = torch.tensor([[-0.5, -0.5, size - 0.5, size - 0.5]], dtype=torch.float64)
-            else:
-                box = crop_box_around(cam[None], K, vis[None], margin=margin)
-            rgb = out.rgb.permute(2, 0, 1)[None].float() / 255.0
-            crops.append(crop_resize(rgb, box.float(), size))
-            boxes.append(box)
-            uvs.append(uv)
-            seen.append(vis)
-        crop_uv = torch.cat([pixels_to_crop(uv[None], box, size) for uv, box in zip(uvs, boxes)])
-        feats = features_at(encoder, torch.cat(crops), crop_uv.float()).float()
+        views = [_render_view(renderer, poses[k], K, size, pts, tolerance, margin) for k in chunk]
+        crop_uv = torch.cat([pixels_to_crop(uv[None], box, size) for _, box, uv, _ in views])
+        feats = features_at(encoder, torch.cat([v[0] for v in views]), crop_uv.float()).float()
         for j, k in enumerate(chunk):
-            sampled = feats[j]
+            seen = views[j][3]
             if features is None:
-                features = torch.zeros(len(pts), n_views, sampled.shape[-1])
-            features[:, k] = torch.where(seen[j][:, None], sampled, torch.zeros(()))
-            visible[:, k] = seen[j]
+                features = torch.zeros(len(pts), n_views, feats.shape[-1])
+            features[:, k] = torch.where(seen[:, None], feats[j], torch.zeros(()))
+            visible[:, k] = seen
     if features is None or not bool(visible.any()):
         raise DegenerateInputError("no rendered view sees any point of the model")
     if features.shape[-1] != encoder.dim:
         raise ShapeError(f"encoder returned {features.shape[-1]} channels, expected {encoder.dim}")
     return QueryFeatureBank(pts.to(points.dtype), features, visible, poses.to(points.dtype), rolls)
+
+
+def _render_view(
+    renderer: Any,
+    pose: torch.Tensor,
+    K: torch.Tensor,
+    size: int,
+    points: torch.Tensor,
+    tolerance: float,
+    margin: float,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Render the model from ``pose`` ``(4, 4)`` at ``size`` pixels square and crop it as a target.
+
+    A model point ``(N, 3)`` is seen when it projects inside the image and its depth is within
+    ``tolerance`` of the rendered depth; with fewer than 3 seen, none is and the crop is the
+    whole image.
+
+    Returns:
+        The crop ``(1, 3, size, size)`` in ``[0, 1]``, its box ``(1, 4)``, the points' pixels
+        ``(N, 2)`` and which are seen ``(N,)``.
+    """
+    out = renderer.render(pose[None], K, size, size)
+    cam = points @ pose[:3, :3].T + pose[:3, 3]
+    uv = project_points(cam[None], K)[0]
+    pix = uv.round().long()
+    inside = (pix >= 0).all(dim=1) & (pix[:, 0] < size) & (pix[:, 1] < size)
+    pix = pix.clamp(0, size - 1)
+    depth = out.depth.double()[pix[:, 1], pix[:, 0]]
+    seen = inside & (depth > 0) & ((cam[:, 2] - depth).abs() <= tolerance)
+    if int(seen.sum()) < 3:
+        seen = torch.zeros_like(seen)
+        box = torch.tensor([[-0.5, -0.5, size - 0.5, size - 0.5]], dtype=torch.float64)
+    else:
+        box = crop_box_around(cam[None], K, seen[None], margin=margin)
+    rgb = out.rgb.permute(2, 0, 1)[None].float() / 255.0
+    return crop_resize(rgb, box.float(), size), box, uv, seen

@@ -4,20 +4,8 @@ The paper fits UMAP on the query features ``S_Q`` of an object only, then projec
 instance ``S_T`` into the same low-dimensional manifold. :class:`UMAPReducer` fits with TorchDR's
 GPU UMAP when the features are on CUDA and TorchDR is installed (``pip install
 'poseflow[gpu]'``), as the paper does, and with umap-learn otherwise; it projects new points with
-its own out-of-sample transform written in torch (CPU or CUDA, batched over instances):
-
-1. exact k nearest neighbours of each new point among the fitted training points (one matrix
-   product per chunk, the reducer's metric);
-2. UMAP's fuzzy membership weights ``exp(−d / σ)`` with ``σ`` found per point by a vectorised
-   bisection so that the weights sum to ``log2(k)`` (umap-learn's rule for new points);
-3. initial position: the membership-weighted mean of the neighbours' embeddings;
-4. optionally (``transform_epochs > 0``), a few epochs of UMAP's cross-entropy layout
-   optimisation, vectorised: per epoch every new point
-   takes one step along the *expected* SGD update of an umap-learn epoch (attraction to its
-   strongest neighbours' embeddings at the rate umap-learn samples each edge, ``w / max w``, and
-   ``negative_sample_rate`` repulsions per sampled edge estimated from a few random embedded
-   training points, both with UMAP's ``1 / (1 + a d^{2b})`` kernel and gradient clipping), with
-   the training embedding held fixed.
+its own out-of-sample transform written in torch (CPU or CUDA, batched over instances; see
+:mod:`poseflow.features.umap_transform`).
 
 :class:`PCAReducer` and :class:`IdentityReducer` share the API for the ablation; all three derive
 from the abstract :class:`Reducer`. Fitted reducers save to a directory as
@@ -52,6 +40,11 @@ from poseflow.errors import (
     MissingDependencyError,
     ShapeError,
     ValueRangeError,
+)
+from poseflow.features.umap_transform import (
+    fuzzy_membership,
+    nearest_training_points,
+    refine_embedding,
 )
 
 __all__ = [
@@ -545,74 +538,30 @@ class UMAPReducer(Reducer):
         x = self._prepare(_as_tensor(X, "X")).detach().cpu().numpy().astype(np.float32)
         return self.umap_model_.transform(x)
 
-    def _knn(self, x: torch.Tensor, train: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Exact kNN: top-k of one score matrix per chunk, distances recomputed on the k kept."""
-        k = min(self.n_neighbors, train.shape[0])
-        dists, idx = [], []
-        if self.metric == "cosine":
-            ref = F.normalize(train, dim=-1)
-        else:
-            ref = train
-            half_sq = 0.5 * train.pow(2).sum(dim=1)
-        for start in range(0, x.shape[0], self.chunk_size):
-            block = x[start : start + self.chunk_size]
-            if self.metric == "cosine":
-                block = F.normalize(block, dim=-1)
-                sim, ids = (block @ ref.T).topk(k, dim=1)
-                d = (1.0 - sim).clamp_min(0.0)
-            else:
-                _, ids = (block @ ref.T - half_sq).topk(k, dim=1)  # max x·t − |t|²/2
-                d = (block[:, None, :] - ref[ids]).norm(dim=-1)
-                d, order = d.sort(dim=1)
-                ids = ids.gather(1, order)
-            dists.append(d)
-            idx.append(ids)
-        return torch.cat(dists), torch.cat(idx)
-
     def _transform(self, x: torch.Tensor) -> torch.Tensor:
         train = self.train_.to(device=x.device, dtype=x.dtype)
         emb = self.embedding_.to(device=x.device, dtype=x.dtype)
-        dist, idx = self._knn(x, train)
-        weights = _membership(dist, math.log2(self.n_neighbors))
+        dist, idx = nearest_training_points(
+            x, train, self.n_neighbors, self.metric, self.chunk_size
+        )
+        weights = fuzzy_membership(dist, math.log2(self.n_neighbors))
         y = (weights[..., None] * emb[idx]).sum(dim=1) / weights.sum(dim=1, keepdim=True)
         if self.transform_epochs == 0:
             return y
-        # umap-learn samples edge (i, j) every max(w) / w_ij epochs and draws
-        # negative_sample_rate negatives per sample; one step here is that expectation. Forces are
-        # sums c_j (y - e_j) = (sum c_j) y - sum c_j e_j, computed with batched matrix products on
-        # (Q, k) coefficients (no (Q, k, D) temporaries); each edge's force is clipped to norm 4.
-        rate = weights / weights.max()
-        rate = torch.where(rate >= 1.0 / 100.0, rate, torch.zeros_like(rate))
-        keep = min(self.optimize_neighbors, rate.shape[1])
-        rate, order = rate.topk(keep, dim=1)
-        neighbours = emb[idx.gather(1, order)]  # (Q, k', D)
-        nb_sq = neighbours.pow(2).sum(-1)
-        emb_sq = emb.pow(2).sum(-1)
-        neg_weight = rate.sum(dim=1, keepdim=True) * (
-            self.negative_sample_rate / self.negative_draws
+        return refine_embedding(
+            y,
+            emb,
+            idx,
+            weights,
+            a=self.a_,
+            b=self.b_,
+            epochs=self.transform_epochs,
+            learning_rate=self.learning_rate,
+            negative_sample_rate=self.negative_sample_rate,
+            negative_draws=self.negative_draws,
+            optimize_neighbors=self.optimize_neighbors,
+            seed=0 if self.random_state is None else int(self.random_state),
         )
-        gen = torch.Generator(device=x.device)
-        gen.manual_seed(0 if self.random_state is None else int(self.random_state))
-        Q, S = x.shape[0], self.negative_draws
-        a, b = self.a_, self.b_
-        for epoch in range(self.transform_epochs):
-            alpha = self.learning_rate * (1.0 - epoch / self.transform_epochs)
-            y_sq = y.pow(2).sum(-1, keepdim=True)
-            d2 = (y_sq + nb_sq - 2.0 * (neighbours @ y[..., None])[..., 0]).clamp_min(1e-12)
-            d2b1 = d2.pow(b - 1.0)
-            c = (2.0 * a * b) * d2b1 / (1.0 + a * d2b1 * d2)  # attraction pulls y to e_j
-            c = c * (4.0 / (c * d2.sqrt())).clamp(max=1.0) * rate
-            pull = (c[:, None, :] @ neighbours)[:, 0] - c.sum(1, keepdim=True) * y
-            neg = torch.randint(0, emb.shape[0], (Q * S,), generator=gen, device=x.device)
-            e_neg = emb[neg].view(Q, S, -1)
-            d2n = (y_sq + emb_sq[neg].view(Q, S) - 2.0 * (e_neg @ y[..., None])[..., 0]).clamp_min(
-                0
-            )
-            cn = (2.0 * b) / ((0.001 + d2n) * (1.0 + a * d2n.pow(b)))
-            cn = cn * (4.0 / (cn * d2n.sqrt()).clamp_min(1e-12)).clamp(max=1.0) * neg_weight
-            push = cn.sum(1, keepdim=True) * y - (cn[:, None, :] @ e_neg)[:, 0]
-            y = y + alpha * (pull + push).clamp(-4.0, 4.0)  # umap-learn's step bound
-        return y
 
 
 def _import_torchdr() -> ModuleType:
@@ -658,25 +607,6 @@ def _restored_global_state() -> Iterator[None]:
         else:
             os.environ["PYTHONHASHSEED"] = hash_seed
         torch.backends.cudnn.benchmark, torch.backends.cudnn.deterministic = cudnn
-
-
-def _membership(dist: torch.Tensor, target: float, iterations: int = 32) -> torch.Tensor:
-    """UMAP's fuzzy membership of new points: ``exp(−d / σ)`` with ``Σ = target`` per row.
-
-    ``σ`` is found by bisection on all rows at once (umap-learn uses no local-connectivity offset
-    for new points); rows whose distances are all zero get uniform weights.
-    """
-    lo = torch.zeros(dist.shape[0], 1, dtype=dist.dtype, device=dist.device)
-    hi = torch.full_like(lo, float("inf"))
-    mid = torch.ones_like(lo)
-    for _ in range(iterations):
-        total = torch.exp(-dist / mid).sum(dim=1, keepdim=True)
-        too_big = total > target
-        hi = torch.where(too_big, mid, hi)
-        lo = torch.where(too_big, lo, mid)
-        mid = torch.where(torch.isinf(hi), mid * 2.0, (lo + hi) / 2.0)
-    w = torch.exp(-dist / mid)
-    return torch.where(w.sum(dim=1, keepdim=True) > 0, w, torch.ones_like(w))
 
 
 _CLASSES: dict[str, type[Reducer]] = {
