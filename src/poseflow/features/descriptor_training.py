@@ -46,7 +46,7 @@ import argparse
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -273,68 +273,96 @@ def train_descriptor(
         pool_size=cfg.pool_size,
     )
     opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-    warm = max(1, cfg.steps // 20)
-
-    def lr_at(step: int) -> float:
-        if step < warm:
-            return (step + 1) / warm
-        return 0.5 * (1 + math.cos(math.pi * (step - warm) / max(1, cfg.steps - warm)))
-
-    sched = torch.optim.lr_scheduler.LambdaLR(opt, lr_at)
-    start = time.monotonic()
-    history: list[tuple[float, float]] = []
-    done = 0
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, _warmup_cosine(cfg.steps))
+    record = _Record(cfg, time.monotonic())
 
     def save(final: bool) -> None:
-        recent = history[-50:]
-        save_descriptor(
-            net,
-            out,
-            input_size=cfg.input_size,
-            query_pooling=query_pooling,
-            training={
-                **asdict(cfg),
-                "steps_done": done,
-                "seconds": round(time.monotonic() - start, 1),
-                "final": final,
-                "loss": round(float(np.mean([r[0] for r in recent])), 4) if recent else None,
-                "accuracy": round(float(np.mean([r[1] for r in recent])), 4) if recent else None,
-            },
-        )
+        save_descriptor(net, out, input_size=cfg.input_size, query_pooling=query_pooling,
+                        training=record.summary(final))  # fmt: skip
 
     net.train()
     bar = tqdm(range(cfg.steps), desc="descriptor", disable=not progress, mininterval=5.0)
-    for step in bar:
-        batch = gen.batch(cfg.batch_size, fresh=cfg.fresh_pairs)
-        feats = net(torch.cat([batch.images_a, batch.images_b]))
-        fa, fb = feats.chunk(2)
-        loss, acc = descriptor_loss(
-            fa, fb, batch, temperature=cfg.temperature, exclusion=cfg.exclusion, sigma=cfg.sigma
-        )
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(net.parameters(), 1.0)
-        opt.step()
+    for _ in bar:
+        loss, acc = _step(net, opt, gen.batch(cfg.batch_size, fresh=cfg.fresh_pairs), cfg)
         sched.step()
-        done = step + 1
-        history.append((loss.item(), acc.item()))
-        if done % 50 == 0 or done == cfg.steps:
-            recent = history[-50:]
-            line = (
-                f"step {done} loss {np.mean([r[0] for r in recent]):.4f} "
-                f"acc {np.mean([r[1] for r in recent]):.3f} lr {sched.get_last_lr()[0]:.2e} "
-                f"{time.monotonic() - start:.0f}s"
-            )
+        record.add(loss, acc)
+        if record.done % 50 == 0 or record.done == cfg.steps:
+            line = record.line(sched.get_last_lr()[0])
             bar.set_postfix_str(line.split(" ", 2)[2])
             if log is not None:
                 log(line)
-        if save_every and done % save_every == 0 and done < cfg.steps:
+        if save_every and record.done % save_every == 0 and record.done < cfg.steps:
             save(False)
-        if time_limit is not None and time.monotonic() - start > time_limit:
+        if time_limit is not None and time.monotonic() - record.start > time_limit:
             break
     net.eval()
     save(True)
     return Path(out)
+
+
+def _warmup_cosine(steps: int) -> Callable[[int], float]:
+    """The learning-rate factor: linear warm-up over 5 % of ``steps``, then cosine decay."""
+    warm = max(1, steps // 20)
+
+    def factor(step: int) -> float:
+        if step < warm:
+            return (step + 1) / warm
+        return 0.5 * (1 + math.cos(math.pi * (step - warm) / max(1, steps - warm)))
+
+    return factor
+
+
+def _step(
+    net: DescriptorNet, opt: torch.optim.Optimizer, batch: PairBatch, cfg: DescriptorTrainingConfig
+) -> tuple[float, float]:
+    """One optimiser step on a batch; returns its ``(loss, accuracy)``."""
+    feats = net(torch.cat([batch.images_a, batch.images_b]))
+    fa, fb = feats.chunk(2)
+    loss, acc = descriptor_loss(
+        fa, fb, batch, temperature=cfg.temperature, exclusion=cfg.exclusion, sigma=cfg.sigma
+    )
+    opt.zero_grad(set_to_none=True)
+    loss.backward()
+    torch.nn.utils.clip_grad_norm_(net.parameters(), 1.0)
+    opt.step()
+    return loss.item(), acc.item()
+
+
+@dataclass
+class _Record:
+    """The losses and accuracies of the steps done, for the log and ``config.json``."""
+
+    cfg: DescriptorTrainingConfig
+    start: float
+    history: list[tuple[float, float]] = field(default_factory=list)
+
+    @property
+    def done(self) -> int:
+        return len(self.history)
+
+    def add(self, loss: float, acc: float) -> None:
+        self.history.append((loss, acc))
+
+    def _recent(self, k: int) -> float | None:
+        recent = self.history[-50:]
+        return float(np.mean([r[k] for r in recent])) if recent else None
+
+    def line(self, lr: float) -> str:
+        return (
+            f"step {self.done} loss {self._recent(0):.4f} acc {self._recent(1):.3f} "
+            f"lr {lr:.2e} {time.monotonic() - self.start:.0f}s"
+        )
+
+    def summary(self, final: bool) -> dict:
+        loss, acc = self._recent(0), self._recent(1)
+        return {
+            **asdict(self.cfg),
+            "steps_done": self.done,
+            "seconds": round(time.monotonic() - self.start, 1),
+            "final": final,
+            "loss": None if loss is None else round(loss, 4),
+            "accuracy": None if acc is None else round(acc, 4),
+        }
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -211,76 +211,160 @@ def render_pair(
     angle = math.radians(rng.uniform(0.0, max_view_angle))
     roll = axis_angle_to_rotation(np.array([0.0, 0.0, rng.uniform(0, 2 * math.pi)]))
     R_b = roll @ axis_angle_to_rotation(random_direction(rng) * angle) @ R_a
-    views = []
     styled = bool(rng.random() < query_style)
-    for k, R in enumerate((R_a, R_b)):
-        query = styled and k == 0
-        s = math.exp(rng.uniform(math.log(span[0]), math.log(span[1])))
-        z = diam * rng.uniform(2.5, 8.0)
-        if query:  # lift_query_features: 3 diameters away, the diameter spans the crop / 1.1
-            s, z = input_size / 1.1, 3.0 * diam
-        f = s * z / diam
-        side = math.ceil(1.5 * s) + 8
-        c = (side - 1) / 2
-        K = np.array([[f, 0, c], [0, f, c], [0, 0, 1.0]])
-        T = np.eye(4)
-        T[:3, :3] = R
-        T[:3, 3] = [*(rng.uniform(-0.08, 0.08, size=2) * z * (not query)), z]
-        T2 = np.eye(4)
-        T2[:3, :3] = quaternion_to_rotation(rng.normal(size=4))
-        if rng.random() < clutter and not query:
-            lateral = random_direction(rng)[:2]
-            lateral = lateral / max(np.linalg.norm(lateral), 1e-9)
-            dz = rng.uniform(-0.8, 0.8) * diam
-            T2[:3, 3] = [*(T[:2, 3] + lateral * rng.uniform(0.45, 0.9) * diam), z + dz]
-        else:
-            T2[:3, 3] = [0.0, 0.0, -10.0 * z]  # behind the camera: not rendered
-        poses = np.stack([T, T2])
-        out = renderer.render(poses, K, side, side, rgb=False)
-        bg = np.zeros((side, side, 3), np.float32) if query else _background(rng, side, images)
-        img, coords = _shade(
-            rng, out, poses, K, [texture, other_tex], [diam, diam], bg, headlight=query
-        )
-        x = torch.from_numpy(img).permute(2, 0, 1)
-        if not query:
-            if rng.random() < 0.5:
-                x = _blur(x, float(rng.uniform(0.3, 1.5)))
-            noise = torch.from_numpy(rng.normal(size=x.shape).astype(np.float32))
-            x = (x + noise * rng.uniform(0.0, 0.03)).clamp(0, 1)
-        views.append((x, coords, out, K, T))
-    crops, maps, masks, boxes, sources = [], [], [], [], []
-    for k, (x, coords, out, K, _) in enumerate(views):
-        query = styled and k == 0
-        vis = out.instance == 0
-        if int(vis.sum()) < 16:
+    views = [
+        _render_view(rng, renderer, R, diam, [texture, other_tex], images,
+                     query=styled and k == 0, span=span, input_size=input_size, clutter=clutter)
+        for k, R in enumerate((R_a, R_b))
+    ]  # fmt: skip
+    crops = []
+    for k, view in enumerate(views):
+        crop = _crop_view(rng, view, query=styled and k == 0, input_size=input_size)
+        if crop is None:
             return None
-        vv, uu = torch.nonzero(vis, as_tuple=True)
-        cam = (
-            torch.stack([uu, vv, torch.ones_like(uu)], 1).double()
-            @ torch.from_numpy(np.linalg.inv(K)).T
-            * out.depth[vv, uu, None].double()
-        )
-        margin = 1.1 if query else rng.uniform(1.0, 1.35)
-        box = crop_box_around(cam[None], torch.from_numpy(K), margin=margin)
-        if not query:
-            seed = int(rng.integers(2**31))
-            box = jitter_boxes(box, 0.08, generator=torch.Generator().manual_seed(seed))
-        S = input_size
-        crops.append(crop_resize(x[None], box.float(), S)[0])
-        grid_v, grid_u = torch.meshgrid(
-            torch.arange(vis.shape[0]), torch.arange(vis.shape[1]), indexing="ij"
-        )
-        planes = [torch.from_numpy(coords).permute(2, 0, 1), vis[None].float()]
-        layers = torch.cat([*planes, grid_u[None], grid_v[None]]).double()
-        m = crop_resize(layers[None], box, S, mode="nearest")[0]
-        maps.append(m[:3].permute(1, 2, 0).float().contiguous())
-        masks.append(m[3] > 0.5)
-        sources.append(m[4:].permute(1, 2, 0))  # the rendered pixel each crop pixel shows
-        boxes.append(box)
-    # Correspondences: object pixels of crop A, projected into view B, visible there.
-    ya, xa = torch.nonzero(masks[0], as_tuple=True)
-    pts = maps[0][ya, xa].double()  # (P, 3) in diameters
-    _, _, out_b, K_b, T_b = views[1]
+        crops.append(crop)
+    pts, uv_b, seen = _matches(crops[0], views[1], crops[1].box, diam, input_size,
+                               visibility_tolerance)  # fmt: skip
+    if int(seen.sum()) < min_matches:
+        return None
+    a = crops[0]
+    ya, xa = torch.nonzero(a.mask, as_tuple=True)
+    # the exact crop position of each lifted point: its rendered pixel, mapped into crop A
+    uv_a = pixels_to_crop(a.source[ya, xa][None], a.box, input_size)[0][seen].float()
+    return ViewPair(
+        images=torch.stack([c.image for c in crops]).float(),
+        coords=torch.stack([c.coords for c in crops]).float(),
+        mask=torch.stack([c.mask for c in crops]),
+        uv_a=uv_a,
+        uv_b=uv_b[seen].float(),
+        points=pts[seen].float(),
+        styled=(styled, False),
+    )
+
+
+@dataclass
+class _View:
+    """One rendering of the object (and maybe the clutter object).
+
+    The image ``(3, H, W)``, object-0 model points ``(H, W, 3)`` (diameters), the render output,
+    the intrinsics ``(3, 3)`` and the object's pose ``(4, 4)``.
+    """
+
+    image: torch.Tensor
+    coords: np.ndarray
+    out: RenderOutput
+    K: np.ndarray
+    T: np.ndarray
+
+
+@dataclass
+class _Crop:
+    """A view's crop of side ``S``.
+
+    The image ``(3, S, S)``, model points ``(S, S, 3)``, the object mask ``(S, S)``, the box
+    ``(1, 4)`` and the rendered pixel that each crop pixel shows ``(S, S, 2)``.
+    """
+
+    image: torch.Tensor
+    coords: torch.Tensor
+    mask: torch.Tensor
+    box: torch.Tensor
+    source: torch.Tensor
+
+
+def _render_view(
+    rng: np.random.Generator,
+    renderer: Renderer,
+    R: np.ndarray,
+    diam: float,
+    textures: Sequence[SolidTexture],
+    images: Sequence[np.ndarray],
+    *,
+    query: bool,
+    span: tuple[float, float],
+    input_size: int,
+    clutter: float,
+) -> _View:
+    """Render the object turned by ``R``, shaded and degraded (a query view as the lifting)."""
+    s = math.exp(rng.uniform(math.log(span[0]), math.log(span[1])))
+    z = diam * rng.uniform(2.5, 8.0)
+    if query:  # lift_query_features: 3 diameters away, the diameter spans the crop / 1.1
+        s, z = input_size / 1.1, 3.0 * diam
+    f = s * z / diam
+    side = math.ceil(1.5 * s) + 8
+    c = (side - 1) / 2
+    K = np.array([[f, 0, c], [0, f, c], [0, 0, 1.0]])
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = [*(rng.uniform(-0.08, 0.08, size=2) * z * (not query)), z]
+    T2 = np.eye(4)
+    T2[:3, :3] = quaternion_to_rotation(rng.normal(size=4))
+    if rng.random() < clutter and not query:
+        lateral = random_direction(rng)[:2]
+        lateral = lateral / max(np.linalg.norm(lateral), 1e-9)
+        dz = rng.uniform(-0.8, 0.8) * diam
+        T2[:3, 3] = [*(T[:2, 3] + lateral * rng.uniform(0.45, 0.9) * diam), z + dz]
+    else:
+        T2[:3, 3] = [0.0, 0.0, -10.0 * z]  # behind the camera: not rendered
+    poses = np.stack([T, T2])
+    out = renderer.render(poses, K, side, side, rgb=False)
+    bg = np.zeros((side, side, 3), np.float32) if query else _background(rng, side, images)
+    img, coords = _shade(rng, out, poses, K, textures, [diam, diam], bg, headlight=query)
+    x = torch.from_numpy(img).permute(2, 0, 1)
+    if not query:
+        if rng.random() < 0.5:
+            x = _blur(x, float(rng.uniform(0.3, 1.5)))
+        noise = torch.from_numpy(rng.normal(size=x.shape).astype(np.float32))
+        x = (x + noise * rng.uniform(0.0, 0.03)).clamp(0, 1)
+    return _View(x, coords, out, K, T)
+
+
+def _crop_view(
+    rng: np.random.Generator, view: _View, *, query: bool, input_size: int
+) -> _Crop | None:
+    """Crop a view as FunFlow6D crops a target; None when fewer than 16 pixels show it."""
+    vis = view.out.instance == 0
+    if int(vis.sum()) < 16:
+        return None
+    vv, uu = torch.nonzero(vis, as_tuple=True)
+    cam = (
+        torch.stack([uu, vv, torch.ones_like(uu)], 1).double()
+        @ torch.from_numpy(np.linalg.inv(view.K)).T
+        * view.out.depth[vv, uu, None].double()
+    )
+    margin = 1.1 if query else rng.uniform(1.0, 1.35)
+    box = crop_box_around(cam[None], torch.from_numpy(view.K), margin=margin)
+    if not query:
+        seed = int(rng.integers(2**31))
+        box = jitter_boxes(box, 0.08, generator=torch.Generator().manual_seed(seed))
+    S = input_size
+    image = crop_resize(view.image[None], box.float(), S)[0]
+    grid_v, grid_u = torch.meshgrid(
+        torch.arange(vis.shape[0]), torch.arange(vis.shape[1]), indexing="ij"
+    )
+    planes = [torch.from_numpy(view.coords).permute(2, 0, 1), vis[None].float()]
+    layers = torch.cat([*planes, grid_u[None], grid_v[None]]).double()
+    m = crop_resize(layers[None], box, S, mode="nearest")[0]
+    return _Crop(
+        image=image,
+        coords=m[:3].permute(1, 2, 0).float().contiguous(),
+        mask=m[3] > 0.5,
+        box=box,
+        source=m[4:].permute(1, 2, 0),  # the rendered pixel each crop pixel shows
+    )
+
+
+def _matches(
+    a: _Crop, view_b: _View, box_b: torch.Tensor, diam: float, input_size: int, tolerance: float
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Object pixels of crop A projected into view B.
+
+    Returns their model points ``(P, 3)`` (diameters), positions in crop B ``(P, 2)`` and
+    whether B sees them there ``(P,)``.
+    """
+    ya, xa = torch.nonzero(a.mask, as_tuple=True)
+    pts = a.coords[ya, xa].double()  # (P, 3) in diameters
+    out_b, K_b, T_b = view_b.out, view_b.K, view_b.T
     cam_b = (pts * diam) @ torch.from_numpy(T_b[:3, :3]).T + torch.from_numpy(T_b[:3, 3])
     z = cam_b[:, 2]
     uv = (cam_b @ torch.from_numpy(K_b).T)[:, :2] / z[:, None]
@@ -290,25 +374,11 @@ def render_pair(
     pix = pix.clamp(0, side_b - 1)
     d_b = out_b.depth[pix[:, 1], pix[:, 0]].double()
     seen = (
-        inside
-        & (out_b.instance[pix[:, 1], pix[:, 0]] == 0)
-        & ((d_b - z).abs() <= visibility_tolerance * diam)
+        inside & (out_b.instance[pix[:, 1], pix[:, 0]] == 0) & ((d_b - z).abs() <= tolerance * diam)
     )
-    uv_b = pixels_to_crop(uv[None], boxes[1], input_size)[0]
+    uv_b = pixels_to_crop(uv[None], box_b, input_size)[0]
     seen &= ((uv_b >= -0.5) & (uv_b <= input_size - 0.5)).all(1)
-    if int(seen.sum()) < min_matches:
-        return None
-    # the exact crop position of each lifted point: its rendered pixel, mapped into crop A
-    uv_a = pixels_to_crop(sources[0][ya, xa][None], boxes[0], input_size)[0][seen].float()
-    return ViewPair(
-        images=torch.stack(crops).float(),
-        coords=torch.stack(maps).float(),
-        mask=torch.stack(masks),
-        uv_a=uv_a,
-        uv_b=uv_b[seen].float(),
-        points=pts[seen].float(),
-        styled=(styled, False),
-    )
+    return pts, uv_b, seen
 
 
 @dataclass
