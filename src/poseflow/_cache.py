@@ -6,6 +6,7 @@ its inputs: file contents, or the paths, sizes and modification times of files t
 Entries live in one folder per key (:func:`cache_entry`), so several coexist, and each is written
 into a temporary sibling folder that is renamed into place when complete
 (:func:`atomic_directory`): a crash never leaves a half-written entry that a later run would read.
+Single files (checkpoints, results, logs) are written the same way by :func:`atomic_write`.
 :func:`read_entry` and :func:`write_entry` wrap both for a cache that is an optimisation only: an
 entry damaged after the fact is dropped with a warning (and computed again), and a cache that
 cannot be written gives a warning instead of failing the run.
@@ -15,6 +16,7 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
+import itertools
 import json
 import os
 import shutil
@@ -30,6 +32,7 @@ __all__ = [
     "KEY_LENGTH",
     "arrays_key",
     "atomic_directory",
+    "atomic_write",
     "cache_entry",
     "files_key",
     "json_key",
@@ -41,6 +44,9 @@ T = TypeVar("T")
 
 #: Hex digits of a cache key.
 KEY_LENGTH = 16
+
+#: Numbers the temporary files of :func:`atomic_write` within a process.
+_WRITES = itertools.count()
 
 
 def json_key(data: Any) -> str:
@@ -162,6 +168,40 @@ def atomic_directory(folder: str | os.PathLike[str]) -> Iterator[Path]:
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+
+
+def atomic_write(path: str | os.PathLike[str], write: Callable[[Path], Any]) -> Path:
+    """Write a file atomically: ``write(tmp)`` fills a hidden sibling, then renamed onto ``path``.
+
+    The temporary file is flushed to disk before the rename, so ``path`` only ever names a
+    complete file; on an exception it is removed and ``path`` is left as it was. ``write``
+    creates the file, which therefore gets the permissions of any new file (not ``mkstemp``'s
+    0600, which would hide shipped weights from other users).
+
+    Args:
+        path: the final file; its folder must exist.
+        write: writes the whole file at the path it is given.
+
+    Returns:
+        ``path`` as a :class:`~pathlib.Path`.
+
+    Example:
+        >>> d = Path(tempfile.mkdtemp())
+        >>> p = atomic_write(d / "a.txt", lambda tmp: tmp.write_text("hi"))
+        >>> p.read_text(), sorted(x.name for x in d.iterdir())
+        ('hi', ['a.txt'])
+    """
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}-{next(_WRITES)}.tmp")
+    try:
+        write(tmp)
+        with open(tmp, "rb+") as f:
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return path
 
 
 def read_entry(

@@ -217,7 +217,7 @@ def _training_set(
     progress: bool,
 ) -> tuple[Any, bool]:
     """Load the cached training set when its key matches, else build (and, on rank 0, save) it."""
-    from poseflow.flows.checkpoint import atomic_write
+    from poseflow._cache import atomic_write
     from poseflow.models.training import build_training_set
 
     key = _train_set_key(model.config, root, args)
@@ -241,7 +241,7 @@ def _training_set(
         meta.unlink(missing_ok=True)  # no key beside a half-written set
         data.save(path)
         text = json.dumps(key, indent=1)
-        atomic_write(meta, lambda tmp: Path(tmp).write_text(text))
+        atomic_write(meta, lambda tmp: tmp.write_text(text))
     return data, False
 
 
@@ -287,6 +287,7 @@ def run(args: argparse.Namespace) -> int:
     import torch
     import torch.distributed as dist
 
+    from poseflow._cache import atomic_write
     from poseflow.cli.common import (
         check_dataset,
         check_writable,
@@ -302,7 +303,6 @@ def run(args: argparse.Namespace) -> int:
         init_distributed,
         main_rank_succeeded,
     )
-    from poseflow.flows.checkpoint import atomic_write
     from poseflow.models import FunFlow6D
     from poseflow.models.training import train
 
@@ -351,7 +351,7 @@ def run(args: argparse.Namespace) -> int:
             if ctx.is_main:
                 out.mkdir(parents=True, exist_ok=True)
                 text = json.dumps(_run_record(out, args, root, config, train_config), indent=1)
-                atomic_write(out / "run.json", lambda tmp: Path(tmp).write_text(text))
+                atomic_write(out / "run.json", lambda tmp: tmp.write_text(text))
         except BaseException:
             if ctx.is_main:
                 main_rank_succeeded(ctx, False)

@@ -13,11 +13,11 @@ import math
 import os
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import torch
 
+from poseflow._cache import atomic_write
 from poseflow._checks import check_tensor
 from poseflow.errors import MissingFileError, ResultsFormatError, ShapeError, ValueRangeError
 
@@ -172,15 +172,8 @@ def write_results(path: str | os.PathLike[str], results: PoseResults) -> None:
             )
         )
     # Written aside and renamed: an interrupted run never leaves a file that looks complete.
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        with open(tmp, "w", encoding="ascii") as f:
-            f.write("\n".join(lines) + "\n")
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+    text = "\n".join(lines) + "\n"
+    atomic_write(path, lambda tmp: tmp.write_text(text, encoding="ascii"))
 
 
 def read_results(path: str | os.PathLike[str]) -> PoseResults:

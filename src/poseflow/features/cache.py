@@ -17,6 +17,7 @@ from typing import Any
 
 import torch
 
+from poseflow._cache import atomic_write
 from poseflow.errors import ValueRangeError
 from poseflow.features.lifting import QueryFeatureBank, lift_query_features
 
@@ -95,10 +96,7 @@ class FeatureCache:
 
         path = self.path(key)
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(".tmp")
-        save_file(bank.state(), str(tmp), metadata=dict(key))
-        tmp.replace(path)
-        return path
+        return atomic_write(path, lambda tmp: save_file(bank.state(), tmp, metadata=dict(key)))
 
     def get_or_compute(
         self, key: dict[str, str], compute: Callable[[], QueryFeatureBank]

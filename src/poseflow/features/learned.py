@@ -25,8 +25,6 @@ Shape letters: B images, G descriptor channels, H × W image, h × w feature gri
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -35,6 +33,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from poseflow._cache import atomic_write
 from poseflow._checks import check_tensor
 from poseflow.errors import CheckpointError, MissingWeightsError, ValueRangeError
 
@@ -279,19 +278,9 @@ def save_descriptor(net: DescriptorNet, out: str | Path, **config: Any) -> Path:
     state = {k: v.detach().cpu().float().contiguous() for k, v in net.state_dict().items()}
     meta = {"format": DESCRIPTOR_FORMAT, "version": _VERSION, **net.config(), **config}
     text = json.dumps(meta, indent=2, sort_keys=True) + "\n"
-    for name, write in (
-        (_WEIGHTS, lambda p: save_file(state, str(p), metadata={"format": DESCRIPTOR_FORMAT})),
-        (_CONFIG, lambda p: Path(p).write_text(text)),
-    ):
-        fd, tmp = tempfile.mkstemp(prefix=f".{name}.", dir=folder)
-        os.close(fd)
-        try:
-            write(tmp)
-            os.chmod(tmp, 0o644)  # mkstemp's 0600 would hide shipped weights from other users
-            os.replace(tmp, folder / name)
-        finally:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
+    metadata = {"format": DESCRIPTOR_FORMAT}
+    atomic_write(folder / _WEIGHTS, lambda tmp: save_file(state, tmp, metadata=metadata))
+    atomic_write(folder / _CONFIG, lambda tmp: tmp.write_text(text))
     return folder
 
 

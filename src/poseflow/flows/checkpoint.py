@@ -3,9 +3,9 @@
 A checkpoint ``step-00001000`` in a directory is two files: ``step-00001000.safetensors`` (named
 tensors: weights, EMA weights, the optimiser state flattened to tensors) and
 ``step-00001000.json`` (step, configuration, optimiser hyper-parameters, RNG seeds, and the name
-of the tensor file). Both are written to a temporary file in the same directory, flushed to disk
-and moved into place with ``os.replace``, the tensors first: a JSON file therefore only ever
-names a complete tensor file, and a crash leaves at worst a stray ``.tmp`` file. Loading reads
+of the tensor file). Both are written by :func:`atomic_write` (a temporary file in the same
+directory, flushed to disk and renamed into place), the tensors first: a JSON file therefore only
+ever names a complete tensor file, and a crash leaves at worst a stray ``.tmp`` file. Loading reads
 safetensors and JSON only; nothing is unpickled. A checkpoint damaged after the fact (a disk
 that filled up, a copy cut short) is detected when read; :func:`load_checkpoint` of a directory
 then falls back to the previous checkpoint with a warning.
@@ -16,15 +16,15 @@ from __future__ import annotations
 import json
 import os
 import re
-import tempfile
 import warnings
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import torch
 from safetensors.torch import load_file, save_file
 
+from poseflow._cache import atomic_write
 from poseflow.errors import CheckpointError, MissingWeightsError, ShapeError
 
 __all__ = [
@@ -39,39 +39,6 @@ __all__ = [
 ]
 
 _NAME = re.compile(r"^step-(\d+)\.json$")
-
-
-def atomic_write(path: str | os.PathLike[str], write: Callable[[str], None]) -> Path:
-    """Write a file atomically: ``write(tmp_path)`` fills a temporary file, then it is renamed.
-
-    Args:
-        path: the final file path; its directory must exist.
-        write: a function that writes the whole file at the path it is given.
-
-    Returns:
-        The final path.
-
-    Example:
-        >>> import tempfile, pathlib
-        >>> d = tempfile.mkdtemp()
-        >>> write = lambda tmp: pathlib.Path(tmp).write_text("hi")
-        >>> p = atomic_write(pathlib.Path(d) / "a.txt", write)
-        >>> p.read_text(), sorted(x.name for x in pathlib.Path(d).iterdir())
-        ('hi', ['a.txt'])
-    """
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        write(tmp)
-        with open(tmp, "rb+") as fh:
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    return path
 
 
 def save_checkpoint(
@@ -110,10 +77,10 @@ def save_checkpoint(
         if not isinstance(value, torch.Tensor):
             raise ShapeError(f"checkpoint entry {name!r} is a {type(value).__name__}, not a tensor")
         cpu[name] = value.detach().to("cpu", copy=True).contiguous()
-    atomic_write(directory / f"{stem}.safetensors", lambda tmp: save_file(cpu, tmp))
+    atomic_write(directory / f"{stem}.safetensors", lambda tmp: save_file(cpu, str(tmp)))
     record = {**meta, "step": int(step), "tensors": f"{stem}.safetensors"}
     text = json.dumps(record, indent=1, sort_keys=True)
-    return atomic_write(directory / f"{stem}.json", lambda tmp: Path(tmp).write_text(text))
+    return atomic_write(directory / f"{stem}.json", lambda tmp: tmp.write_text(text))
 
 
 def check_safetensors(path: str | os.PathLike[str]) -> Path:

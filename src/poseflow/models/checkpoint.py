@@ -15,6 +15,7 @@ from typing import Any
 
 import torch
 
+from poseflow._cache import atomic_write
 from poseflow.errors import CheckpointError, MissingWeightsError, PoseflowError
 from poseflow.models.config import FunFlow6DConfig
 
@@ -55,10 +56,10 @@ def write_checkpoint(
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     tensors = {k: v.detach().cpu().contiguous() for k, v in state.items()}
-    tmp = folder / "model.safetensors.tmp"
-    save_file(tensors, str(tmp), metadata={"format": CHECKPOINT_FORMAT})
-    tmp.replace(folder / "model.safetensors")
-    (folder / "config.json").write_text(json.dumps(config.to_json(), indent=1))
+    metadata = {"format": CHECKPOINT_FORMAT}
+    atomic_write(folder / "model.safetensors", lambda tmp: save_file(tensors, tmp, metadata))
+    text = json.dumps(config.to_json(), indent=1)
+    atomic_write(folder / "config.json", lambda tmp: tmp.write_text(text))
     return folder
 
 

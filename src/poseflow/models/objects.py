@@ -28,7 +28,7 @@ from typing import Any
 
 import torch
 
-from poseflow._cache import cache_entry, json_key, read_entry, write_entry
+from poseflow._cache import atomic_write, cache_entry, json_key, read_entry, write_entry
 from poseflow.data.objects import ObjectModel, sample_surface
 from poseflow.errors import ValueRangeError
 from poseflow.features import (
@@ -101,9 +101,8 @@ class PreparedObject:
             tensors.update({f"bank.{k}": v for k, v in self.bank.state().items()})
         if self.reducer is not None:
             self.reducer.save(folder / "reducer")
-        tmp = folder / "object.safetensors.tmp"
-        save_file({k: v.contiguous() for k, v in tensors.items()}, str(tmp))
-        tmp.replace(folder / "object.safetensors")
+        tensors = {k: v.contiguous() for k, v in tensors.items()}
+        atomic_write(folder / "object.safetensors", lambda tmp: save_file(tensors, tmp))
         meta = {"diameter": self.diameter, "config": dict(fingerprint)}
         (folder / "object.json").write_text(json.dumps(meta, indent=1))
         return folder

@@ -15,6 +15,7 @@ from typing import Any
 import torch
 import torch.nn.functional as F
 
+from poseflow._cache import atomic_write
 from poseflow.data.bop import BOPImageDataset
 from poseflow.errors import DegenerateInputError, ValueRangeError
 from poseflow.flows import CFMObjective, CFMTrainer, TrainConfig, identity_maps
@@ -56,10 +57,8 @@ class FlowTrainingSet(torch.utils.data.Dataset):
 
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(".tmp")
-        save_file({k: v.contiguous() for k, v in self.tensors.items()}, str(tmp))
-        tmp.replace(path)
-        return path
+        tensors = {k: v.contiguous() for k, v in self.tensors.items()}
+        return atomic_write(path, lambda tmp: save_file(tensors, tmp))
 
     @classmethod
     def load(cls, path: str | Path) -> FlowTrainingSet:
