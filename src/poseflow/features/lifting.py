@@ -21,11 +21,8 @@ rolls``, from which the pipeline takes
 
 Points that no view sees get the feature of the nearest seen point (3D distance) in both modes.
 
-Measured (``python benchmarks/features.py --quick``: 6 instances of the demo objects in generated
-cluttered scenes, query 2,000 points from 8 views x 4 rolls, average inliers of mutual nearest
-neighbours within 3 % of the diameter): dense SIFT with per-view selection 109.3, mean-pooled 0.8
-(FPFH 0.7). The selection keeps the signal through PCA to 64-d (106.7); UMAP reduces it (18.5
-with umap-learn's transform, 22.3 with poseflow's).
+``python benchmarks/features.py`` measures both modes by correspondence inliers (figures in
+``benchmarks/RESULTS.md``).
 """
 
 from __future__ import annotations

@@ -310,12 +310,10 @@ class UMAPReducer(Reducer):
             L2-normalised features, which are twice the cosine distances and give the same
             memberships); their optimisers differ, so the embeddings do too.
         transform_epochs: optimisation epochs of the torch transform after the membership-weighted
-            initialisation. Default 0: on the feature benchmark (dense SIFT, mutual-NN inliers)
-            the initialisation alone matched or beat umap-learn's ``transform`` (22.3 vs 18.5
-            inliers with per-view query features, 5.3 vs 5.3 mean-pooled), while 5 epochs gave
-            12.2 and 3.3: the layout optimisation pulls a point onto single neighbours, which
-            raises held-out nearest-neighbour accuracy on clustered toy data (0.33 vs 0.13 for
-            umap-learn) but costs mutual matches.
+            initialisation. Default 0: on the feature benchmark (mutual-NN inliers) the
+            initialisation alone matches or beats umap-learn's ``transform``, while the layout
+            optimisation pulls a point onto single neighbours, which costs mutual matches
+            (``benchmarks/LOG.md``).
         negative_sample_rate: repulsive samples per unit of membership, as in umap-learn.
         learning_rate: initial step of the transform's optimisation (decays linearly to 0).
         optimize_neighbors: strongest edges per new point kept in the optimisation (all

@@ -19,10 +19,10 @@ def serial_cpu_ops(tensor: object) -> Iterator[None]:
 
     The solvers' tensors are small to medium (``B x N`` entries, or ``B x H x N`` per chunk):
     splitting each op across OpenMP threads saves little, and on a machine whose cores are busy
-    with other work the worker threads wait for a core at every op. Measured on 2 shared, busy
-    cores: ICP 5x and RANSAC 6x slower with 2 threads than with 1, validation checks up to 100 ms
-    each. KD-tree searches still run in parallel (one Python thread per batch item). The previous
-    setting is restored on exit; other threads running torch ops meanwhile see it too.
+    with other work the worker threads wait for a core at every op, which made ICP and RANSAC
+    several times slower on two busy cores (``benchmarks/LOG.md``). KD-tree searches still run
+    in parallel (one Python thread per batch item). The previous setting is restored on exit;
+    other threads running torch ops meanwhile see it too.
     """
     threads = torch.get_num_threads()
     on_cpu = isinstance(tensor, torch.Tensor) and tensor.device.type == "cpu"
