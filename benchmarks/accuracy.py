@@ -24,8 +24,8 @@ import torch
 
 from poseflow.assets import DEMO_CHECKPOINT
 from poseflow.baselines import ClassicBaseline
-from poseflow.cli.common import object_cache_dir
 from poseflow.data.demo_objects import demo_objects
+from poseflow.data.object_folder import object_cache_dir
 from poseflow.data.synthetic import generate_dataset
 from poseflow.eval import StageTimer, evaluate_bop
 from poseflow.features import FPFHEncoder

@@ -33,8 +33,8 @@ from pathlib import Path
 
 import torch
 
-from poseflow.cli.common import load_object_models
 from poseflow.data.bop import BOPDataset
+from poseflow.data.object_folder import load_object_models
 from poseflow.eval.inliers import correspondence_inliers
 from poseflow.features.learned import SHIPPED_DESCRIPTOR_DIR, LearnedAppearanceEncoder
 from poseflow.models import FunFlow6D, FunFlow6DConfig

@@ -45,13 +45,9 @@ from pathlib import Path
 import torch
 
 from poseflow.assets import DEMO_CHECKPOINT
-from poseflow.cli.common import (
-    add_set_argument,
-    load_object_models,
-    object_cache_dir,
-    parse_set,
-)
+from poseflow.cli.common import add_set_argument, parse_set
 from poseflow.data.bop import BOPDataset
+from poseflow.data.object_folder import load_object_models, object_cache_dir
 from poseflow.eval import evaluate_bop
 from poseflow.eval.errors import mssd
 from poseflow.eval.inliers import correspondence_inliers

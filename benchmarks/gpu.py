@@ -69,7 +69,7 @@ from torch.profiler import ProfilerActivity, profile
 
 from poseflow.assets import DEMO_CHECKPOINT
 from poseflow.cli.bench import benchmark_settings, fastest_equal_setting
-from poseflow.cli.common import load_object_models, object_cache_dir
+from poseflow.data.object_folder import load_object_models, object_cache_dir
 from poseflow.errors import MissingDependencyError
 from poseflow.features import DINOv2Encoder, UMAPReducer
 from poseflow.fusion import key_padding_mask

@@ -28,7 +28,8 @@ import torch
 
 import poseflow
 from poseflow.assets import DEMO_CHECKPOINT
-from poseflow.cli.common import load_model, load_object_models, object_cache_dir
+from poseflow.cli.common import load_model
+from poseflow.data.object_folder import load_object_models, object_cache_dir
 from poseflow.data.synthetic import generate_dataset
 from poseflow.eval import StageTimer
 

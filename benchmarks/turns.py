@@ -27,8 +27,8 @@ from pathlib import Path
 
 import torch
 
-from poseflow.cli.common import load_object_models
 from poseflow.data.bop import BOPDataset
+from poseflow.data.object_folder import load_object_models
 from poseflow.eval.results import read_results
 from poseflow.models.verification import prepare_verification
 from poseflow.verify import PoseVerifier, axis_angle_matrix, revolution_axis

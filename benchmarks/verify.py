@@ -33,8 +33,8 @@ from pathlib import Path
 
 import torch
 
-from poseflow.cli.common import load_object_models
 from poseflow.data.bop import BOPDataset
+from poseflow.data.object_folder import load_object_models
 from poseflow.eval.results import PoseResults, read_results, write_results
 from poseflow.geometry.pointcloud import (
     backproject_depth,

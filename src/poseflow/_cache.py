@@ -37,6 +37,7 @@ __all__ = [
     "files_key",
     "json_key",
     "read_entry",
+    "update_with_file",
     "write_entry",
 ]
 
@@ -110,12 +111,24 @@ def files_key(paths: Iterable[str | os.PathLike[str]], *, content: bool = False)
         st = p.stat()
         h.update(f"{p}\0{st.st_size}\0".encode())
         if content:
-            with open(p, "rb") as f:
-                while block := f.read(1 << 20):
-                    h.update(block)
+            update_with_file(h, p)
         else:
             h.update(f"{st.st_mtime_ns}\0".encode())
     return h.hexdigest()[:KEY_LENGTH]
+
+
+def update_with_file(h: Any, path: str | os.PathLike[str]) -> None:
+    """Feed the bytes of the file at ``path`` to the hash ``h``, 1 MiB at a time.
+
+    Example:
+        >>> p = Path(tempfile.mkdtemp()) / "a.bin"; _ = p.write_bytes(b"abc")
+        >>> h = hashlib.sha1(); update_with_file(h, p)
+        >>> h.hexdigest() == hashlib.sha1(b"abc").hexdigest()
+        True
+    """
+    with open(path, "rb") as f:
+        while block := f.read(1 << 20):
+            h.update(block)
 
 
 def cache_entry(base: str | os.PathLike[str], name: str, *keys: str) -> Path:

@@ -40,7 +40,7 @@ def test_the_shipped_model_has_the_demo_objects_prepared(tmp_path, monkeypatch):
     import poseflow.models.objects
     import poseflow.verify.objects
     from poseflow.assets import DEMO_CHECKPOINT
-    from poseflow.cli.common import load_object_models, object_cache_dir
+    from poseflow.data.object_folder import load_object_models, object_cache_dir
     from poseflow.data.synthetic import generate_dataset
 
     def never(*args, **kwargs):

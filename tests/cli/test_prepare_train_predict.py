@@ -12,18 +12,15 @@ import pytest
 import torch
 
 from poseflow.cli import SUBCOMMANDS, main
-from poseflow.cli.common import (
-    add_config_arguments,
-    build_config,
+from poseflow.cli.common import add_config_arguments, build_config, parse_set, resolve_device
+from poseflow.cli.predict import select_targets
+from poseflow.data.bop import BOPDataset, Detection, write_detections
+from poseflow.data.object_folder import (
     check_dataset,
     load_object_models,
     models_fingerprint,
     object_cache_dir,
-    parse_set,
-    resolve_device,
 )
-from poseflow.cli.predict import select_targets
-from poseflow.data.bop import BOPDataset, Detection, write_detections
 from poseflow.data.rle import rle_encode
 from poseflow.data.synthetic import generate_dataset
 from poseflow.errors import MissingFileError, UsageError, ValueRangeError

@@ -7,7 +7,7 @@ import open3d as o3d
 import pytest
 
 from poseflow.cli import main
-from poseflow.cli.common import load_object_models
+from poseflow.data.object_folder import load_object_models
 from poseflow.data.synthetic import generate_dataset
 from poseflow.eval import GLTF_FROM_CAMERA, PoseResults, gt_results, write_results
 

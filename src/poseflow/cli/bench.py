@@ -254,7 +254,7 @@ def generated_split(
 
 def _dataset(args: argparse.Namespace, out: Path, progress: bool) -> Path:
     """The dataset to time: ``args.dataset``, or a generated split in ``out/data``."""
-    from poseflow.cli.common import check_dataset
+    from poseflow.data.object_folder import check_dataset
     from poseflow.errors import ValueRangeError
 
     if args.dataset is not None:
@@ -280,13 +280,12 @@ def run(args: argparse.Namespace) -> int:
     from poseflow import get_num_threads
     from poseflow.cli.common import (
         load_model,
-        load_object_models,
-        object_cache_dir,
         parse_set,
         resolve_device,
         resolve_model,
         show_progress,
     )
+    from poseflow.data.object_folder import load_object_models, object_cache_dir
     from poseflow.errors import ValueRangeError
     from poseflow.models import INFERENCE_FIELDS
 

@@ -10,11 +10,10 @@
 - ``--threads``: :func:`add_threads_argument` (every subcommand has it) and :func:`command_threads`;
 - the model configuration: :func:`add_config_arguments` registers ``--config`` (a JSON file of
   :class:`~poseflow.models.FunFlow6DConfig` fields), ``--preset`` and a few common fields as
-  flags, and ``--set KEY=VALUE`` for any field; :func:`build_config` turns them into a config;
-- the objects of a BOP dataset: :func:`check_dataset`, :func:`load_object_models` (``models/`` and
-  ``models_info.json``, millimetres converted to metres) and :func:`object_cache_dir`, the folder
-  where the prepared objects of one dataset's models are cached, keyed by the content of
-  ``models/`` so that two datasets never share an object cache by mistake.
+  flags, and ``--set KEY=VALUE`` for any field; :func:`build_config` turns them into a config.
+
+The objects of a BOP dataset folder (the folder's check, loading, fingerprints, the object cache)
+are library code: :mod:`poseflow.data.object_folder`.
 
 Everything heavy (torch, the model) is imported inside the functions, so that registering the
 subcommands stays cheap.
@@ -24,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import hashlib
 import json
 import logging
 import os
@@ -43,17 +41,12 @@ __all__ = [
     "add_output_arguments",
     "add_threads_argument",
     "build_config",
-    "check_dataset",
     "check_writable",
     "command_output",
     "command_threads",
     "config_requested",
-    "dataset_fingerprint",
     "load_model",
-    "load_object_models",
-    "models_fingerprint",
     "nonnegative_int",
-    "object_cache_dir",
     "parse_set",
     "positive_int",
     "resolve_device",
@@ -532,128 +525,3 @@ def build_config(args: argparse.Namespace) -> Any:
         return FunFlow6DConfig.from_json(data)
     except (TypeError, ValueRangeError) as exc:  # TypeError: a value of the wrong kind
         raise UsageError(f"invalid FunFlow6D configuration: {exc}") from None
-
-
-# ------------------------------------------------------------------------------ datasets
-
-
-def check_dataset(root: str | Path, split: str | None = None) -> Path:
-    """Check that ``root`` looks like a BOP dataset folder (and holds ``split``).
-
-    Args:
-        root: the dataset folder.
-        split: a split folder that must exist, or None.
-
-    Returns:
-        ``root`` as a :class:`~pathlib.Path`.
-
-    Raises:
-        MissingFileError: the folder, its ``models/models_info.json`` or the split is missing.
-    """
-    from poseflow.errors import MissingFileError
-
-    root = Path(root)
-    if not root.is_dir():
-        raise MissingFileError(f"dataset folder {root} does not exist")
-    if not (root / "models" / "models_info.json").is_file():
-        raise MissingFileError(
-            f"{root} is not a BOP dataset folder: {root / 'models' / 'models_info.json'} is "
-            "missing (generate one with `poseflow synth` or download a BOP dataset)"
-        )
-    if split is not None and not (root / split).is_dir():
-        have = sorted(p.name for p in root.iterdir() if p.is_dir() and p.name != "models")
-        raise MissingFileError(f"{root} has no split {split!r} (folders: {', '.join(have)})")
-    return root
-
-
-def load_object_models(
-    root: str | Path,
-    *,
-    obj_ids: Iterable[int] | None = None,
-    num_points: int = 2048,
-    progress: bool = False,
-) -> dict[int, Any]:
-    """Load the object models of a BOP dataset folder as ``{obj_id: ObjectModel}`` in metres.
-
-    Args:
-        root: the dataset folder (``models/obj_XXXXXX.ply`` and ``models/models_info.json``).
-        obj_ids: load only these objects (default: every object of ``models_info.json``).
-        num_points: points of each model's surface sample (the ICP target of FunFlow6D).
-        progress: show a progress bar.
-
-    Returns:
-        ``{obj_id: ObjectModel}`` with the symmetries of ``models_info.json``.
-
-    Raises:
-        MissingFileError: the folder, ``models_info.json`` or a model file is missing.
-        ValueRangeError: an object id of ``obj_ids`` has no entry in ``models_info.json``.
-    """
-    from tqdm.auto import tqdm
-
-    from poseflow.data.bop import read_models_info
-    from poseflow.data.objects import ObjectModel
-    from poseflow.errors import MissingFileError, ValueRangeError
-
-    root = check_dataset(root)
-    infos = read_models_info(root / "models" / "models_info.json")
-    wanted = sorted(infos) if obj_ids is None else sorted({int(o) for o in obj_ids})
-    unknown = [o for o in wanted if o not in infos]
-    if unknown:
-        raise ValueRangeError(f"objects {unknown} are not in {root / 'models/models_info.json'}")
-    out = {}
-    for obj_id in tqdm(wanted, desc="load models", disable=not progress):
-        path = root / "models" / f"obj_{obj_id:06d}.ply"
-        if not path.is_file():
-            raise MissingFileError(f"missing model of obj {obj_id}: {path}")
-        out[obj_id] = ObjectModel.from_file(
-            path, scale=1e-3, info=infos[obj_id], num_points=num_points, name=f"obj_{obj_id:06d}"
-        )
-    return out
-
-
-def _hash_files(paths: Iterable[Path], h: Any) -> None:
-    for p in paths:
-        h.update(p.name.encode())
-        with open(p, "rb") as f:
-            while block := f.read(1 << 20):
-                h.update(block)
-
-
-def models_fingerprint(root: str | Path) -> str:
-    """A short hash of the content of ``root/models`` (meshes, textures, ``models_info.json``).
-
-    Example:
-        >>> import tempfile
-        >>> d = Path(tempfile.mkdtemp()); (d / "models").mkdir()
-        >>> _ = (d / "models" / "models_info.json").write_text("{}")
-        >>> len(models_fingerprint(d))
-        12
-    """
-    folder = Path(root) / "models"
-    h = hashlib.sha1()
-    _hash_files(sorted(p for p in folder.iterdir() if p.is_file()), h)
-    return h.hexdigest()[:12]
-
-
-def dataset_fingerprint(root: str | Path, split: str) -> str:
-    """A short hash of a split's annotations (every scene's ``scene_gt.json`` and camera file).
-
-    The images are not read: a regenerated split almost always changes its poses.
-    """
-    split_path = Path(root) / split
-    h = hashlib.sha1(models_fingerprint(root).encode())
-    for scene in sorted(p for p in split_path.iterdir() if p.is_dir() and p.name.isdigit()):
-        h.update(scene.name.encode())
-        files = [scene / n for n in ("scene_camera.json", "scene_gt.json")]
-        _hash_files([p for p in files if p.is_file()], h)
-    return h.hexdigest()[:12]
-
-
-def object_cache_dir(base: str | Path, root: str | Path) -> Path:
-    """Where the prepared objects of dataset ``root`` are cached under ``base``.
-
-    ``base/objects/<hash of root/models>``; :meth:`~poseflow.models.FunFlow6D.prepare_objects`
-    then keys each object's entry by its mesh (content and scale) and the configuration fields
-    it depends on (``obj_XXXXXX/<key>/``).
-    """
-    return Path(base) / "objects" / models_fingerprint(root)

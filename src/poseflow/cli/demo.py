@@ -130,14 +130,13 @@ def run(args: argparse.Namespace) -> int:
         LOG,
         check_writable,
         load_model,
-        load_object_models,
-        object_cache_dir,
         resolve_device,
         resolve_model,
         show_progress,
     )
     from poseflow.cli.eval import format_table
     from poseflow.data.bop import BOPDataset
+    from poseflow.data.object_folder import load_object_models, object_cache_dir
     from poseflow.data.synthetic import generate_dataset
     from poseflow.eval import StageTimer, evaluate_bop, write_result_overlays, write_results
     from poseflow.features import FPFHEncoder

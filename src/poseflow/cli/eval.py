@@ -81,7 +81,8 @@ def format_table(report: dict[str, Any]) -> str:
 
 def run(args: argparse.Namespace) -> int:
     """Evaluate (after predicting with the baseline when asked), print, write JSON."""
-    from poseflow.cli.common import LOG, check_dataset, check_writable, show_progress
+    from poseflow.cli.common import LOG, check_writable, show_progress
+    from poseflow.data.object_folder import check_dataset
     from poseflow.errors import MissingFileError, OutputExistsError, UsageError
     from poseflow.eval.evaluate import METRICS, evaluate_bop
 
@@ -127,8 +128,8 @@ def run(args: argparse.Namespace) -> int:
 
 def _predict_baseline(root: Path, split: str, out: Path, *, progress: bool) -> None:
     from poseflow.baselines import ClassicBaseline
-    from poseflow.cli.common import load_object_models
     from poseflow.data.bop import BOPDataset
+    from poseflow.data.object_folder import load_object_models
     from poseflow.eval.results import write_results
 
     ds = BOPDataset(root, split, load_rgb=False)

@@ -326,7 +326,8 @@ def _load_model(args: argparse.Namespace, device: Any, changes: dict[str, Any]) 
 def _cache_dir(args: argparse.Namespace, root: Path) -> Path | None:
     import os
 
-    from poseflow.cli.common import LOG, object_cache_dir
+    from poseflow.cli.common import LOG
+    from poseflow.data.object_folder import object_cache_dir
 
     base = Path(args.cache if args.cache is not None else args.model)
     probe = base
@@ -344,7 +345,8 @@ def run(args: argparse.Namespace) -> int:
     Under ``torchrun`` every process estimates its share of the images and rank 0 writes the
     merged outputs (:mod:`poseflow.eval.distributed`).
     """
-    from poseflow.cli.common import check_dataset, check_writable, resolve_device
+    from poseflow.cli.common import check_writable, resolve_device
+    from poseflow.data.object_folder import check_dataset
     from poseflow.eval.distributed import join_ranks
 
     root = check_dataset(args.dataset, args.split)
@@ -379,8 +381,9 @@ def _predict(
 
     import torch
 
-    from poseflow.cli.common import LOG, load_object_models, show_progress
+    from poseflow.cli.common import LOG, show_progress
     from poseflow.data.bop import BOPDataset
+    from poseflow.data.object_folder import load_object_models
     from poseflow.eval.distributed import PredictionPart, image_seed
     from poseflow.eval.predict import Estimator, predict_dataset
     from poseflow.eval.timing import StageTimer
@@ -511,8 +514,9 @@ def _report(args: argparse.Namespace, part: PredictionPart) -> None:
 
 def _write_overlays(args: argparse.Namespace, results: Any) -> None:
     """One overlay picture per image with estimates, in ``args.overlays``."""
-    from poseflow.cli.common import load_object_models, show_progress
+    from poseflow.cli.common import show_progress
     from poseflow.data.bop import BOPDataset
+    from poseflow.data.object_folder import load_object_models
     from poseflow.eval.overlay import write_result_overlays
 
     ids = sorted({int(o) for o in results.obj_ids.tolist()})

@@ -55,15 +55,8 @@ def run(args: argparse.Namespace) -> int:
     import torch
     from tqdm.auto import tqdm
 
-    from poseflow.cli.common import (
-        build_config,
-        check_dataset,
-        check_writable,
-        config_requested,
-        load_object_models,
-        object_cache_dir,
-        show_progress,
-    )
+    from poseflow.cli.common import build_config, check_writable, config_requested, show_progress
+    from poseflow.data.object_folder import check_dataset, load_object_models, object_cache_dir
     from poseflow.errors import UsageError
     from poseflow.models import FunFlow6D, FunFlow6DConfig
     from poseflow.models.checkpoint import is_checkpoint

@@ -157,7 +157,7 @@ def _train_set_key(config: Any, root: Path, args: argparse.Namespace) -> dict[st
     modification time), the options that shape the set and the feature configuration.
     """
     from poseflow._cache import files_key
-    from poseflow.cli.common import dataset_fingerprint
+    from poseflow.data.object_folder import dataset_fingerprint
 
     network = _network_fields()
     features = {k: v for k, v in config.to_json().items() if k not in network}
@@ -288,14 +288,8 @@ def run(args: argparse.Namespace) -> int:
     import torch.distributed as dist
 
     from poseflow._cache import atomic_write
-    from poseflow.cli.common import (
-        check_dataset,
-        check_writable,
-        load_object_models,
-        object_cache_dir,
-        resolve_device,
-        show_progress,
-    )
+    from poseflow.cli.common import check_writable, resolve_device, show_progress
+    from poseflow.data.object_folder import check_dataset, load_object_models, object_cache_dir
     from poseflow.errors import PoseflowError, UsageError
     from poseflow.flows import (
         TrainConfig,

@@ -112,14 +112,9 @@ def run(args: argparse.Namespace) -> int:
     import torch
 
     from poseflow._units import in_front_of_camera
-    from poseflow.cli.common import (
-        LOG,
-        check_dataset,
-        check_writable,
-        load_object_models,
-        show_progress,
-    )
+    from poseflow.cli.common import LOG, check_writable, show_progress
     from poseflow.data.bop import BOPDataset
+    from poseflow.data.object_folder import check_dataset, load_object_models
     from poseflow.errors import MissingDependencyError, MissingFileError
     from poseflow.eval import build_scene, export_scene, read_results, write_recording
 
