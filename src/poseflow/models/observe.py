@@ -127,72 +127,120 @@ def observe(
     if len(obj_ids) != sizes["B"]:
         raise ShapeError(f"got {sizes['B']} masks but {len(obj_ids)} object ids")
     K = check_intrinsics(K, sizes["W"], sizes["H"], dtype=torch.float32, device=depth.device)
-    B, n = sizes["B"], num_points
-    if B == 0:
+    if sizes["B"] == 0:
         return _empty_observation(
-            obj_ids.to(depth.device), n, geometric_encoder, appearance_encoder
+            obj_ids.to(depth.device), num_points, geometric_encoder, appearance_encoder
         )
     image = rgb.float() / 255.0 if not rgb.is_floating_point() else rgb.float()
     depth = torch.nan_to_num(depth.float(), nan=0.0, posinf=0.0)
     with stage("lifting"):
-        cloud = backproject_depth(depth.expand(B, *depth.shape), K, masks.bool())
-        cloud_points, cloud_pixels, keep = cloud.points, cloud.pixels, cloud.mask
-        if cloud_points.shape[1] == 0:  # every mask empty: one padded point each
-            cloud_points = K.new_zeros(B, 1, 3)
-            cloud_pixels = torch.zeros(B, 1, 2, dtype=torch.long, device=K.device)
-            keep = torch.zeros(B, 1, dtype=torch.bool, device=K.device)
-        if cloud_points.shape[1] > dense_points:
-            cloud_points, cloud_pixels, keep = _random_subset(
-                cloud_points, cloud_pixels, keep, dense_points, generator
-            )
-        if cloud_points.shape[1] >= 20:
-            keep = remove_statistical_outliers(cloud_points, keep, k=20)
-        idx, valid_pts = farthest_point_sample(cloud_points, n, keep, generator=generator)
-        points = torch.gather(cloud_points, 1, idx[..., None].expand(-1, -1, 3))
-        pixels = torch.gather(cloud_pixels, 1, idx[..., None].expand(-1, -1, 2))
-        valid = valid_pts.sum(dim=1) >= MIN_POINTS
-        normals = estimate_normals(points, valid_pts, k=min(16, n))
-    diameter = torch.tensor(list(diameters), device=points.device)
-    geometric = appearance = None
-    v = valid  # encoders see only instances with enough points; the others stay zero
+        obs, pixels = _lift(depth, K, masks, obj_ids, num_points, dense_points, generator)
+    diameter = torch.tensor(list(diameters), device=obs.points.device)
     if geometric_encoder is not None:
         with stage("geometric_encoder"):
-            geometric = points.new_zeros(B, n, geometric_encoder.dim)
-            if bool(v.any()) and geometric_support_voxel:
-                support, support_ok = _grid_thinned(
-                    cloud_points[v], keep[v], geometric_support_voxel * diameter[v]
-                )
-                geometric[v] = encode_on_support(
-                    geometric_encoder,
-                    points[v],
-                    normals[v],
-                    valid_pts[v],
-                    support,
-                    estimate_normals(support, support_ok, k=_SUPPORT_NORMAL_NEIGHBOURS),
-                    support_ok,
-                    diameter[v],
-                )
-            elif bool(v.any()):
-                geometric[v] = geometric_encoder.encode(
-                    points[v], normals[v], valid_pts[v], diameter[v]
-                )
+            obs.geometric = _geometric_features(
+                obs, geometric_encoder, diameter, geometric_support_voxel
+            )
     if appearance_encoder is not None:
         with stage("appearance_encoder"):
-            appearance = points.new_zeros(B, n, appearance_encoder.dim)
-            if bool(v.any()):
-                appearance[v] = lift_target_features(
-                    appearance_encoder,
-                    image.expand(int(v.sum()), *image.shape),
-                    points[v],
-                    K,
-                    valid_pts[v],
-                    pixels=pixels[v].to(points.dtype),
-                    jitter=crop_jitter,
-                    generator=generator if crop_jitter > 0 else None,
-                )
-    return Observation(
-        obj_ids, points, normals, valid_pts, valid, geometric, appearance, cloud_points, keep
-    )
+            obs.appearance = _appearance_features(
+                obs, pixels, appearance_encoder, image, K, crop_jitter, generator
+            )
+    return obs
+
+
+def _lift(
+    depth: torch.Tensor,
+    K: torch.Tensor,
+    masks: torch.Tensor,
+    obj_ids: torch.Tensor,
+    num_points: int,
+    dense_points: int,
+    generator: torch.Generator | None,
+) -> tuple[Observation, torch.Tensor]:
+    """The clouds of the masks, without features, and the pixels ``(B, N, 2)`` of their points.
+
+    The masked depth ``(H, W)`` is back-projected, capped at ``dense_points`` random points,
+    cleaned of statistical outliers and thinned to ``N = num_points`` by farthest-point sampling;
+    the normals of the ``N`` points face the camera.
+    """
+    B = masks.shape[0]
+    cloud = backproject_depth(depth.expand(B, *depth.shape), K, masks.bool())
+    cloud_points, cloud_pixels, keep = cloud.points, cloud.pixels, cloud.mask
+    if cloud_points.shape[1] == 0:  # every mask empty: one padded point each
+        cloud_points = K.new_zeros(B, 1, 3)
+        cloud_pixels = torch.zeros(B, 1, 2, dtype=torch.long, device=K.device)
+        keep = torch.zeros(B, 1, dtype=torch.bool, device=K.device)
+    if cloud_points.shape[1] > dense_points:
+        cloud_points, cloud_pixels, keep = _random_subset(
+            cloud_points, cloud_pixels, keep, dense_points, generator
+        )
+    if cloud_points.shape[1] >= 20:
+        keep = remove_statistical_outliers(cloud_points, keep, k=20)
+    idx, valid_pts = farthest_point_sample(cloud_points, num_points, keep, generator=generator)
+    points = torch.gather(cloud_points, 1, idx[..., None].expand(-1, -1, 3))
+    pixels = torch.gather(cloud_pixels, 1, idx[..., None].expand(-1, -1, 2))
+    valid = valid_pts.sum(dim=1) >= MIN_POINTS
+    normals = estimate_normals(points, valid_pts, k=min(16, num_points))
+    obs = Observation(obj_ids, points, normals, valid_pts, valid, None, None, cloud_points, keep)
+    return obs, pixels
+
+
+def _geometric_features(
+    obs: Observation, encoder: GeometricEncoder, diameter: torch.Tensor, support_voxel: float
+) -> torch.Tensor:
+    """``Φ(T)`` ``(B, N, Dg)`` of the instances with enough points (zero for the others).
+
+    With a ``support_voxel`` (in diameters), the points are described within their grid-thinned
+    cleaned dense cloud (:func:`~poseflow.features.encode_on_support`).
+    """
+    B, n = obs.mask.shape
+    v = obs.valid
+    geometric = obs.points.new_zeros(B, n, encoder.dim)
+    if not bool(v.any()):
+        return geometric
+    points, normals, mask = obs.points[v], obs.normals[v], obs.mask[v]
+    if support_voxel:
+        support, support_ok = _grid_thinned(
+            obs.cloud[v], obs.cloud_mask[v], support_voxel * diameter[v]
+        )
+        support_normals = estimate_normals(support, support_ok, k=_SUPPORT_NORMAL_NEIGHBOURS)
+        geometric[v] = encode_on_support(
+            encoder, points, normals, mask, support, support_normals, support_ok, diameter[v]
+        )
+    else:
+        geometric[v] = encoder.encode(points, normals, mask, diameter[v])
+    return geometric
+
+
+def _appearance_features(
+    obs: Observation,
+    pixels: torch.Tensor,
+    encoder: AppearanceEncoder,
+    image: torch.Tensor,
+    K: torch.Tensor,
+    crop_jitter: float,
+    generator: torch.Generator | None,
+) -> torch.Tensor:
+    """Raw appearance features ``(B, N, G)`` lifted from the image ``(3, H, W)`` to the points.
+
+    Only the instances with enough points are described; the others stay zero.
+    """
+    B, n = obs.mask.shape
+    v = obs.valid
+    appearance = obs.points.new_zeros(B, n, encoder.dim)
+    if bool(v.any()):
+        appearance[v] = lift_target_features(
+            encoder,
+            image.expand(int(v.sum()), *image.shape),
+            obs.points[v],
+            K,
+            obs.mask[v],
+            pixels=pixels[v].to(obs.points.dtype),
+            jitter=crop_jitter,
+            generator=generator if crop_jitter > 0 else None,
+        )
+    return appearance
 
 
 def _empty_observation(
