@@ -109,7 +109,7 @@ def observations_path(work: Path, cfg: FunFlow6DConfig) -> Path:
 
 def row_config(base: FunFlow6DConfig, name: str, *, quick: bool) -> FunFlow6DConfig:
     """The configuration of one ablation row (without verification, which the paper has not)."""
-    cfg = base.replace(**ABLATIONS[name], verification=False)
+    cfg = base.replace(**ABLATIONS[name], verifier=None)
     if quick and cfg.reducer == "umap":
         cfg = cfg.replace(reducer="pca")  # umap-learn needs more points than TINY has
     return cfg
@@ -405,7 +405,7 @@ def main() -> None:
     unknown = sorted(set(names) - set(ABLATIONS))
     if unknown:
         parser.error(f"unknown rows {unknown}; choose from {sorted(ABLATIONS)}")
-    base = FunFlow6DConfig(**TINY) if args.quick else FunFlow6DConfig.from_json(args.config)
+    base = FunFlow6DConfig(**TINY) if args.quick else FunFlow6DConfig.load(args.config)
     if args.preset is not None:
         base = base.replace(
             dit_preset=args.preset, net=dataclasses.replace(base.net, dit=DiTOverrides())

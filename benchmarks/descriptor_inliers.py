@@ -82,7 +82,7 @@ def measure(
         query_views=query_views,
         appearance_encoder=name,
         geometric_encoder="none",
-        verification=False,
+        verifier=None,
     )
     model = FunFlow6D(cfg)
     if pooling is not None and isinstance(model.appearance_encoder, LearnedAppearanceEncoder):

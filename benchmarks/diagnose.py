@@ -55,11 +55,10 @@ from poseflow.eval.predict import PoseEstimate, invalidate_implausible
 from poseflow.eval.recall import Target
 from poseflow.eval.results import PoseResults, write_results
 from poseflow.flows import get_sampler
-from poseflow.models import INFERENCE_FIELDS, FunFlow6D
+from poseflow.models import FunFlow6D
 from poseflow.models.objects import select_objects
 from poseflow.models.pose import select_hypotheses, solve_pose
 from poseflow.models.verification import other_hypotheses, rank_estimate
-from poseflow.verify import VerifierConfig
 
 VARIANTS = (
     "model",
@@ -141,20 +140,13 @@ def main() -> None:
     print("command:", " ".join([sys.executable, *sys.argv]))
 
 
-def _config_changes(args: argparse.Namespace, config) -> dict:
+def _config_changes(args: argparse.Namespace) -> dict:
     """The inference fields ``--set``, ``--hypotheses`` and ``--steps`` change."""
     changes = parse_set(args.set_fields)
-    other = sorted(set(changes) - set(INFERENCE_FIELDS))
-    if other:
-        raise SystemExit(f"--set can change only {', '.join(INFERENCE_FIELDS)}; got {other}")
-    if isinstance(changes.get("verifier"), dict):
-        changes["verifier"] = VerifierConfig.from_dict(
-            {**config.verifier.to_dict(), **changes["verifier"]}
-        )
     for name, value in (("num_hypotheses", args.hypotheses), ("steps", args.steps)):
         if value is not None:
             changes[name] = value
-    changes["verification"] = True  # the verified variants need the verifier prepared
+    changes["verifier"] = changes.get("verifier", {})  # the verified variants need a verifier
     return changes
 
 
@@ -203,7 +195,7 @@ def diagnose(args: argparse.Namespace, out: Path) -> dict:
     """Run the variants over the split; returns the report (also printed as a table)."""
     root = Path(args.dataset)
     model = FunFlow6D.load(args.model)
-    model.config = model.config.replace(**_config_changes(args, model.config))
+    model.config = model.config.with_inference(_config_changes(args))
     cfg = model.config
     H = cfg.num_hypotheses
     ds = BOPDataset(root, "test")
@@ -216,7 +208,7 @@ def diagnose(args: argparse.Namespace, out: Path) -> dict:
     model.eval()
     g = torch.Generator().manual_seed(args.seed)
     sampler = get_sampler(cfg.solver, steps=cfg.steps)
-    no_icp = cfg.replace(icp_thresholds=())
+    no_icp = cfg.replace(icp_distances=())
     rows: dict[str, list[PoseResults]] = defaultdict(list)
     epe: dict[int, list[float]] = defaultdict(list)
     # Inliers of the conditioning's features, and of perfect features (the true canonical
@@ -262,7 +254,7 @@ def diagnose(args: argparse.Namespace, out: Path) -> dict:
             )
             shipped = invalidate_implausible(est["model"])
             extra = extra_mask = None
-            if cfg.verify_hypotheses:  # as FunFlow6D.estimate
+            if cfg.verifier.rank_hypotheses:  # as FunFlow6D.estimate
                 extra, extra_mask = other_hypotheses(*solved, H)
                 shipped, extra, extra_mask = rank_estimate(
                     model.verifier, shipped, extra, extra_mask, rgb, depth, K, masks, obj_ids

@@ -3,7 +3,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from poseflow.baselines import ClassicBaseline
+from poseflow.baselines import BASELINE_VERIFIER, BaselineConfig, ClassicBaseline
 from poseflow.data.demo_objects import demo_objects
 from poseflow.data.synthetic import generate_dataset
 from poseflow.errors import ShapeError, ValueRangeError
@@ -33,9 +33,9 @@ def test_bad_inputs(bracket):
         ClassicBaseline({})
     with pytest.raises(ValueRangeError):
         ClassicBaseline({3: bracket}, restarts=0)
-    with pytest.raises(ValueRangeError, match="verification must be"):
-        ClassicBaseline({3: bracket}, verification="no")
-    with pytest.raises(ValueRangeError, match="unknown VerifierConfig fields"):
+    with pytest.raises(ValueRangeError, match="unknown BaselineConfig field 'verification'"):
+        ClassicBaseline({3: bracket}, verification=False)  # the old name: verifier=None
+    with pytest.raises(ValueRangeError, match="unknown VerifierConfig field 'crop'"):
         ClassicBaseline({3: bracket}, verifier={"crop": 32})
     with pytest.raises(ValueRangeError, match="verifier must be a VerifierConfig"):
         ClassicBaseline({3: bracket}, verifier=32)
@@ -57,6 +57,23 @@ def test_bad_inputs(bracket):
         baseline.estimate(depth, K.T, masks, [3])
 
 
+def test_baseline_config_merges_changes_and_round_trips(bracket):
+    config = BaselineConfig(restarts=4, icp_distances=[0.1, 0.02])
+    assert config.icp_distances == (0.1, 0.02) and config.verifier == BASELINE_VERIFIER
+    assert BaselineConfig.from_dict(config.to_dict()) == config
+    baseline = ClassicBaseline({3: bracket}, config, verifier={"rank_top_k": 4}, seed=2)
+    assert baseline.config.restarts == 4 and baseline.config.seed == 2
+    assert baseline.verifier.config == VerifierConfig(refine_estimate=False, rank_top_k=4)
+    merged = ClassicBaseline({3: bracket}, verifier={"crop_size": 32}).config.verifier
+    assert merged.crop_size == 32 and merged.refine_estimate is False  # merged, not reset
+    assert ClassicBaseline({3: bracket}, config, verifier=None).config.verifier is None
+    for bad in ({"voxel_size": 0}, {"icp_distances": ()}, {"restarts": 0}):
+        with pytest.raises(ValueRangeError):
+            BaselineConfig(**bad)
+    with pytest.raises(ValueRangeError, match="config must be a BaselineConfig"):
+        ClassicBaseline({3: bracket}, {"restarts": 4})
+
+
 def test_intrinsics_as_lists_or_arrays_and_no_masks(bracket):
     baseline = ClassicBaseline({3: bracket}, num_views=4)
     K = torch.tensor([[100.0, 0, 4], [0, 100.0, 4], [0, 0, 1]], dtype=torch.float64)
@@ -70,7 +87,7 @@ def test_intrinsics_as_lists_or_arrays_and_no_masks(bracket):
 
 
 def test_a_pose_behind_the_camera_is_never_valid(bracket, monkeypatch):
-    baseline = ClassicBaseline({3: bracket}, num_views=4, verification=False)
+    baseline = ClassicBaseline({3: bracket}, num_views=4, verifier=None)
     behind = torch.eye(4, dtype=torch.float64)
     behind[2, 3] = -0.5  # depth in the wrong unit can put the object there
 
@@ -143,7 +160,7 @@ def test_verification_picks_the_printed_side_of_a_labelled_box(labelled_box):
     assert bool(verified.valid[0])
     assert float(rotation_angle_error(verified.poses, pose[None].double())[0]) < 3.0
     assert float(translation_error(verified.poses, pose[None].double())[0]) < 0.003
-    off = ClassicBaseline({1: labelled_box}, num_views=6, restarts=4, verification=False)
+    off = ClassicBaseline({1: labelled_box}, num_views=6, restarts=4, verifier=None)
     plain = off.estimate(*args, rgb=rgb)
     # depth alone settles on the box turned end for end (seed 0)
     assert float(rotation_angle_error(plain.poses, pose[None].double())[0]) > 150
@@ -161,9 +178,8 @@ def test_baseline_with_verification_on_a_generated_scene(labelled_box, tmp_path)
     results, stages = {}, {}
     for verify in (True, False):
         timer = StageTimer()
-        baseline = ClassicBaseline(
-            {1: labelled_box}, num_views=6, restarts=4, verification=verify, verifier=LIGHT
-        )
+        verifier = LIGHT if verify else None
+        baseline = ClassicBaseline({1: labelled_box}, num_views=6, restarts=4, verifier=verifier)
         results[verify] = baseline.predict(root, timer=timer)
         stages[verify] = set(timer.breakdown()["stages_ms"])
     assert "verification" in stages[True] and "verification" not in stages[False]

@@ -19,7 +19,7 @@ built from poseflow's own parts, and the floor FunFlow6D has to clear:
 6. coarse-to-fine ICP of ``T`` onto ``Q`` (:func:`~poseflow.registration.multi_scale_icp`, the
    paper's direction) refines every hypothesis, and the one that explains most of ``T`` wins;
    its ICP fitness is the estimate's score;
-7. with ``verification`` on (the default), the poses of the image are checked by rendering and
+7. with a ``verifier`` (the default), the poses of the image are checked by rendering and
    comparing (:class:`~poseflow.verify.PoseVerifier`): each is expanded with its object's
    near-symmetric candidates, the best are refined by ICP of ``T``, and a candidate replaces the
    pose only where it explains the depth, the mask and the colour image clearly better. The
@@ -35,11 +35,13 @@ from __future__ import annotations
 
 import os
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import torch
 
-from poseflow._checks import check_mask, check_tensor
+from poseflow._checks import check_field_types, check_mask, check_tensor
+from poseflow._config import apply_overrides, config_from_dict, config_to_dict
 from poseflow._units import check_depth_extent, check_intrinsics
 from poseflow.data.bop import BOPDataset
 from poseflow.data.objects import ObjectModel, sample_surface
@@ -63,13 +65,79 @@ from poseflow.registration.ransac import ransac_procrustes
 from poseflow.render.raycast import Renderer
 from poseflow.verify import PoseVerifier, VerifierConfig
 
-__all__ = ["BASELINE_VERIFIER", "ClassicBaseline"]
+__all__ = ["BASELINE_VERIFIER", "BaselineConfig", "ClassicBaseline"]
 
 #: The baseline's default verifier configuration: :class:`VerifierConfig()` but for
 #: ``refine_estimate``, off because the baseline's own ICP (up to 500 points, four scales of 30
 #: iterations) is finer than the verifier's, so its estimate competes as it is (refining it again
 #: was measured no better, ``benchmarks/LOG.md``).
 BASELINE_VERIFIER = VerifierConfig(refine_estimate=False)
+
+
+@dataclass(frozen=True, kw_only=True)
+class BaselineConfig:
+    """The settings of :class:`ClassicBaseline`; lengths are fractions of the object's diameter.
+
+    Attributes:
+        num_views: rendered viewpoints of each model for its descriptor bank.
+        voxel_size: voxel size of the thinning.
+        max_target_points: cap on the thinned target cloud (a random subset is kept).
+        min_mutual: when mutual matching yields fewer pairs, every target point's nearest model
+            descriptor is used as well.
+        ransac_distance: RANSAC inlier distance.
+        ransac_iterations: hypotheses per RANSAC run (the paper's Open3D setting: 1k).
+        restarts: independent RANSAC runs per instance, each refined and verified by ICP.
+        icp_distances: ICP correspondence distances, coarse to fine.
+        icp_iterations: ICP iterations per scale.
+        min_points: instances with fewer valid target points are reported invalid.
+        verifier: check the poses by rendering and comparing (step 7) with this configuration,
+            None for no check; its appearance term needs the colour image (without one, depth
+            and silhouette are compared). A mapping is read with
+            :meth:`VerifierConfig.from_dict`.
+        seed: seed of every random draw (estimates are reproducible).
+
+    Example:
+        >>> BaselineConfig(restarts=4, verifier=None).to_dict()["icp_distances"]
+        [0.2, 0.1, 0.05, 0.02]
+    """
+
+    num_views: int = 24
+    voxel_size: float = 0.04
+    max_target_points: int = 500
+    min_mutual: int = 30
+    ransac_distance: float = 0.05
+    ransac_iterations: int = 1000
+    restarts: int = 16
+    icp_distances: tuple[float, ...] = (0.2, 0.1, 0.05, 0.02)
+    icp_iterations: int = 30
+    min_points: int = 30
+    verifier: VerifierConfig | None = BASELINE_VERIFIER
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        """Validate the types and the values."""
+        check_field_types(self)
+        object.__setattr__(self, "icp_distances", tuple(float(d) for d in self.icp_distances))
+        if isinstance(self.verifier, Mapping):
+            object.__setattr__(self, "verifier", VerifierConfig.from_dict(self.verifier))
+        if not all(d > 0 for d in (self.voxel_size, self.ransac_distance, *self.icp_distances)):
+            raise ValueRangeError("voxel_size, ransac_distance and icp_distances must be positive")
+        if not self.icp_distances:
+            raise ValueRangeError("icp_distances needs at least one distance")
+        small = min(self.max_target_points, self.min_points)
+        if min(self.num_views, self.restarts) < 1 or small < 3:
+            raise ValueRangeError(
+                "num_views and restarts must be >= 1, max_target_points and min_points >= 3"
+            )
+
+    def to_dict(self) -> dict[str, Any]:
+        """The settings as a JSON-serialisable dict."""
+        return config_to_dict(self)
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> BaselineConfig:
+        """Build from :meth:`to_dict`'s dict; unknown keys are an error."""
+        return config_from_dict(cls, data)
 
 
 def _metres(depth: torch.Tensor) -> torch.Tensor:
@@ -82,25 +150,16 @@ class ClassicBaseline:
 
     Args:
         models: object id -> :class:`~poseflow.data.objects.ObjectModel` (metres).
+        config: the settings (default: :class:`BaselineConfig`'s defaults).
         encoder: the geometric descriptor; default :class:`~poseflow.features.FPFHEncoder` with
             the paper's radii (0.30 and 0.40 of the diameter).
-        num_views: rendered viewpoints of each model for its descriptor bank.
-        voxel_fraction: voxel size of the thinning, as a fraction of the diameter.
-        max_target_points: cap on the thinned target cloud (a random subset is kept).
-        min_mutual: when mutual matching yields fewer pairs, every target point's nearest model
-            descriptor is used as well.
-        ransac_distance_fraction: RANSAC inlier distance as a fraction of the diameter.
-        ransac_iterations: hypotheses per RANSAC run (the paper's Open3D setting: 1k).
-        restarts: independent RANSAC runs per instance, each refined and verified by ICP.
-        icp_distance_fractions: ICP correspondence distances, coarse to fine, as fractions of
-            the diameter.
-        icp_iterations: ICP iterations per scale.
-        min_points: instances with fewer valid target points are reported invalid.
-        verification: check the poses by rendering and comparing (step 7); needs the colour
-            image for its appearance term (without one, depth and silhouette are compared).
-        verifier: the verifier's configuration; a mapping changes fields of the default,
+        changes: settings changed from ``config`` (keys of :class:`BaselineConfig`, dotted ones
+            too), merged by :func:`~poseflow.models.apply_overrides`: ``verifier=None`` turns
+            verification off, ``verifier={"crop_size": 48}`` changes one field of
             :data:`BASELINE_VERIFIER`.
-        seed: seed of every random draw (estimates are reproducible).
+
+    Attributes:
+        config: the :class:`BaselineConfig` in use.
 
     The stages ``lifting``, ``geometric_encoder``, ``matching``, ``ransac``, ``icp`` and
     ``verification`` are charged to the active :class:`~poseflow.eval.timing.StageTimer` (see
@@ -118,7 +177,7 @@ class ClassicBaseline:
         >>> axis, angle = torch.tensor([1.0, 1.0, 0.2]), torch.tensor([0.8])
         >>> pose[:3, :3] = axis_angle_rotation(axis, angle)[0]
         >>> out = Renderer([mesh]).render(pose[None], K, 160, 120, rgb=False)
-        >>> baseline = ClassicBaseline({1: model}, num_views=6, restarts=4, verification=False)
+        >>> baseline = ClassicBaseline({1: model}, num_views=6, restarts=4, verifier=None)
         >>> est = baseline.estimate(out.depth, K, out.masks_full, [1])
         >>> bool(est.valid[0]), round(float(est.poses[0, 2, 3]), 2)
         (True, 0.4)
@@ -127,59 +186,20 @@ class ClassicBaseline:
     def __init__(
         self,
         models: Mapping[int, ObjectModel],
+        config: BaselineConfig | None = None,
         *,
         encoder: FPFHEncoder | None = None,
-        num_views: int = 24,
-        voxel_fraction: float = 0.04,
-        max_target_points: int = 500,
-        min_mutual: int = 30,
-        ransac_distance_fraction: float = 0.05,
-        ransac_iterations: int = 1000,
-        restarts: int = 16,
-        icp_distance_fractions: Sequence[float] = (0.2, 0.1, 0.05, 0.02),
-        icp_iterations: int = 30,
-        min_points: int = 30,
-        verification: bool = True,
-        verifier: VerifierConfig | Mapping[str, Any] | None = None,
-        seed: int = 0,
+        **changes: Any,
     ) -> None:
         if not models:
             raise ValueRangeError("ClassicBaseline needs at least one object model")
-        for name, value in (
-            ("voxel_fraction", voxel_fraction),
-            ("ransac_distance_fraction", ransac_distance_fraction),
-        ):
-            if not value > 0:
-                raise ValueRangeError(f"{name} must be positive, got {value}")
-        if num_views < 1 or restarts < 1 or max_target_points < 3 or min_points < 3:
-            raise ValueRangeError(
-                "num_views and restarts must be >= 1, max_target_points and min_points >= 3"
-            )
-        if not isinstance(verification, bool):
-            raise ValueRangeError(f"verification must be True or False, got {verification!r}")
-        if verifier is None:
-            verifier = BASELINE_VERIFIER
-        elif isinstance(verifier, Mapping):
-            verifier = VerifierConfig.from_dict({**BASELINE_VERIFIER.to_dict(), **verifier})
-        if not isinstance(verifier, VerifierConfig):
-            raise ValueRangeError(
-                f"verifier must be a VerifierConfig or a mapping, got {type(verifier).__name__}"
-            )
+        config = BaselineConfig() if config is None else config
+        if not isinstance(config, BaselineConfig):
+            raise ValueRangeError(f"config must be a BaselineConfig, got {type(config).__name__}")
+        self.config = apply_overrides(config, changes)
         self.models = dict(models)
         self.encoder = FPFHEncoder() if encoder is None else encoder
-        self.num_views = int(num_views)
-        self.voxel_fraction = float(voxel_fraction)
-        self.max_target_points = int(max_target_points)
-        self.min_mutual = int(min_mutual)
-        self.ransac_distance_fraction = float(ransac_distance_fraction)
-        self.ransac_iterations = int(ransac_iterations)
-        self.restarts = int(restarts)
-        self.icp_distance_fractions = tuple(float(f) for f in icp_distance_fractions)
-        self.icp_iterations = int(icp_iterations)
-        self.min_points = int(min_points)
-        self.verification = verification
-        self.verifier = PoseVerifier(verifier, seed=int(seed))
-        self.seed = int(seed)
+        self.verifier = PoseVerifier(self.config.verifier, seed=self.config.seed)
         self._banks: dict[int, tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = {}
 
     def _describe(
@@ -194,15 +214,16 @@ class ClassicBaseline:
         with stage("lifting"):
             cloud = backproject_depth(depth[None], K, mask[None])
             pts, ok = cloud.points, cloud.mask
-            if int(ok.sum()) < self.min_points:
+            if int(ok.sum()) < self.config.min_points:
                 return None
             ok = ok & remove_statistical_outliers(pts, ok)
-            idx, vok = voxel_downsample(pts, self.voxel_fraction * diameter, ok)
+            idx, vok = voxel_downsample(pts, self.config.voxel_size * diameter, ok)
             t = pts[0, idx[0][vok[0]]]
-            if t.shape[0] > self.max_target_points:
-                pick = torch.randperm(t.shape[0], generator=generator)[: self.max_target_points]
+            if t.shape[0] > self.config.max_target_points:
+                pick = torch.randperm(t.shape[0], generator=generator)
+                pick = pick[: self.config.max_target_points]
                 t = t[pick.sort().values]
-            if t.shape[0] < self.min_points:
+            if t.shape[0] < self.config.min_points:
                 return None
             normals = estimate_normals(t[None], k=min(30, t.shape[0]))
         with stage("geometric_encoder"):
@@ -219,7 +240,7 @@ class ClassicBaseline:
         """
         for obj_id in sorted(self.models) if obj_ids is None else obj_ids:
             self.bank(int(obj_id))
-            if self.verification:
+            if self.config.verifier is not None:
                 self.verifier.prepare(int(obj_id), self.models[int(obj_id)])
 
     def bank(self, obj_id: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -238,9 +259,9 @@ class ClassicBaseline:
             )
             # The object spans about 60 % of the image.
             distance = focal * m.diameter / (0.6 * size)
-            poses = viewpoint_poses(self.num_views, distance=distance)
+            poses = viewpoint_poses(self.config.num_views, distance=distance)
             renderer = Renderer([m.mesh])
-            gen = torch.Generator().manual_seed(self.seed)
+            gen = torch.Generator().manual_seed(self.config.seed)
             points, feats = [], []
             for T in poses:
                 view = renderer.render(T[None], K, size, size, rgb=False)
@@ -257,7 +278,7 @@ class ClassicBaseline:
             # ICP needs a dense model: surface samples thinned to a fine grid.
             dense, _, _ = sample_surface(m.mesh, 50_000, generator=gen)
             full = torch.from_numpy(dense)[None]
-            idx, ok = voxel_downsample(full, 0.75 * self.icp_distance_fractions[-1] * m.diameter)
+            idx, ok = voxel_downsample(full, 0.75 * self.config.icp_distances[-1] * m.diameter)
             self._banks[obj_id] = (torch.cat(points), torch.cat(feats), full[0, idx[0][ok[0]]])
         return self._banks[obj_id]
 
@@ -293,7 +314,7 @@ class ClassicBaseline:
         Kd, ids = self._checked(depth, K, masks, obj_ids)
         d = _metres(depth)
         estimate, clouds = self._solve(d, Kd, masks, ids)
-        if not self.verification or not bool(estimate.valid.any()):
+        if self.config.verifier is None or not bool(estimate.valid.any()):
             return estimate
         return invalidate_implausible(self._verify(rgb, d, Kd, masks, ids, estimate, clouds))
 
@@ -396,7 +417,8 @@ class ClassicBaseline:
         """The pose, score and lifted target cloud ``(M, 3)`` (empty if too small) of one mask."""
         diam = self.models[obj_id].diameter
         bank_pts, bank_feats, model_pts = self.bank(obj_id)
-        gen = torch.Generator().manual_seed(self.seed * 1_000_003 + index)
+        cfg = self.config
+        gen = torch.Generator().manual_seed(cfg.seed * 1_000_003 + index)
         got = self._describe(depth, K, mask, diam, gen)
         if got is None:
             return None, 0.0, depth.new_zeros(0, 3)
@@ -405,10 +427,10 @@ class ClassicBaseline:
             mutual = mutual_nearest_neighbors(bank_feats[None], ft[None])[0]  # (M,) or -1
             has = mutual >= 0
             src, dst = bank_pts[mutual[has]], t[has]  # model points, their observed partners
-            if src.shape[0] < self.min_mutual:
+            if src.shape[0] < cfg.min_mutual:
                 nearest = torch.cdist(ft, bank_feats).argmin(-1)
                 src, dst = torch.cat((src, bank_pts[nearest])), torch.cat((dst, t))
-            R = self.restarts
+            R = cfg.restarts
             # Each restart sees a random half of the pairs (the first sees all): the hypotheses
             # differ, and ICP picks the one that explains the observation best.
             subset = torch.rand(R, src.shape[0], generator=gen) < 0.5
@@ -418,8 +440,8 @@ class ClassicBaseline:
                 src[None].expand(R, -1, -1),
                 dst[None].expand(R, -1, -1),
                 subset,
-                max_correspondence_distance=self.ransac_distance_fraction * diam,
-                max_iterations=self.ransac_iterations,
+                max_correspondence_distance=cfg.ransac_distance * diam,
+                max_iterations=cfg.ransac_iterations,
                 generator=gen,
             )
         with stage("icp"):
@@ -428,8 +450,8 @@ class ClassicBaseline:
                 t[None].expand(R, -1, -1),
                 model_pts[None].expand(R, -1, -1),
                 inverse_transform(hyp.transformation),
-                max_correspondence_distances=[f * diam for f in self.icp_distance_fractions],
-                max_iterations=self.icp_iterations,
+                max_correspondence_distances=[f * diam for f in cfg.icp_distances],
+                max_iterations=cfg.icp_iterations,
             )
         fitness = torch.where(hyp.valid & refined.valid, refined.fitness, -1.0)
         best = int(fitness.argmax())
@@ -485,7 +507,7 @@ class ClassicBaseline:
             object_ids=sorted(self.models),
             targets=targets,
             detections=detections,
-            load_rgb=self.verification,
+            load_rgb=self.config.verifier is not None,
             max_images=max_images,
             timer=timer,
             progress=progress,

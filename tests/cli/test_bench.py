@@ -85,7 +85,7 @@ def test_set_changes_inference_fields_only(model_dir, dataset, tmp_path, capsys)
     report = json.loads((out / "bench.json").read_text())
     config = report["config"]
     assert config["icp_iterations"] == 3 and config["num_hypotheses"] == 2
-    assert config["verification"] is False
+    assert config["verifier"] is None
     assert "verification" not in report["settings"]["euler:1"]["stages_ms"]
     assert "AR" not in report["settings"]["euler:1"]
     assert main([*argv, "--set", "num_points=64"]) == 2

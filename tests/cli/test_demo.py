@@ -54,7 +54,7 @@ def test_the_shipped_model_has_the_demo_objects_prepared(tmp_path, monkeypatch):
     monkeypatch.setattr(poseflow.models.objects, "prepare_object", never)
     monkeypatch.setattr(poseflow.verify.objects, "prepare_verifier_object", never)
     model = FunFlow6D.load(DEMO_CHECKPOINT)
-    assert model.config.verification
+    assert model.config.verifier is not None
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # no damaged entry, nothing to write
         model.prepare_objects(load_object_models(root), cache_dir=cache, progress=False)

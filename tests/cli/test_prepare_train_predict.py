@@ -96,9 +96,9 @@ def test_train_saves_a_loadable_model_and_its_run(run_dir):
     model = FunFlow6D.load(run_dir / "model")
     cfg = model.config
     assert (cfg.num_points, cfg.dit_preset, cfg.steps, cfg.pose_solver) == (32, "tiny", 2, "svd")
-    assert cfg.net == NetOptions.from_json(json.loads(NET))
+    assert cfg.net == NetOptions.from_dict(json.loads(NET))
     run = json.loads((run_dir / "run.json").read_text())
-    assert run["config"] == cfg.to_json() and run["train"]["steps"] == 3
+    assert run["config"] == cfg.to_dict() and run["train"]["steps"] == 3
     assert (run_dir / "checkpoints" / "step-00000003.json").is_file()
     key = json.loads((run_dir / "train_set.json").read_text())
     assert key["split"] == "train" and "fusion" not in key["features"]
@@ -200,34 +200,34 @@ def test_predict_options_are_checked_before_any_work(run_dir, dataset, tmp_path,
     assert main([*base, *model, "--set", 'verifier={"crop_size": 60}']) == 2
     assert "block_size" in capsys.readouterr().err
     assert main([*base, *model, "--set", "fusion=sum"]) == 2
-    assert "--set can change only" in capsys.readouterr().err
-    assert main([*base, *model, "--set", "verification=false"]) == 2  # it has its own flag
-    assert "--set can change only" in capsys.readouterr().err
+    assert "fusion: not an inference setting" in capsys.readouterr().err
+    assert main([*base, *model, "--set", "verification=false"]) == 2  # --no-verify or verifier
+    assert "can change only" in capsys.readouterr().err
     baseline = [*base, "--method", "baseline"]
     assert main([*baseline, "--set", "num_hypotheses=2"]) == 2
     assert "only verifier with --method baseline" in capsys.readouterr().err
     assert main([*baseline, "--set", "verifier=3"]) == 2
-    assert "JSON object of VerifierConfig fields" in capsys.readouterr().err
+    assert "verifier must be a VerifierConfig" in capsys.readouterr().err
     assert not (tmp_path / "r.csv").exists()
 
 
 def test_predict_verifies_unless_told_not_to(run_dir, dataset, tmp_path, capsys):
     runs = {}
     no_verify = ["--no-verify", "--clock", "cpu"]
-    for flags in ([], no_verify, ["--set", "verify_hypotheses=false", "--hypotheses", "2"]):
+    for flags in ([], no_verify, ["--set", "verifier.rank_hypotheses=false", "--hypotheses", "2"]):
         csv, timing = tmp_path / f"{len(flags)}.csv", tmp_path / f"{len(flags)}.json"
         argv = ["predict", str(dataset), "--model", str(run_dir / "model"), "--out", str(csv)]
         assert main([*argv, "--timing", str(timing), "--no-progress", *flags]) == 0
         runs[len(flags)] = (read_results(csv), json.loads(timing.read_text()))
     (verified, on), (plain, off) = runs[0], runs[3]
     assert on["clock"] == "wall" and off["clock"] == "cpu" and off["total_ms"] > 0
-    assert on["verification"] is True and on["config"]["verification"] is True
+    assert on["verification"] is True and on["config"]["verifier"] is not None
     assert on["stages_ms"]["verification"] > 0
-    assert off["verification"] is False and off["config"]["verification"] is False
+    assert off["verification"] is False and off["config"]["verifier"] is None
     assert "verification" not in off["stages_ms"]
     assert len(verified) == len(plain)  # svd: every instance has a pose either way
     assert not torch.allclose(verified.scores, plain.scores)  # the verifier's scores
-    assert runs[4][1]["config"]["verify_hypotheses"] is False
+    assert runs[4][1]["config"]["verifier"]["rank_hypotheses"] is False
     assert "funflow6d + verification" in capsys.readouterr().out
 
 
@@ -295,7 +295,7 @@ def test_hybrid_predicts_with_the_model_and_the_baseline(run_dir, dataset, tmp_p
     results = read_results(csv)
     assert len(results) >= 3 and (results.scores > 0).all()
     report = json.loads(timing.read_text())
-    assert report["method"] == "hybrid" and report["config"]["verification"] is True
+    assert report["method"] == "hybrid" and report["config"]["verifier"] is not None
     for name in ("integration", "geometric_encoder", "ransac", "icp", "verification"):
         assert report["stages_ms"][name] > 0, name
     assert main([*argv, "--out", str(csv), "--no-verify"]) == 2
@@ -347,13 +347,16 @@ def test_build_config_applies_file_then_flags_then_set(tmp_path):
     args = _config_args(["--config", str(path), "--fusion", "sum", "--set", "steps=9"])
     cfg = build_config(args)
     assert (cfg.num_points, cfg.fusion, cfg.steps) == (64, "sum", 9)
-    assert build_config(_config_args(["--set", "icp_thresholds=[]"])).icp_thresholds == ()
+    assert build_config(_config_args(["--set", "icp_distances=[]"])).icp_distances == ()
+    named = build_config(_config_args(["--config", "learned_small", "--set", "net.dit.depth=2"]))
+    assert named.appearance_encoder == "learned" and named.num_hypotheses == 12
+    assert (named.net.dit.depth, named.net.dit.hidden_dim) == (2, 64)  # merged, not reset
 
 
 @pytest.mark.parametrize(
     ("argv", "error", "match"),
     [
-        (["--set", "colour=red"], ValueRangeError, "unknown FunFlow6D config keys"),
+        (["--set", "colour=red"], ValueRangeError, "unknown FunFlow6DConfig field 'colour'"),
         (["--set", "steps"], ValueRangeError, "KEY=VALUE"),
         (["--num-points", "4"], ValueRangeError, "num_points"),
         (["--set", "num_points=many"], ValueRangeError, "invalid FunFlow6D configuration"),

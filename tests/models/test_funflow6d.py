@@ -12,7 +12,7 @@ from poseflow.eval.timing import StageTimer
 from poseflow.geometry.se3 import rotation_angle_error, transform_points, translation_error
 from poseflow.models import FunFlow6D, FunFlow6DConfig
 from poseflow.models.verification import rank_estimate
-from poseflow.verify import PoseVerifier
+from poseflow.verify import PoseVerifier, VerifierConfig
 
 
 def test_observe_lifts_valid_clouds_with_features(tiny_model, scene):
@@ -139,7 +139,8 @@ def test_a_pose_behind_the_camera_is_never_valid(tiny_model, scene, monkeypatch,
         monkeypatch.setattr(verification_module, "verify_estimate", lambda *a, **k: flagged)
     else:
         monkeypatch.setattr(funflow6d, "select_hypotheses", lambda *a, **k: flagged)
-    model = FunFlow6D(tiny_model.config.replace(verification=verification))
+    config = tiny_model.config if verification else tiny_model.config.replace(verifier=None)
+    model = FunFlow6D(config)
     model.objects, model.verifier = tiny_model.objects, tiny_model.verifier
     est = model.estimate(scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 1])
     assert est.valid.tolist() == [True, False] and est.scores.tolist() == pytest.approx([0.9, 0])
@@ -264,7 +265,7 @@ def test_verification_turns_a_flipped_pose_back_and_scores_it(tiny_model, scene)
     with timer.active():
         on = model.estimate(*args)
     assert timer.counts["verification"] == 1
-    model.config = model.config.replace(verification=False)
+    model.config = model.config.replace(verifier=None)
     off = model.estimate(*args)
     assert off.valid.all() and on.valid.all()
     assert (rotation_angle_error(off.poses, scene["poses"]) > 150).all()  # the flip
@@ -291,11 +292,13 @@ def test_other_hypotheses_reach_the_verifier(tiny_model, scene):
         model.estimate(scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 1])
         assert seen["extra"].shape == (2, 1, 4, 4) and seen["extra_mask"].shape == (2, 1)
         seen.clear()
-        model.config = model.config.replace(verify_hypotheses=False)
+        model.config = model.config.with_inference({"verifier.rank_hypotheses": False})
+        model.verifier.config = model.config.verifier  # no prepared object depends on it
         model.estimate(scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 1])
         assert seen["extra"] is None
     finally:
         del model.verifier.verify
+        model.verifier.config = tiny_model.config.verifier
 
 
 def test_the_verifier_ranks_the_hypotheses_before_expanding_the_best(tiny_model, scene):
@@ -351,10 +354,10 @@ def test_the_ranking_rescores_its_coarse_best_on_the_full_grid(tiny_model, scene
 
 def test_verification_needs_the_objects_prepared_for_it(tiny_model, box, scene):
     args = (scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 1])
-    model = FunFlow6D(tiny_model.config.replace(verification=False))
+    model = FunFlow6D(tiny_model.config.replace(verifier=None))
     model.prepare_objects({1: box}, progress=False)
     assert model.verifier.objects == {}  # nothing prepared while verification is off
-    model.config = model.config.replace(verification=True)
+    model.config = model.config.replace(verifier=tiny_model.config.verifier)
     with pytest.raises(ValueRangeError, match="not prepared for verification"):
         model.estimate(*args)
     model.config = model.config.replace(verifier={"crop_size": 48})
@@ -368,15 +371,14 @@ def test_verification_needs_the_objects_prepared_for_it(tiny_model, box, scene):
 def test_checkpoints_from_before_verification_load_without_it(tiny_model, tmp_path):
     folder = tiny_model.save(tmp_path / "ckpt")
     raw = json.loads((folder / "config.json").read_text())
-    assert raw["verification"] is True and raw["verifier"] == tiny_model.config.verifier.to_dict()
-    for name in ("verification", "verify_hypotheses", "verifier"):
-        del raw[name]
+    assert raw["verifier"] == tiny_model.config.verifier.to_dict()
+    del raw["verifier"]
     (folder / "config.json").write_text(json.dumps(raw))
-    assert FunFlow6D.load(folder).config.verification is False  # as it was saved
+    assert FunFlow6D.load(folder).config.verifier is None  # as it was saved
     # a configuration file that is not a checkpoint takes the default of new configurations
-    assert FunFlow6DConfig.from_json(raw).verification is True
+    assert FunFlow6DConfig.from_dict(raw).verifier == VerifierConfig()
     # the shipped demo checkpoint verifies
-    assert FunFlow6D.load(DEMO_CHECKPOINT).config.verification is True
+    assert FunFlow6D.load(DEMO_CHECKPOINT).config.verifier == VerifierConfig()
 
 
 def test_checkpoints_from_before_the_descriptor_support_describe_the_sampled_points(
@@ -431,7 +433,7 @@ def test_predict_gives_an_image_the_same_poses_whatever_came_before(tiny_model, 
     assert count > 0
     config = tiny_model.config
     try:
-        tiny_model.config = config.replace(verification=False, pose_solver="svd")
+        tiny_model.config = config.replace(verifier=None, pose_solver="svd")
         both = tiny_model.predict(root, seed=3)
         target = Target(scene_id, last, 1, count)
         alone = tiny_model.predict(root, seed=3, targets=[target])

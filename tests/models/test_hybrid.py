@@ -17,7 +17,7 @@ from poseflow.models import FunFlow6D, Hybrid, Proposals, keep_better
 
 @pytest.fixture(scope="module")
 def baseline(box):
-    return ClassicBaseline({1: box}, num_views=8, restarts=4, verification=False)
+    return ClassicBaseline({1: box}, num_views=8, restarts=4, verifier=None)
 
 
 @pytest.fixture(scope="module")
@@ -63,12 +63,12 @@ def test_no_instances_give_an_empty_estimate(hybrid, scene):
 
 
 def test_the_hybrid_needs_verification_and_every_object(tiny_model, box):
-    unverified = FunFlow6D(tiny_model.config.replace(verification=False))
+    unverified = FunFlow6D(tiny_model.config.replace(verifier=None))
     unverified.objects = tiny_model.objects
     with pytest.raises(ValueRangeError, match="verification"):
-        Hybrid(unverified, ClassicBaseline({1: box}, num_views=2, verification=False))
+        Hybrid(unverified, ClassicBaseline({1: box}, num_views=2, verifier=None))
     with pytest.raises(ValueRangeError, match=r"no model of objects \[1\]"):
-        Hybrid(tiny_model, ClassicBaseline({2: box}, num_views=2, verification=False))
+        Hybrid(tiny_model, ClassicBaseline({2: box}, num_views=2, verifier=None))
 
 
 def test_a_funflow6d_estimate_without_a_generator_is_seeded(tiny_model, scene):

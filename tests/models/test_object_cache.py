@@ -25,7 +25,7 @@ from poseflow.models.objects import (
 )
 
 #: Geometric features only: preparing takes well under a second.
-LIGHT = FunFlow6DConfig(num_points=32, appearance_encoder="none", verification=False)
+LIGHT = FunFlow6DConfig(num_points=32, appearance_encoder="none", verifier=None)
 
 
 @pytest.fixture(scope="module")
@@ -108,7 +108,7 @@ def test_a_killed_write_leaves_no_entry_that_looks_complete(bracket, tmp_path):
             os.kill(os.getpid(), signal.SIGKILL)  # killed while writing the entry
 
         PreparedObject.save = save
-        config = FunFlow6DConfig(num_points=32, appearance_encoder="none", verification=False)
+        config = FunFlow6DConfig(num_points=32, appearance_encoder="none", verifier=None)
         bracket = demo_objects(num_points=512, names=["bracket"])[0]
         FunFlow6D(config).prepare_objects({1: bracket}, cache_dir=sys.argv[1], progress=False)
         """

@@ -89,7 +89,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     add_set_argument(
         parser,
         "change an inference-time config field (num_hypotheses, dense_points, pose_solver, "
-        "ransac_*, icp_*, verify_hypotheses, verifier; the sampler comes from --samplers); "
+        "ransac_*, icp_*, verifier or verifier.FIELD; the sampler comes from --samplers); "
         "VALUE read as JSON, repeatable",
     )
     parser.add_argument(
@@ -287,7 +287,6 @@ def run(args: argparse.Namespace) -> int:
     )
     from poseflow.data.object_folder import load_object_models, object_cache_dir
     from poseflow.errors import ValueRangeError
-    from poseflow.models import INFERENCE_FIELDS
 
     for name in ("images", "instances"):
         if getattr(args, name) < 1:
@@ -297,21 +296,19 @@ def run(args: argparse.Namespace) -> int:
     for text in args.samplers:
         parse_setting(text)  # fail before any work
     changes = parse_set(args.set_fields)
-    allowed = tuple(f for f in INFERENCE_FIELDS if f != "verification")  # it has its own flag
-    other = sorted(set(changes) - set(allowed))
-    if other:
-        raise ValueRangeError(f"--set can change only {', '.join(allowed)}; got {', '.join(other)}")
     if args.hypotheses is not None:
         changes["num_hypotheses"] = args.hypotheses
-    changes["verification"] = args.verify
+    if not args.verify:  # off, whatever --set says of the verifier
+        changes = {k: v for k, v in changes.items() if k.split(".")[0] != "verifier"}
+    changes.setdefault("verifier", {} if args.verify else None)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     device = resolve_device(args.device)
     show = show_progress(args)
     model_dir = resolve_model(args.model)
-    root = _dataset(args, out, show)
     model = load_model(model_dir, device=device)
-    model.config = model.config.replace(**changes)
+    model.config = model.config.with_inference(changes)  # checked before any work
+    root = _dataset(args, out, show)
     cache = object_cache_dir(model_dir, root)
     objects = load_object_models(root, progress=show)
     cache = cache if cache.is_dir() else out / "objects"
@@ -373,7 +370,7 @@ def run(args: argparse.Namespace) -> int:
         "device": where,
         "model": str(model_dir),
         "dataset": str(root),
-        "config": model.config.to_json(),
+        "config": model.config.to_dict(),
         "settings": rows,
         "fastest_equal_ar": best,
     }

@@ -416,12 +416,16 @@ def add_config_arguments(parser: argparse.ArgumentParser) -> None:
     """Add ``--config``, ``--preset``, the common field flags and ``--set`` to ``parser``."""
     group = parser.add_argument_group(
         "model configuration",
-        "Start from --config (a JSON file of FunFlow6DConfig fields; default: the offline "
-        "defaults FPFH + dense SIFT + PCA, gated fusion, small DiT), then apply the flags below "
-        "and every --set in order.",
+        "Start from --config (a recipe name or a JSON file of FunFlow6DConfig fields; default: "
+        "the offline defaults FPFH + dense SIFT + PCA, gated fusion, small DiT), then apply the "
+        "flags below and every --set in order.",
     )
     group.add_argument(
-        "--config", type=Path, default=None, metavar="JSON", help="FunFlow6DConfig JSON file"
+        "--config",
+        type=Path,
+        default=None,
+        metavar="NAME|JSON",
+        help="a recipe (demo_small, learned_small) or a FunFlow6DConfig JSON file",
     )
     group.add_argument(
         "--preset", default=None, help="DiT preset: paper, small or tiny (dit_preset)"
@@ -441,8 +445,9 @@ def add_config_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--query-views", type=int, default=None, help="views rendered per object")
     add_set_argument(
         group,
-        "any config field, VALUE read as JSON when it parses (e.g. --set steps=10 --set "
-        "'net={\"fusion_heads\": 2}' --set icp_thresholds=[]); repeatable",
+        "any config field, VALUE read as JSON when it parses; a dotted KEY or a JSON object "
+        "changes fields of a nested part and keeps the others (e.g. --set steps=10 --set "
+        "net.fusion_heads=2 --set icp_distances=[]); repeatable",
     )
 
 
@@ -499,29 +504,22 @@ def build_config(args: argparse.Namespace) -> Any:
         The validated configuration.
 
     Raises:
-        MissingFileError: ``--config`` names no file.
+        MissingFileError: ``--config`` names neither a recipe nor a file.
         UsageError: the file is not valid JSON, or a field name or value is invalid.
     """
     from poseflow.errors import MissingFileError, UsageError, ValueRangeError
-    from poseflow.models import FunFlow6DConfig
+    from poseflow.models import FunFlow6DConfig, apply_overrides
 
-    data: dict[str, Any] = {}
-    if args.config is not None:
-        path = Path(args.config)
-        if not path.is_file():
-            raise MissingFileError(f"--config {path}: no such file")
-        try:
-            data = json.loads(path.read_text())
-        except json.JSONDecodeError as exc:
-            raise UsageError(f"--config {path} is not valid JSON: {exc}") from None
-        if not isinstance(data, dict):
-            raise UsageError(f"--config {path} must hold a JSON object of config fields")
-    for flag, field_name in CONFIG_FLAGS.items():
-        value = getattr(args, flag, None)
-        if value is not None:
-            data[field_name] = value
-    data.update(parse_set(args.set_fields))
     try:
-        return FunFlow6DConfig.from_json(data)
+        config = FunFlow6DConfig() if args.config is None else FunFlow6DConfig.load(args.config)
+    except MissingFileError as exc:
+        raise MissingFileError(f"--config {exc}") from None
+    except ValueRangeError as exc:
+        raise UsageError(f"--config {exc}") from None
+    flags = {name: getattr(args, flag, None) for flag, name in CONFIG_FLAGS.items()}
+    overrides = {name: value for name, value in flags.items() if value is not None}
+    overrides.update(parse_set(args.set_fields))
+    try:
+        return apply_overrides(config, overrides)
     except (TypeError, ValueRangeError) as exc:  # TypeError: a value of the wrong kind
         raise UsageError(f"invalid FunFlow6D configuration: {exc}") from None

@@ -152,7 +152,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     add_set_argument(
         parser,
         "change an inference-time config field of the model (num_hypotheses, pose_solver, "
-        "ransac_*, icp_*, verify_hypotheses, verifier, ...; with --method baseline: verifier "
+        "ransac_*, icp_*, verifier or verifier.FIELD, ...; with --method baseline: verifier "
         "only, its fields changing the baseline's defaults); VALUE read as JSON, repeatable",
     )
     parser.add_argument(
@@ -274,31 +274,30 @@ def _targets_option(args: argparse.Namespace, root: Path) -> str | bool | None:
 
 
 def _config_changes(args: argparse.Namespace) -> dict[str, Any]:
-    """The configuration fields the options change, checked against what each method allows."""
-    from poseflow.baselines import BASELINE_VERIFIER
+    """The configuration fields the options change.
+
+    The model checks its own (:meth:`~poseflow.models.FunFlow6DConfig.with_inference`); the
+    baseline's verifier, the one thing ``--set`` changes with ``--method baseline``, is checked
+    here and returned built.
+    """
+    from poseflow.baselines import BaselineConfig
     from poseflow.cli.common import parse_set
     from poseflow.errors import UsageError, ValueRangeError
-    from poseflow.models import INFERENCE_FIELDS
-    from poseflow.verify import VerifierConfig
+    from poseflow.models import apply_overrides
 
     changes = parse_set(args.set_fields)
     if args.method == "hybrid" and not args.verify:
         raise UsageError("--method hybrid chooses by verification: --no-verify does not apply")
-    if args.method != "baseline":  # verification has its own flag
-        allowed = tuple(f for f in INFERENCE_FIELDS if f != "verification")
-    else:
-        allowed = ("verifier",)
-    other = sorted(set(changes) - set(allowed))
-    if other:
-        raise ValueRangeError(
-            f"--set can change only {', '.join(allowed)} with --method {args.method}; "
-            f"got {', '.join(other)}"
-        )
-    if args.method == "baseline" and "verifier" in changes:
-        if not isinstance(changes["verifier"], dict):
-            raise ValueRangeError("--set verifier=... takes a JSON object of VerifierConfig fields")
-        defaults = BASELINE_VERIFIER.to_dict()
-        changes["verifier"] = VerifierConfig.from_dict({**defaults, **changes["verifier"]})
+    if not args.verify:  # off, whatever --set says of the verifier
+        changes = {k: v for k, v in changes.items() if k.split(".")[0] != "verifier"}
+    changes.setdefault("verifier", {} if args.verify else None)
+    if args.method == "baseline":
+        other = sorted(key for key in changes if key.split(".")[0] != "verifier")
+        if other:
+            raise ValueRangeError(
+                f"--set can change only verifier with --method baseline; got {', '.join(other)}"
+            )
+        return {"verifier": apply_overrides(BaselineConfig(), changes).verifier}
     for name, value in (
         ("num_hypotheses", args.hypotheses),
         ("steps", args.steps),
@@ -306,7 +305,6 @@ def _config_changes(args: argparse.Namespace) -> dict[str, Any]:
     ):
         if value is not None:
             changes[name] = value
-    changes["verification"] = args.verify
     return changes
 
 
@@ -317,7 +315,7 @@ def _load_model(args: argparse.Namespace, device: Any, changes: dict[str, Any]) 
     args.model = str(resolve_model(args.model))
     model = load_model(args.model, device=device)
     try:  # validated here, before the first image
-        model.config = model.config.replace(**changes)
+        model.config = model.config.with_inference(changes)
     except TypeError as exc:  # a value of the wrong kind reaching the dataclass
         raise ValueRangeError(f"invalid --set: {exc}") from None
     return model
@@ -429,16 +427,14 @@ def _predict(
             from poseflow.baselines import ClassicBaseline
             from poseflow.models import Hybrid
 
-            baseline = ClassicBaseline(objects, verification=False, seed=args.seed)
+            baseline = ClassicBaseline(objects, verifier=None, seed=args.seed)
             baseline.prepare()  # its banks now, so that no image's time includes them
             estimator = Hybrid(model, baseline).estimator(generator=generator)
     else:
         from poseflow.baselines import ClassicBaseline
 
         if objects:  # without any, no image reaches the estimator
-            baseline = ClassicBaseline(
-                objects, verification=args.verify, verifier=changes.get("verifier"), seed=args.seed
-            )
+            baseline = ClassicBaseline(objects, verifier=changes["verifier"], seed=args.seed)
             baseline.prepare()  # banks and verifier now, so that no image's time includes them
             estimator = baseline.estimator()  # seeds each instance itself
 
@@ -471,7 +467,7 @@ def _predict(
     )
     if detections:
         results = _add_detection_time(results, detections)
-    config = model.config.to_json() if model is not None else None
+    config = model.config.to_dict() if model is not None else None
     return PredictionPart(results, timer, instances, [str(device)], [timer.num_images], config)
 
 

@@ -70,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
                 f"{args.out} holds a trained model whose config.json fixes the configuration; "
                 "drop --config/--preset/--set and the other configuration options"
             )
-        config = FunFlow6DConfig.from_json(f"{args.out}/config.json")
+        config = FunFlow6DConfig.load(f"{args.out}/config.json")
     else:
         config = build_config(args)
     show = show_progress(args)

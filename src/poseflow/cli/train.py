@@ -128,11 +128,11 @@ def _run_config(args: argparse.Namespace, out: Path) -> Any:
 
     run_file = out / "run.json"
     if args.resume and run_file.is_file():
-        saved = FunFlow6DConfig.from_json(json.loads(run_file.read_text())["config"])
+        saved = FunFlow6DConfig.from_dict(json.loads(run_file.read_text())["config"])
         if not config_requested(args):
             return saved
         config = build_config(args)
-        if config.to_json() != saved.to_json():
+        if config.to_dict() != saved.to_dict():
             raise UsageError(
                 f"the configuration differs from that of the run in {out} ({run_file}); drop "
                 "the configuration options to resume it, or train into a new --out"
@@ -160,7 +160,7 @@ def _train_set_key(config: Any, root: Path, args: argparse.Namespace) -> dict[st
     from poseflow.data.object_folder import dataset_fingerprint
 
     network = _network_fields()
-    features = {k: v for k, v in config.to_json().items() if k not in network}
+    features = {k: v for k, v in config.to_dict().items() if k not in network}
     split_files = [p for p in (root / args.split).rglob("*") if p.is_file()]
     return {
         "dataset": dataset_fingerprint(root, args.split),
@@ -256,7 +256,7 @@ def _run_record(
     import warnings
 
     settings = train_config.to_json()
-    record = {"config": config.to_json(), "train": settings}
+    record = {"config": config.to_dict(), "train": settings}
     record.update({"dataset": str(root), "split": args.split})
     run_file = out / "run.json"
     if not (args.resume and run_file.is_file()):

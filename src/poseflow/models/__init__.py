@@ -3,7 +3,8 @@
 - :mod:`~poseflow.models.objects`: :class:`PreparedObject`, prepared once per object and cached;
 - :mod:`~poseflow.models.observe`: :class:`Observation`, the target clouds of an RGBD image;
 - :mod:`~poseflow.models.inputs`: :class:`FlowInputs`, the query and target clouds paired;
-- :mod:`~poseflow.models.config`: :class:`FunFlow6DConfig` and its typed parts;
+- :mod:`~poseflow.models.config`: :class:`FunFlow6DConfig` and its typed parts, the named
+  :data:`RECIPES` and :func:`apply_overrides` (dotted keys, merged into nested configurations);
 - :mod:`~poseflow.models.network`: :class:`FunFlow6DNet`, fusion + positional encoder + DiT;
 - :mod:`~poseflow.models.pose`: :func:`solve_pose` and :func:`agreement_score`;
 - :mod:`~poseflow.models.verification`: :func:`verify_estimate`, render-and-compare checking;
@@ -15,10 +16,12 @@
 from poseflow.models.config import (
     ABLATIONS,
     INFERENCE_FIELDS,
+    RECIPES,
     DiTOverrides,
     FunFlow6DConfig,
     NetConfig,
     NetOptions,
+    apply_overrides,
 )
 from poseflow.models.funflow6d import FunFlow6D
 from poseflow.models.hybrid import Hybrid
@@ -45,6 +48,7 @@ from poseflow.models.verification import (
 __all__ = [
     "ABLATIONS",
     "INFERENCE_FIELDS",
+    "RECIPES",
     "TRAINING_FIELDS",
     "DiTOverrides",
     "FlowInputs",
@@ -60,6 +64,7 @@ __all__ = [
     "PreparedObject",
     "Proposals",
     "agreement_score",
+    "apply_overrides",
     "augment",
     "build_training_set",
     "keep_better",

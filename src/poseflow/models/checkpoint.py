@@ -1,7 +1,7 @@
 """FunFlow6D checkpoints: ``config.json`` plus ``model.safetensors`` (trainable weights only).
 
 No pickle is ever read: the weights are safetensors and the configuration is JSON, read by
-:meth:`~poseflow.models.FunFlow6DConfig.from_json` (which also reads older files). A checkpoint's
+:meth:`~poseflow.models.FunFlow6DConfig.from_dict` (which also reads older files). A checkpoint's
 ``config.json`` is written whole, so a field it lacks was added to the configuration after the
 checkpoint was saved; such a field is read as :data:`CHECKPOINT_FIELDS_ADDED` says, the value that
 keeps the checkpoint's behaviour, rather than as the default of new configurations.
@@ -34,7 +34,7 @@ CHECKPOINT_FORMAT = "poseflow.FunFlow6D/1"
 #: whose ``config.json`` lacks them is read with: what it did before the field existed (no
 #: render-and-compare verification, geometric descriptors from the sampled points alone). New
 #: configurations take the fields' defaults instead.
-CHECKPOINT_FIELDS_ADDED: dict[str, Any] = {"verification": False, "geometric_support_voxel": 0.0}
+CHECKPOINT_FIELDS_ADDED: dict[str, Any] = {"verifier": None, "geometric_support_voxel": 0.0}
 
 
 def is_checkpoint(folder: str | Path) -> bool:
@@ -58,7 +58,7 @@ def write_checkpoint(
     tensors = {k: v.detach().cpu().contiguous() for k, v in state.items()}
     metadata = {"format": CHECKPOINT_FORMAT}
     atomic_write(folder / "model.safetensors", lambda tmp: save_file(tensors, tmp, metadata))
-    text = json.dumps(config.to_json(), indent=1)
+    text = json.dumps(config.to_dict(), indent=1)
     atomic_write(folder / "config.json", lambda tmp: tmp.write_text(text))
     return folder
 
@@ -120,7 +120,7 @@ def _read_config(path: Path) -> FunFlow6DConfig:
     if not isinstance(data, dict):
         raise CheckpointError(f"{path} must hold a JSON object of config fields; restore it")
     try:
-        return FunFlow6DConfig.from_json({**CHECKPOINT_FIELDS_ADDED, **data})
+        return FunFlow6DConfig.from_dict({**CHECKPOINT_FIELDS_ADDED, **data})
     except PoseflowError as exc:
         raise CheckpointError(f"{path}: {exc}") from None
     except (TypeError, KeyError, AttributeError, ValueError) as exc:

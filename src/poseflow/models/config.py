@@ -1,10 +1,23 @@
 """The configuration of :class:`~poseflow.models.FunFlow6D`, its network and its ablations.
 
-Typed dataclasses all the way down, each JSON round-trippable, one field per choice:
+Frozen, typed dataclasses all the way down, each read and written by ``from_dict`` /
+``to_dict``, one field per choice:
 
 - :class:`FunFlow6DConfig`: the method, from the frozen encoders to the pose solver, with
 - :class:`NetOptions` (its ``net`` field): the free sizes of the trainable network, with
-- :class:`DiTOverrides` (``net.dit``): the fields of the DiT preset to change.
+- :class:`DiTOverrides` (``net.dit``): the fields of the DiT preset to change, and
+- :class:`~poseflow.verify.VerifierConfig` (``verifier``): the render-and-compare verification.
+
+:func:`apply_overrides` changes fields by dotted keys (``{"verifier.rank_top_k": 4}``), merging
+into the nested configurations; :meth:`FunFlow6DConfig.with_inference` does so for a trained
+model's inference settings (:data:`INFERENCE_FIELDS`) only. :data:`RECIPES` names the
+configurations the recipe trains (``FunFlow6DConfig.recipe("learned_small")``);
+``configs/NAME.json`` in the checkout are written from it by
+``python -m poseflow.models --write-configs configs``.
+
+Lengths are fractions of the object's diameter throughout (``ransac_distance``,
+``icp_distances``, the verifier's); the registration functions they are passed to take
+``max_correspondence_distance(s)`` in the points' own unit.
 
 :class:`NetConfig` is the complete description of
 :class:`~poseflow.models.network.FunFlow6DNet`: the :class:`NetOptions` plus what the method
@@ -23,10 +36,11 @@ import json
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any
 
 from poseflow._checks import check_field_types
-from poseflow.errors import ValueRangeError
+from poseflow._config import apply_overrides, config_from_dict, config_to_dict
+from poseflow.errors import MissingFileError, ValueRangeError
 from poseflow.flows import PRESETS, SAMPLERS, TIME_SAMPLERS
 from poseflow.flows.dit import AttentionMode, PointDiTConfig
 from poseflow.fusion import FUSIONS
@@ -43,27 +57,20 @@ __all__ = [
     "ANCHORS",
     "INFERENCE_FIELDS",
     "POSE_SOLVERS",
+    "RECIPES",
+    "RENAMED_FIELDS",
     "DiTOverrides",
     "FunFlow6DConfig",
     "NetConfig",
     "NetOptions",
+    "apply_overrides",
+    "write_recipes",
 ]
 
 #: Names of :attr:`FunFlow6DConfig.pose_solver`.
 POSE_SOLVERS: tuple[str, ...] = ("ransac", "svd")
 #: Names of :attr:`FunFlow6DConfig.anchor`.
 ANCHORS: tuple[str, ...] = ("pinned", "noise")
-
-_C = TypeVar("_C")
-
-
-def _from_mapping(cls: type[_C], data: Mapping[str, Any], what: str) -> _C:
-    """``cls(**data)`` after checking that every key is a field of ``cls``."""
-    names = {f.name for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
-    unknown = sorted(set(data) - names)
-    if unknown:
-        raise ValueRangeError(f"unknown {what} keys: {unknown}; known: {sorted(names)}")
-    return cls(**data)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -84,7 +91,7 @@ class DiTOverrides:
 
     Example:
         >>> dit = DiTOverrides(hidden_dim=64, depth=2)
-        >>> dit.to_json()
+        >>> dit.to_dict()
         {'hidden_dim': 64, 'depth': 2}
         >>> dit.resolve("small", cond_dim=96).num_heads  # the preset's
         4
@@ -109,20 +116,16 @@ class DiTOverrides:
             ValueRangeError: an unknown preset, or values the DiT does not accept.
         """
         check_name("dit_preset", preset, tuple(PRESETS))
-        return dataclasses.replace(PRESETS[preset], **self.to_json(), cond_dim=cond_dim)
+        return dataclasses.replace(PRESETS[preset], **self.to_dict(), cond_dim=cond_dim)
 
-    def to_json(self) -> dict[str, Any]:
+    def to_dict(self) -> dict[str, Any]:
         """The fields that are set (not None)."""
-        return {
-            f.name: value
-            for f in dataclasses.fields(self)
-            if (value := getattr(self, f.name)) is not None
-        }
+        return {k: v for k, v in config_to_dict(self).items() if v is not None}
 
     @classmethod
-    def from_json(cls, data: Mapping[str, Any]) -> DiTOverrides:
-        """Build from :meth:`to_json`'s dict; unknown keys are an error."""
-        return _from_mapping(cls, data, "DiT override")
+    def from_dict(cls, data: Mapping[str, Any]) -> DiTOverrides:
+        """Build from :meth:`to_dict`'s dict; unknown keys are an error."""
+        return config_from_dict(cls, data)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -134,7 +137,7 @@ class NetOptions:
         dropout: dropout of the fusion block (paper: 0.1).
         posenc_dim: positional channels ``d_P``.
         posenc_frequencies: octaves of the sinusoidal embedding of each attribute.
-        dit: changes to the DiT preset (a mapping is read with :meth:`DiTOverrides.from_json`).
+        dit: changes to the DiT preset (a mapping is read with :meth:`DiTOverrides.from_dict`).
     """
 
     fusion_heads: int = 4
@@ -147,7 +150,7 @@ class NetOptions:
         """Read a mapping ``dit``; validate the types and sizes."""
         check_field_types(self)
         if isinstance(self.dit, Mapping):
-            object.__setattr__(self, "dit", DiTOverrides.from_json(self.dit))
+            object.__setattr__(self, "dit", DiTOverrides.from_dict(self.dit))
         if not isinstance(self.dit, DiTOverrides):
             raise ValueRangeError(f"dit must be a DiTOverrides, got {type(self.dit).__name__}")
         if self.fusion_heads < 1 or self.posenc_dim < 1 or self.posenc_frequencies < 0:
@@ -157,16 +160,14 @@ class NetOptions:
         if not 0.0 <= self.dropout < 1.0:
             raise ValueRangeError(f"dropout must be in [0, 1), got {self.dropout}")
 
-    def to_json(self) -> dict[str, Any]:
+    def to_dict(self) -> dict[str, Any]:
         """The options as a JSON-serialisable dict."""
-        out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
-        out["dit"] = self.dit.to_json()
-        return out
+        return config_to_dict(self)
 
     @classmethod
-    def from_json(cls, data: Mapping[str, Any]) -> NetOptions:
-        """Build from :meth:`to_json`'s dict; unknown keys are an error."""
-        return _from_mapping(cls, data, cls.__name__)
+    def from_dict(cls, data: Mapping[str, Any]) -> NetOptions:
+        """Build from :meth:`to_dict`'s dict; unknown keys are an error."""
+        return config_from_dict(cls, data)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -206,9 +207,13 @@ class NetConfig(NetOptions):
         return self.dit.resolve(self.dit_preset, cond_dim=self.feature_dim + self.posenc_dim)
 
 
-@dataclass(kw_only=True)
+@dataclass(frozen=True, kw_only=True)
 class FunFlow6DConfig:
     """What FunFlow6D is made of, from the frozen encoders to the pose solver.
+
+    The defaults are the offline ones; the configuration the recipe trains is
+    :meth:`recipe` (``"learned_small"``, or ``"demo_small"`` of the shipped checkpoint), which
+    samples 12 hypotheses in 4 steps where the defaults sample 1 in 50.
 
     Attributes:
         num_points: points ``N`` of the query cloud and of every target cloud (the flow state has
@@ -249,23 +254,20 @@ class FunFlow6DConfig:
         pose_solver: ``"ransac"`` (RANSAC-Procrustes, paper) or ``"svd"`` (one Procrustes on all
             correspondences).
         ransac_iterations: RANSAC hypotheses (paper: 1,000).
-        ransac_threshold: RANSAC inlier distance, fraction of the diameter.
-        icp_thresholds: coarse-to-fine ICP distances, fractions of the diameter; empty: no ICP.
-        icp_iterations: ICP iterations per threshold.
-        verification: check each chosen pose by rendering and comparing
-            (:class:`~poseflow.verify.PoseVerifier`): its near-symmetric candidates (and, with
-            ``verify_hypotheses``, the other hypotheses) replace it only where they clearly
-            explain the image better, and the verifier's score becomes the estimate's score.
-            Training-free, so it applies to any checkpoint; a checkpoint whose ``config.json``
-            predates the field loads with False (see
-            :data:`~poseflow.models.checkpoint.CHECKPOINT_FIELDS_ADDED`).
-        verify_hypotheses: give the verifier all ``num_hypotheses`` solved hypotheses of an
-            instance: its coarse score picks the one expanded with near-symmetric candidates
-            (:func:`~poseflow.models.verification.rank_estimate`), the others are candidates.
-        verifier: the verifier's configuration (a mapping is read with
-            :meth:`VerifierConfig.from_dict`).
+        ransac_distance: RANSAC inlier distance, a fraction of the diameter.
+        icp_distances: coarse-to-fine ICP correspondence distances, fractions of the diameter;
+            empty: no ICP.
+        icp_iterations: ICP iterations per distance.
+        verifier: check each chosen pose by rendering and comparing
+            (:class:`~poseflow.verify.PoseVerifier`) with this configuration, None for no check:
+            its near-symmetric candidates (and, with ``verifier.rank_hypotheses``, the other
+            hypotheses) replace it only where they clearly explain the image better, and the
+            verifier's score becomes the estimate's score. Training-free, so it applies to any
+            checkpoint; a checkpoint whose ``config.json`` predates verification loads with None
+            (see :data:`~poseflow.models.checkpoint.CHECKPOINT_FIELDS_ADDED`). A mapping is read
+            with :meth:`VerifierConfig.from_dict`.
         net: the free sizes of the trainable network (a mapping is read with
-            :meth:`NetOptions.from_json`).
+            :meth:`NetOptions.from_dict`).
 
     Raises:
         ValueRangeError: an unknown name (the message lists the allowed ones), a value of the
@@ -292,32 +294,21 @@ class FunFlow6DConfig:
     num_hypotheses: int = 1
     pose_solver: str = "ransac"
     ransac_iterations: int = 1000
-    ransac_threshold: float = 0.05
-    icp_thresholds: tuple[float, ...] = (0.08, 0.04, 0.02)
+    ransac_distance: float = 0.05
+    icp_distances: tuple[float, ...] = (0.08, 0.04, 0.02)
     icp_iterations: int = 30
-    verification: bool = True
-    verify_hypotheses: bool = True
-    verifier: VerifierConfig = field(default_factory=VerifierConfig)
+    verifier: VerifierConfig | None = field(default_factory=VerifierConfig)
     net: NetOptions = field(default_factory=NetOptions)
 
     def __post_init__(self) -> None:
         """Validate the types (once, against the annotations) and the choices."""
         check_field_types(self)
-        self.geometric_radii = tuple(float(r) for r in self.geometric_radii)
-        self.icp_thresholds = tuple(float(r) for r in self.icp_thresholds)
+        object.__setattr__(self, "geometric_radii", tuple(float(r) for r in self.geometric_radii))
+        object.__setattr__(self, "icp_distances", tuple(float(d) for d in self.icp_distances))
         if isinstance(self.net, Mapping):
-            self.net = NetOptions.from_json(self.net)
-        if not isinstance(self.net, NetOptions):
-            raise ValueRangeError(f"net must be a NetOptions, got {type(self.net).__name__}")
+            object.__setattr__(self, "net", NetOptions.from_dict(self.net))
         if isinstance(self.verifier, Mapping):
-            self.verifier = VerifierConfig.from_dict(self.verifier)
-        if not isinstance(self.verifier, VerifierConfig):
-            raise ValueRangeError(
-                f"verifier must be a VerifierConfig, got {type(self.verifier).__name__}"
-            )
-        for name in ("verification", "verify_hypotheses"):
-            if not isinstance(getattr(self, name), bool):
-                raise ValueRangeError(f"{name} must be true or false, got {getattr(self, name)!r}")
+            object.__setattr__(self, "verifier", VerifierConfig.from_dict(self.verifier))
         for name, allowed, takes_argument in (
             ("geometric_encoder", GEOMETRIC_ENCODERS, True),
             ("appearance_encoder", APPEARANCE_ENCODERS, True),
@@ -347,9 +338,82 @@ class FunFlow6DConfig:
             raise ValueRangeError("at least one of the geometric and appearance encoders is needed")
         self.net.dit.resolve(self.dit_preset, cond_dim=self.feature_dim + self.net.posenc_dim)
 
+    @classmethod
+    def recipe(cls, name: str) -> FunFlow6DConfig:
+        """The named configuration of :data:`RECIPES` (what ``configs/NAME.json`` holds).
+
+        Raises:
+            ValueRangeError: an unknown name; the message lists the known ones.
+
+        Example:
+            >>> cfg = FunFlow6DConfig.recipe("learned_small")
+            >>> cfg.appearance_encoder, cfg.num_hypotheses, cfg.steps
+            ('learned', 12, 4)
+        """
+        check_name("recipe", name, tuple(RECIPES))
+        return cls.from_dict(RECIPES[name])
+
+    @classmethod
+    def load(cls, source: str | Path) -> FunFlow6DConfig:
+        """A named configuration (:meth:`recipe`) or a JSON file of fields (:meth:`from_dict`).
+
+        Raises:
+            MissingFileError: ``source`` is neither a name of :data:`RECIPES` nor a file.
+            ValueRangeError: the file is not a JSON object of valid fields.
+        """
+        if str(source) in RECIPES:
+            return cls.recipe(str(source))
+        path = Path(source)
+        if not path.is_file():
+            raise MissingFileError(
+                f"{path}: no such file, nor a recipe name ({', '.join(sorted(RECIPES))})"
+            )
+        try:
+            data = json.loads(path.read_text())
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raise ValueRangeError(f"{path} is not valid JSON: {exc}") from None
+        if not isinstance(data, dict):
+            raise ValueRangeError(f"{path} must hold a JSON object of config fields")
+        return cls.from_dict(data)
+
     def replace(self, **changes: Any) -> FunFlow6DConfig:
-        """A copy with some fields changed (validated again)."""
+        """A copy with whole fields replaced (validated again); :func:`apply_overrides` merges."""
         return dataclasses.replace(self, **changes)
+
+    def with_inference(
+        self, overrides: Mapping[str, Any] | None = None, /, **changes: Any
+    ) -> FunFlow6DConfig:
+        """A copy with inference settings changed: what a trained model may change.
+
+        Args:
+            overrides: ``{key: value}`` merged by :func:`apply_overrides`; a key is a field of
+                :data:`INFERENCE_FIELDS` or, with dots, a field below one
+                (``"verifier.rank_top_k"``).
+            changes: more overrides as keywords, applied after ``overrides``.
+
+        Raises:
+            ValueRangeError: a key outside :data:`INFERENCE_FIELDS` (the message lists them),
+                or a value the configuration does not accept.
+
+        Example:
+            >>> cfg = FunFlow6DConfig.recipe("demo_small")
+            >>> cfg = cfg.with_inference({"verifier.rank_top_k": 4}, steps=8)
+            >>> cfg.steps, cfg.verifier.rank_top_k, cfg.num_points
+            (8, 4, 64)
+            >>> try:
+            ...     cfg.with_inference(num_points=32)
+            ... except ValueRangeError as e:
+            ...     print(str(e).split(";")[0])
+            num_points: not an inference setting
+        """
+        changes = {**(overrides or {}), **changes}
+        fixed = sorted({key.split(".")[0] for key in changes} - set(INFERENCE_FIELDS))
+        if fixed:
+            raise ValueRangeError(
+                f"{', '.join(fixed)}: not an inference setting; a trained model can change only "
+                f"{', '.join(INFERENCE_FIELDS)}"
+            )
+        return apply_overrides(self, changes)
 
     def net_config(self, geometric_dim: int | None, semantic_dim: int | None) -> NetConfig:
         """The network's configuration for descriptors of the given widths.
@@ -376,40 +440,70 @@ class FunFlow6DConfig:
             noise_conditioning=self.noise_conditioning,
         )
 
-    def to_json(self) -> dict[str, Any]:
+    def to_dict(self) -> dict[str, Any]:
         """The configuration as a JSON-serialisable dict."""
-        out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
-        out["geometric_radii"] = list(self.geometric_radii)
-        out["icp_thresholds"] = list(self.icp_thresholds)
-        out["verifier"] = self.verifier.to_dict()
-        out["net"] = self.net.to_json()
-        return out
+        return config_to_dict(self)
 
     @classmethod
-    def from_json(cls, data: Mapping[str, Any] | str | Path) -> FunFlow6DConfig:
-        """Build from :meth:`to_json`'s dict or a JSON file; unknown keys are an error.
+    def from_dict(cls, data: Mapping[str, Any]) -> FunFlow6DConfig:
+        """Build from :meth:`to_dict`'s dict; unknown keys are an error.
 
-        Files written before the network options were typed are read as they were meant: a
-        ``fusion`` or ``dit_preset`` inside ``net`` (which then overrode the top-level field)
-        becomes the top-level field, and a ``cond_dim`` inside ``net.dit`` (always replaced by
-        ``D + d_P``) is dropped.
+        Files written by older versions load as they were meant, silently (checkpoints are
+        data): the keys of :data:`RENAMED_FIELDS` under their new names, ``verification: false``
+        as ``verifier: null``, ``verify_hypotheses`` as ``verifier.rank_hypotheses``, and the
+        network options of files from before they were typed.
         """
-        if not isinstance(data, Mapping):
-            data = json.loads(Path(data).read_text())
-        data = dict(data)  # type: ignore[arg-type]
-        if isinstance(data.get("net"), Mapping):
-            net = dict(data["net"])
-            for name in ("fusion", "dit_preset"):
-                if name in net:
-                    data[name] = net.pop(name)
-            if isinstance(net.get("dit"), Mapping):
-                net["dit"] = {k: v for k, v in net["dit"].items() if k != "cond_dim"}
-            data["net"] = net
-        return _from_mapping(cls, data, "FunFlow6D config")
+        return config_from_dict(cls, _upgrade(data))
+
+
+#: Keys of configuration files written before a field was renamed, and the field they are read
+#: as (checkpoints on disk keep their ``config.json``).
+RENAMED_FIELDS: dict[str, str] = {
+    "ransac_threshold": "ransac_distance",
+    "icp_thresholds": "icp_distances",
+}
+
+
+def _upgrade(data: Mapping[str, Any]) -> dict[str, Any]:
+    """The keys of older configuration files read as they were meant, silently.
+
+    - :data:`RENAMED_FIELDS` are read under their new names;
+    - ``verification: false`` is ``verifier: null``; ``verification: true`` keeps ``verifier``
+      (its default when absent); ``verify_hypotheses`` is ``verifier.rank_hypotheses``;
+    - a ``fusion`` or ``dit_preset`` inside ``net`` (which then overrode the top-level field)
+      becomes the top-level field, and a ``cond_dim`` inside ``net.dit`` (always replaced by
+      ``D + d_P``) is dropped.
+    """
+    data = dict(data)
+    for old, new in RENAMED_FIELDS.items():
+        if old in data:
+            data.setdefault(new, data.pop(old))
+    if "verification" in data or "verify_hypotheses" in data:
+        verify = data.pop("verification", True)
+        rank = data.pop("verify_hypotheses", None)
+        if not isinstance(verify, bool):
+            raise ValueRangeError(f"verification must be true or false, got {verify!r}")
+        verifier = data.get("verifier")
+        if isinstance(verifier, VerifierConfig):
+            verifier = verifier.to_dict()
+        verifier = dict(verifier or {})
+        if rank is not None:
+            verifier["rank_hypotheses"] = rank
+        data["verifier"] = verifier if verify else None
+    if isinstance(data.get("net"), Mapping):
+        net = dict(data["net"])
+        for name in ("fusion", "dit_preset"):
+            if name in net:
+                data[name] = net.pop(name)
+        if isinstance(net.get("dit"), Mapping):
+            net["dit"] = {k: v for k, v in net["dit"].items() if k != "cond_dim"}
+        data["net"] = net
+    return data
 
 
 #: Fields a trained model may change at inference: the sampler, the hypotheses, the pose solver,
-#: the verification and the dense-cloud cap (the network and its feature sizes stay valid).
+#: the verifier and the dense-cloud cap (the network and its feature sizes stay valid). Changed
+#: through :meth:`FunFlow6DConfig.with_inference`.
 INFERENCE_FIELDS: tuple[str, ...] = (
     "solver",
     "steps",
@@ -417,13 +511,47 @@ INFERENCE_FIELDS: tuple[str, ...] = (
     "dense_points",
     "pose_solver",
     "ransac_iterations",
-    "ransac_threshold",
-    "icp_thresholds",
+    "ransac_distance",
+    "icp_distances",
     "icp_iterations",
-    "verification",
-    "verify_hypotheses",
     "verifier",
 )
+
+_SMALL: dict[str, Any] = {
+    "num_points": 64,
+    "crop_size": 96,
+    "query_views": 12,
+    "dit_preset": "small",
+    "net": {
+        "dit": {"hidden_dim": 64, "num_heads": 4, "depth": 4, "time_frequency_dim": 64},
+        "posenc_dim": 32,
+        "posenc_frequencies": 4,
+    },
+    "noise_conditioning": False,
+    "num_hypotheses": 12,
+    "steps": 4,
+}
+
+#: The named configurations, as changes of the defaults (:meth:`FunFlow6DConfig.recipe`):
+#: ``demo_small``, the shipped demo checkpoint's (dense SIFT), and ``learned_small``, the recipe
+#: for new objects (poseflow's learned appearance descriptors). ``configs/NAME.json`` are
+#: written from them (:func:`write_recipes`).
+RECIPES: dict[str, dict[str, Any]] = {
+    "demo_small": _SMALL,
+    "learned_small": {**_SMALL, "appearance_encoder": "learned"},
+}
+
+
+def write_recipes(folder: str | Path) -> list[Path]:
+    """Write each of :data:`RECIPES` to ``folder/NAME.json``; the paths written."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for name, changes in RECIPES.items():
+        path = folder / f"{name}.json"
+        path.write_text(json.dumps(changes, indent=1) + "\n")
+        paths.append(path)
+    return paths
 
 
 #: The paper's ablation table (rows 3-8) in terms of the components poseflow ships. Rows differ
@@ -433,6 +561,6 @@ ABLATIONS: dict[str, dict[str, Any]] = {
     "4_umap_sum": {"reducer": "umap", "fusion": "sum"},
     "5_umap_concat_mlp": {"reducer": "umap", "fusion": "concat_mlp"},
     "6_umap_cross": {"reducer": "umap", "fusion": "cross"},
-    "7_umap_gated_no_icp": {"reducer": "umap", "fusion": "gated", "icp_thresholds": ()},
+    "7_umap_gated_no_icp": {"reducer": "umap", "fusion": "gated", "icp_distances": ()},
     "8_umap_gated": {"reducer": "umap", "fusion": "gated"},
 }

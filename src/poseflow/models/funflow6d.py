@@ -65,7 +65,7 @@ class FunFlow6D(nn.Module):
     Attributes:
         objects: the prepared objects, ``{obj_id: PreparedObject}``.
         verifier: the :class:`~poseflow.verify.PoseVerifier` of ``config.verifier``, with the
-            objects prepared for it (when ``config.verification`` was on at
+            objects prepared for it (when ``config.verifier`` was set at
             :meth:`prepare_objects`).
 
     Example:
@@ -101,7 +101,7 @@ class FunFlow6D(nn.Module):
     ) -> None:
         """Prepare every object (:func:`~poseflow.models.objects.prepare_objects`) for inference.
 
-        With ``config.verification`` on, the objects are prepared for the verifier too
+        With ``config.verifier`` set, the objects are prepared for the verifier too
         (:func:`~poseflow.models.verification.prepare_verification`, cached beside them); a
         verifier of another configuration than ``config.verifier`` is replaced.
 
@@ -123,7 +123,7 @@ class FunFlow6D(nn.Module):
                 progress=progress,
             )
         )
-        if self.config.verification:
+        if self.config.verifier is not None:
             if self.verifier.config != self.config.verifier:
                 self.verifier = PoseVerifier(self.config.verifier)
             prepare_verification(self.verifier, models, cache_dir=cache_dir, progress=progress)
@@ -194,7 +194,7 @@ class FunFlow6D(nn.Module):
     ) -> PoseEstimate:
         """Estimate the pose of every masked instance of one RGBD image, in one batch.
 
-        :meth:`propose`, then, with ``config.verification`` on, :meth:`verify`: the verifier's
+        :meth:`propose`, then, with ``config.verifier`` set, :meth:`verify`: the verifier's
         ICP registers the observation's cleaned cloud and its scores become the estimate's.
         Stages are charged to the active :class:`~poseflow.eval.timing.StageTimer`, if any.
 
@@ -222,7 +222,7 @@ class FunFlow6D(nn.Module):
                 in the wrong unit; :func:`~poseflow._units.check_depth_extent`).
         """
         proposals = self.propose(rgb, depth, K, masks, obj_ids, generator=generator)
-        if not self.config.verification or proposals.estimate.poses.shape[0] == 0:
+        if self.config.verifier is None or proposals.estimate.poses.shape[0] == 0:
             return proposals.estimate
         return self.verify(proposals, rgb, depth, K, masks, obj_ids)
 
@@ -240,16 +240,16 @@ class FunFlow6D(nn.Module):
         """The flow's poses of every instance of one image, before verification.
 
         Samples ``config.num_hypotheses`` flows per instance and solves each for a pose; the
-        best by the solver's score is the incumbent, and with ``config.verify_hypotheses`` the
-        others are candidates that the verifier ranks (:class:`Proposals` with ``rank`` on).
-        Arguments as :meth:`estimate`.
+        best by the solver's score is the incumbent, and with
+        ``config.verifier.rank_hypotheses`` the others are candidates that the verifier ranks
+        (:class:`Proposals` with ``rank`` on). Arguments as :meth:`estimate`.
 
         Returns:
             :class:`~poseflow.models.verification.Proposals` of the ``B`` instances, with the
             observation's cleaned clouds for the verifier's ICP.
         """
         cfg = self.config
-        if cfg.verification and self.verifier.config != cfg.verifier:
+        if cfg.verifier is not None and self.verifier.config != cfg.verifier:
             raise ValueRangeError(
                 "config.verifier changed after the objects were prepared for verification; "
                 "call prepare_objects again"
@@ -285,7 +285,7 @@ class FunFlow6D(nn.Module):
             solved = solve_pose(rep, x_1[:, n:], dense, cfg, generator=generator)
             est = select_hypotheses(*solved, obs.valid, H)
             est = invalidate_implausible(est)  # nothing behind the camera is verified
-            rank = cfg.verify_hypotheses and H > 1
+            rank = cfg.verifier is not None and cfg.verifier.rank_hypotheses and H > 1
             if rank:
                 others, others_mask = other_hypotheses(*solved, H)
             else:

@@ -43,12 +43,12 @@ class Hybrid:
     """FunFlow6D and the classic baseline as one estimator, their poses chosen by one verifier.
 
     Args:
-        model: a FunFlow6D with its objects prepared and ``config.verification`` on; its
-            verifier (``config.verifier``) chooses.
+        model: a FunFlow6D with its objects prepared and a ``config.verifier``; its verifier
+            chooses.
         baseline: the classic baseline of the same objects; its own verification is not used.
 
     Raises:
-        ValueRangeError: verification off in ``model.config``, or an object the model has
+        ValueRangeError: no verifier in ``model.config``, or an object the model has
             prepared that the baseline has no model of.
 
     Example:
@@ -58,10 +58,10 @@ class Hybrid:
     """
 
     def __init__(self, model: FunFlow6D, baseline: ClassicBaseline) -> None:
-        if not model.config.verification:
+        if model.config.verifier is None:
             raise ValueRangeError(
-                "the hybrid estimator chooses by render-and-compare verification: turn "
-                "config.verification on"
+                "the hybrid estimator chooses by render-and-compare verification: set "
+                "config.verifier"
             )
         missing = sorted(set(model.objects) - set(baseline.models))
         if missing:

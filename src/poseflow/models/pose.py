@@ -102,8 +102,8 @@ def solve_pose(
         inputs: the flow inputs of the rows (``points``, ``mask``, ``scale``, ``centroid``).
         predicted: the flow's target half ``T̂ / s`` ``(B, N, 3)``.
         dense_clouds: each row's dense model cloud (metres), the ICP target.
-        config: ``pose_solver``, ``ransac_iterations``, ``ransac_threshold``,
-            ``icp_thresholds`` and ``icp_iterations``.
+        config: ``pose_solver``, ``ransac_iterations``, ``ransac_distance``,
+            ``icp_distances`` and ``icp_iterations``.
         generator: seeds RANSAC.
 
     Returns:
@@ -120,7 +120,7 @@ def solve_pose(
                 source,
                 predicted,
                 mask,
-                max_correspondence_distance=2 * config.ransac_threshold,
+                max_correspondence_distance=2 * config.ransac_distance,
                 max_iterations=config.ransac_iterations,
                 generator=generator,
             )
@@ -129,20 +129,20 @@ def solve_pose(
             T, ok = procrustes(source, predicted, mask=mask)
             score = torch.ones(len(T), dtype=T.dtype, device=T.device)
     dense, dense_mask = dense_targets(dense_clouds, scale)
-    if config.icp_thresholds:
+    if config.icp_distances:
         with stage("icp"):
             ir = multi_scale_icp(
                 source,
                 dense,
                 T,
-                max_correspondence_distances=[2 * f for f in config.icp_thresholds],
+                max_correspondence_distances=[2 * f for f in config.icp_distances],
                 max_iterations=config.icp_iterations,
                 source_mask=mask,
                 target_mask=dense_mask,
             )
             T = torch.where(ir.valid[:, None, None], ir.transformation, T)
     score = score * agreement_score(
-        source, mask, T, dense, dense_mask, max_distance=2 * config.ransac_threshold
+        source, mask, T, dense, dense_mask, max_distance=2 * config.ransac_distance
     )
     # Undo the normalisation: canonical = R (x - c) + s t'  =>  t = s t' - R c.
     R, t = T[:, :3, :3], T[:, :3, 3]

@@ -39,8 +39,8 @@ Used on its own, with a user's hypotheses::
     result.poses, result.scores, result.chosen  # (B, 4, 4), (B,), (B,) 0 = estimate kept
 
 ``examples/verify_your_poses.py`` runs this on a rendered scene. ``FunFlow6D`` and
-``ClassicBaseline`` run :meth:`PoseVerifier.verify` after choosing their poses (their
-``verification`` setting), with their own lifted clouds as ICP's source.
+``ClassicBaseline`` run :meth:`PoseVerifier.verify` after choosing their poses (unless their
+configuration's ``verifier`` is None), with their own lifted clouds as ICP's source.
 """
 
 from poseflow.verify.config import VerifierConfig

@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import itertools
 import math
-from dataclasses import asdict, dataclass, fields
+from collections.abc import Mapping
+from dataclasses import dataclass
 from typing import Any
 
 from poseflow._checks import check_field_types
+from poseflow._config import config_from_dict, config_to_dict
 from poseflow.errors import ValueRangeError
 
 __all__ = ["VerifierConfig"]
@@ -62,6 +64,11 @@ class VerifierConfig:
             a mug's handle); 0 or 1 ranks on the coarse grid alone. 4 raised devbench's mug by 0.03
             AR and lowered a textured cylinder of another mesh set by 0.05 (three seeds each),
             for about 50 ms per image, so it is off by default.
+        rank_hypotheses: an estimator that solves several hypotheses per instance (FunFlow6D's
+            ``num_hypotheses``) gives them all to the verifier: its coarse score picks the one
+            expanded with near-symmetric candidates, and the others are candidates
+            (:meth:`~poseflow.verify.PoseVerifier.rank_hypotheses`); False verifies the
+            estimator's own pick alone. The classic baseline has one pose per instance.
         refine_top_k: candidates (besides the estimate) refined by ICP and scored again, the best
             of the first, unrefined scoring.
         search_below: a valid instance whose chosen pose scores below this is searched globally
@@ -107,6 +114,7 @@ class VerifierConfig:
     min_candidate_angle: float = 15.0
     turn_steps: int = 12
     rank_top_k: int = 0
+    rank_hypotheses: bool = True
     refine_top_k: int = 2
     search_below: float = 0.45
     search_top_k: int = 4
@@ -135,8 +143,6 @@ class VerifierConfig:
         for name, (value, low) in ints.items():
             if isinstance(value, bool) or not isinstance(value, int) or value < low:
                 raise ValueRangeError(f"{name} must be an int >= {low}, got {value!r}")
-        if not isinstance(self.refine_estimate, bool):
-            raise ValueRangeError(f"refine_estimate must be a bool, got {self.refine_estimate!r}")
         if self.appearance_window % 2 == 0:
             raise ValueRangeError(f"appearance_window must be odd, got {self.appearance_window}")
         if self.crop_size % self.block_size or self.coarse_crop_size % self.block_size:
@@ -192,12 +198,10 @@ class VerifierConfig:
             >>> VerifierConfig().to_dict()["crop_size"]
             64
         """
-        out = asdict(self)
-        out["icp_distances"] = list(self.icp_distances)
-        return out
+        return config_to_dict(self)
 
     @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> VerifierConfig:
+    def from_dict(cls, data: Mapping[str, Any]) -> VerifierConfig:
         """Build a configuration from :meth:`to_dict`'s output, checking every name.
 
         Raises:
@@ -207,11 +211,4 @@ class VerifierConfig:
             >>> VerifierConfig.from_dict({"crop_size": 48, "block_size": 8}).crop_size
             48
         """
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(data) - known)
-        if unknown:
-            raise ValueRangeError(f"unknown VerifierConfig fields: {unknown}")
-        values = dict(data)
-        if "icp_distances" in values:
-            values["icp_distances"] = tuple(values["icp_distances"])
-        return cls(**values)
+        return config_from_dict(cls, data)
