@@ -14,13 +14,12 @@ Prints a table and one JSON line, then the command. Run ``python benchmarks/accu
 from __future__ import annotations
 
 import argparse
-import json
+import functools
 import platform
-import sys
 import tempfile
-import time
 
 import torch
+from _common import clocked, report
 
 from poseflow.assets import DEMO_CHECKPOINT
 from poseflow.baselines import ClassicBaseline
@@ -82,12 +81,9 @@ def main() -> None:
                 "timing": timer.breakdown(),
             }
         if not (args.quick or args.no_baseline):
-            start = time.perf_counter()
-            base = ClassicBaseline(objects, encoder=FPFHEncoder(), seed=args.seed).predict(root)
-            out["baseline"] = {
-                **_row(evaluate_bop(root, base)),
-                "seconds": time.perf_counter() - start,
-            }
+            baseline = functools.partial(ClassicBaseline, objects, encoder=FPFHEncoder())
+            seconds, base = clocked(lambda: baseline(seed=args.seed).predict(root))
+            out["baseline"] = {**_row(evaluate_bop(root, base)), "seconds": seconds}
     print(f"{'method':<22} {'AR':>6} {'AR_VSD':>7} {'AR_MSSD':>8} {'AR_MSPD':>8} {'ms/image':>9}")
     for name, row in out.items():
         if not isinstance(row, dict) or "AR" not in row:
@@ -97,8 +93,7 @@ def main() -> None:
             f"{name:<22} {row['AR']:>6.3f} {row['AR_VSD']:>7.3f} {row['AR_MSSD']:>8.3f} "
             f"{row['AR_MSPD']:>8.3f} {ms:>9.0f}"
         )
-    print(json.dumps(out))
-    print("command:", " ".join([sys.executable, *sys.argv]))
+    report(out, __file__)
 
 
 if __name__ == "__main__":

@@ -25,15 +25,12 @@ Run ``python benchmarks/data.py`` (``--quick`` for CI).
 from __future__ import annotations
 
 import argparse
-import json
-import platform
 import statistics
-import sys
-import time
 
 import numpy as np
 import open3d as o3d
 import torch
+from _common import machine, report, timed, timed_pair
 
 from poseflow.data.demo_objects import DEMO_OBJECT_NAMES, demo_mesh
 from poseflow.geometry.pointcloud import (
@@ -46,33 +43,6 @@ from poseflow.render import Renderer
 
 W, H = 640, 480
 K = torch.tensor([[600.0, 0.0, 319.5], [0.0, 600.0, 239.5], [0.0, 0.0, 1.0]], dtype=torch.float64)
-
-
-def timed(fn, repeats: int) -> tuple[float, object]:
-    fn()  # warm-up
-    times, out = [], None
-    for _ in range(repeats):
-        t = time.perf_counter()
-        out = fn()
-        times.append(time.perf_counter() - t)
-    return statistics.median(times), out
-
-
-def timed_pair(ours, theirs, repeats: int) -> tuple[list[float], list[float], object, object]:
-    """Both functions warmed up, then timed alternately ``repeats`` times each (seconds).
-
-    Alternating keeps a change of the machine's load from favouring one side.
-    """
-    out_ours, out_theirs = ours(), theirs()
-    t_ours, t_theirs = [], []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        out_ours = ours()
-        t_ours.append(time.perf_counter() - start)
-        start = time.perf_counter()
-        out_theirs = theirs()
-        t_theirs.append(time.perf_counter() - start)
-    return t_ours, t_theirs, out_ours, out_theirs
 
 
 def scene_poses(n: int, g: torch.Generator) -> torch.Tensor:
@@ -220,15 +190,13 @@ def main(argv: list[str] | None = None) -> None:
         torch.set_num_threads(args.threads)
     record = {
         "benchmark": "data",
-        "machine": f"{platform.machine()}, {torch.get_num_threads()} torch threads",
+        "machine": machine(),
         "torch": torch.__version__,
         "open3d": o3d.__version__,
         "lifting": bench_lifting(args),
         "render": bench_render(args),
-        "command": "python benchmarks/data.py " + " ".join(sys.argv[1:] if argv is None else argv),
     }
-    print(json.dumps(record))
-    print("reproduce: " + record["command"])
+    report(record, __file__, argv)
 
 
 if __name__ == "__main__":

@@ -6,7 +6,7 @@ ground-truth pose a little (so errors spread over the thresholds), and times
 :func:`poseflow.eval.evaluate.evaluate_bop` (VSD, MSSD and MSPD, matching and recall). The BOP
 toolkit cannot be installed here (not on PyPI, numpy < 2), so the reference is its algorithm as a
 user would write it: MSSD and MSPD one estimate and one symmetry at a time in numpy, timed on the
-same pairs; the two must agree. Prints one JSON line.
+same pairs; the two must agree. Prints one JSON line, then the command.
 
 Run ``python benchmarks/eval.py`` (``--quick`` for CI: a smaller dataset at 320x240).
 """
@@ -14,13 +14,15 @@ Run ``python benchmarks/eval.py`` (``--quick`` for CI: a smaller dataset at 320x
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import tempfile
-import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
+from _common import clocked, report
 
 from poseflow.data.bop import BOPDataset
 from poseflow.data.demo_objects import demo_objects
@@ -59,42 +61,87 @@ def main() -> None:
     torch.manual_seed(args.seed)
     objects = demo_objects(num_points=256, geometric_symmetries=True)
     with tempfile.TemporaryDirectory() as tmp:
-        t0 = time.perf_counter()
-        root = generate_dataset(
-            tmp,
-            {i + 1: o for i, o in enumerate(objects)},
-            num_train_images=0,
-            num_test_images=images,
-            objects_per_image=(8, 10),
-            distractors_per_image=0,
-            width=width,
-            height=height,
-            seed=args.seed,
-            progress=False,
+        gen_s, root = clocked(
+            lambda: generate_dataset(
+                tmp,
+                {i + 1: o for i, o in enumerate(objects)},
+                num_train_images=0,
+                num_test_images=images,
+                objects_per_image=(8, 10),
+                distractors_per_image=0,
+                width=width,
+                height=height,
+                seed=args.seed,
+                progress=False,
+            )
         )
-        gen_s = time.perf_counter() - t0
-        res = gt_results(root)
-        g = torch.Generator().manual_seed(args.seed)
-        noise = random_transform(
-            len(res), max_angle=0.15, max_translation=0.01, generator=g, dtype=torch.float64
+        est = _perturbed(root, args.seed)
+        eval_s, report_all = clocked(lambda: evaluate_bop(root, est))
+        mssd_mspd_s, report_no_vsd = clocked(
+            lambda: evaluate_bop(root, est, metrics=("mssd", "mspd"))
         )
-        est = PoseResults(
-            res.scene_ids,
-            res.im_ids,
-            res.obj_ids,
-            torch.rand(len(res), generator=g),
-            res.poses @ noise,
-            torch.full((len(res),), 0.5, dtype=torch.float64),
-        )
+        pairs = _Pairs.of(root, est)
+        loop_s, loop = clocked(lambda: pairs.loop_errors(est))
+        worst = pairs.worst_difference(est, loop)
 
-        t0 = time.perf_counter()
-        report = evaluate_bop(root, est)
-        eval_s = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        report_no_vsd = evaluate_bop(root, est, metrics=("mssd", "mspd"))
-        mssd_mspd_s = time.perf_counter() - t0
+    record = {
+        "benchmark": "eval",
+        "machine": f"{platform.machine()} {torch.get_num_threads()} threads",
+        "image_size": [width, height],
+        "images": images,
+        "estimates": len(est),
+        "evaluated_pairs": int(pairs.row.numel()),
+        "targets": report_all["num_targets"],
+        "generate_s": round(gen_s, 2),
+        "evaluate_all_s": round(eval_s, 2),
+        "evaluate_mssd_mspd_s": round(mssd_mspd_s, 2),
+        "loop_mssd_mspd_s": round(loop_s, 2),
+        "speedup_mssd_mspd": round(loop_s / mssd_mspd_s, 1),
+        "AR": round(report_all["AR"], 4),
+        "AR_VSD": round(report_all["AR_VSD"], 4),
+        "AR_MSSD": round(report_all["AR_MSSD"], 4),
+        "AR_MSPD": round(report_all["AR_MSPD"], 4),
+        "max_abs_diff_vs_loop": worst,
+        "same_ar_without_vsd": report_no_vsd["AR_MSSD"] == report_all["AR_MSSD"],
+    }
+    report(record, __file__)
 
-        # The per-pair reference on the same pairs.
+
+def _perturbed(root: Path, seed: int) -> PoseResults:
+    """Every ground-truth pose moved a little (so errors spread over the thresholds)."""
+    res = gt_results(root)
+    g = torch.Generator().manual_seed(seed)
+    noise = random_transform(
+        len(res), max_angle=0.15, max_translation=0.01, generator=g, dtype=torch.float64
+    )
+    return PoseResults(
+        res.scene_ids,
+        res.im_ids,
+        res.obj_ids,
+        torch.rand(len(res), generator=g),
+        res.poses @ noise,
+        torch.full((len(res),), 0.5, dtype=torch.float64),
+    )
+
+
+@dataclass
+class _Pairs:
+    """The (estimate, ground truth) pairs that the evaluation matches, for the reference.
+
+    ``row`` names each pair's target in ``assignment.targets``, ``e_idx`` its estimate and
+    ``g_idx`` its ground-truth instance in the image, all ``(P,)``.
+    """
+
+    ds: BOPDataset
+    assignment: Any
+    row: torch.Tensor
+    e_idx: torch.Tensor
+    g_idx: torch.Tensor
+    models: dict[int, Any]
+
+    @classmethod
+    def of(cls, root: Path, est: PoseResults) -> _Pairs:
+        """The pairs of ``est`` on the test split of ``root``, matched as the evaluation does."""
         ds = BOPDataset(root, "test", load_rgb=False, load_masks=False)
         targets = [Target(t.scene_id, t.im_id, t.obj_id, t.inst_count) for t in ds.test_targets()]
         gts = {}
@@ -107,12 +154,18 @@ def main() -> None:
         a = assign(targets, gts, est.scene_ids, est.im_ids, est.obj_ids, est.scores)
         row, _, _, e_idx, g_idx = a.pairs()
         models = load_eval_models(ds, [t.obj_id for t in targets])
-        t0 = time.perf_counter()
+        return cls(ds, a, row, e_idx, g_idx, models)
+
+    def _target_scene(self, r: int) -> tuple[Any, Any]:
+        t = self.assignment.targets[r]
+        return t, self.ds.scene(t.scene_id)
+
+    def loop_errors(self, est: PoseResults) -> list[tuple[float, float]]:
+        """MSSD and MSPD of every pair, the toolkit's way: one pair at a time."""
         loop = []
-        for r, e, gi in zip(row.tolist(), e_idx.tolist(), g_idx.tolist()):
-            t = a.targets[r]
-            scene = ds.scene(t.scene_id)
-            m = models[t.obj_id]
+        for r, e, gi in zip(self.row.tolist(), self.e_idx.tolist(), self.g_idx.tolist()):
+            t, scene = self._target_scene(r)
+            m = self.models[t.obj_id]
             loop.append(
                 loop_mssd_mspd(
                     est.poses[e].numpy(),
@@ -122,50 +175,28 @@ def main() -> None:
                     m.symmetries.numpy(),
                 )
             )
-        loop_s = time.perf_counter() - t0
-        # The same pairs through the vectorised functions, one call per object.
+        return loop
+
+    def worst_difference(self, est: PoseResults, loop: list[tuple[float, float]]) -> float:
+        """The largest difference of vectorised MSSD and MSPD (a call per object) to ``loop``."""
         worst = 0.0
-        obj = torch.tensor([a.targets[r].obj_id for r in row.tolist()])
+        obj = torch.tensor([self.assignment.targets[r].obj_id for r in self.row.tolist()])
         for o in obj.unique().tolist():
             sel = (obj == o).nonzero()[:, 0]
-            T_e = est.poses[e_idx[sel]]
+            T_e = est.poses[self.e_idx[sel]]
             T_g, K = [], []
-            for r, gi in zip(row[sel].tolist(), g_idx[sel].tolist()):
-                t = a.targets[r]
-                T_g.append(ds.scene(t.scene_id).gt_of(t.im_id)[gi].pose)
-                K.append(ds.scene(t.scene_id).camera[t.im_id].K)
+            for r, gi in zip(self.row[sel].tolist(), self.g_idx[sel].tolist()):
+                t, scene = self._target_scene(r)
+                T_g.append(scene.gt_of(t.im_id)[gi].pose)
+                K.append(scene.camera[t.im_id].K)
             T_g, K = torch.from_numpy(np.stack(T_g)), torch.from_numpy(np.stack(K))
-            m = models[o]
+            m = self.models[o]
             vec_s = mssd(T_e, T_g, m.vertices, m.symmetries)
             vec_p = mspd(T_e, T_g, K, m.vertices, m.symmetries)
             ref = torch.tensor([loop[i] for i in sel.tolist()], dtype=torch.float64)
             worst = max(worst, float((vec_s - ref[:, 0]).abs().max()))
             worst = max(worst, float((vec_p - ref[:, 1]).abs().max()))
-
-    print(
-        json.dumps(
-            {
-                "benchmark": "eval",
-                "machine": f"{platform.machine()} {torch.get_num_threads()} threads",
-                "image_size": [width, height],
-                "images": images,
-                "estimates": len(est),
-                "evaluated_pairs": int(row.numel()),
-                "targets": report["num_targets"],
-                "generate_s": round(gen_s, 2),
-                "evaluate_all_s": round(eval_s, 2),
-                "evaluate_mssd_mspd_s": round(mssd_mspd_s, 2),
-                "loop_mssd_mspd_s": round(loop_s, 2),
-                "speedup_mssd_mspd": round(loop_s / mssd_mspd_s, 1),
-                "AR": round(report["AR"], 4),
-                "AR_VSD": round(report["AR_VSD"], 4),
-                "AR_MSSD": round(report["AR_MSSD"], 4),
-                "AR_MSPD": round(report["AR_MSPD"], 4),
-                "max_abs_diff_vs_loop": worst,
-                "same_ar_without_vsd": report_no_vsd["AR_MSSD"] == report["AR_MSSD"],
-            }
-        )
-    )
+        return worst
 
 
 if __name__ == "__main__":

@@ -51,11 +51,8 @@ import hashlib
 import itertools
 import json
 import platform
-import shlex
-import statistics
 import sys
 import tempfile
-import time
 import warnings
 from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass
@@ -66,6 +63,9 @@ import torch
 import torch.nn.functional as F
 from torch.nn.attention import SDPBackend, sdpa_kernel
 from torch.profiler import ProfilerActivity, profile
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # _common, also when imported by path
+from _common import clocked, command, timed
 
 from poseflow.assets import DEMO_CHECKPOINT
 from poseflow.cli.bench import benchmark_settings, fastest_equal_setting
@@ -253,11 +253,8 @@ def refit_umap(
             n_epochs=old.n_epochs if epochs is None else epochs,
             fit_backend="torchdr",
         )
-        _sync(device)
-        start = time.perf_counter()
-        new.fit(old.train_.to(device))
-        _sync(device)
-        seconds.append(round(time.perf_counter() - start, 3))
+        fit_s, _ = clocked(lambda new=new, old=old: new.fit(old.train_.to(device)), device=device)
+        seconds.append(round(fit_s, 3))
         obj.reducer = new
     return {"backend": "torchdr", "device": str(device), "fit_s": seconds}
 
@@ -316,11 +313,6 @@ KERNELS = {
 }
 
 
-def _sync(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-
-
 def _kernels(fn: Callable[[], Any]) -> str:
     """The SDPA kernels ``fn()`` ran, by short name."""
     with profile(activities=[ProfilerActivity.CPU]) as prof:
@@ -341,25 +333,13 @@ def _time_case(
     Returns:
         ``{"kernel", "first_ms", "median_ms"}``, the kernel read by the profiler.
     """
-    first_call = make(fresh)
-    _sync(device)
-    start = time.perf_counter()
-    first_call()
-    _sync(device)
-    first = time.perf_counter() - start
+    first, _ = clocked(make(fresh), device=device)
     call = make(batch)
-    call()
-    times = []
-    for _ in range(repeats):
-        _sync(device)
-        start = time.perf_counter()
-        call()
-        _sync(device)
-        times.append(time.perf_counter() - start)
+    median, _ = timed(call, repeats, device=device)
     return {
         "kernel": _kernels(call),
         "first_ms": round(1e3 * first, 3),
-        "median_ms": round(1e3 * statistics.median(times), 3),
+        "median_ms": round(1e3 * median, 3),
     }
 
 
@@ -467,24 +447,28 @@ def prepare(work: Path, scale: Scale, images: int, seed: int) -> dict[str, Any]:
 
     work.mkdir(parents=True, exist_ok=True)
     root = work / "data"
-    start = time.perf_counter()
-    generate_dataset(
-        root, num_train_images=0, num_test_images=images, objects_per_image=scale.instances,
-        width=scale.width, height=scale.height, seed=seed, min_target_visib=0.3, progress=False,
-        overwrite=True,  # the work folder's split of an earlier run is generated again
+    generated, _ = clocked(
+        functools.partial(
+            generate_dataset, root, num_train_images=0, num_test_images=images,
+            objects_per_image=scale.instances, width=scale.width, height=scale.height, seed=seed,
+            min_target_visib=0.3, progress=False,
+            overwrite=True,  # the work folder's split of an earlier run is generated again
+        )
     )  # fmt: skip
-    generated = time.perf_counter() - start
     digest = write_random_dinov2(weights_dir(work, scale), scale)
     model = FunFlow6D(paper_config(work, scale))
-    start = time.perf_counter()
-    model.prepare_objects(load_object_models(root), cache_dir=work / "objects", progress=False)
+    prepared, _ = clocked(
+        lambda: model.prepare_objects(
+            load_object_models(root), cache_dir=work / "objects", progress=False
+        )
+    )
     info = {
         "scale": scale.name,
         "images": images,
         "seed": seed,
         "dinov2_digest": digest,
         "generate_s": round(generated, 1),
-        "prepare_objects_s": round(time.perf_counter() - start, 1),
+        "prepare_objects_s": round(prepared, 1),
     }
     (work / "prepare.json").write_text(json.dumps(info, indent=1))
     print(f"prepared {work}: {json.dumps(info)}")
@@ -742,7 +726,7 @@ def main(argv: list[str] | None = None) -> dict[str, dict[str, Any]]:
             )  # fmt: skip
         if args.phase in ("all", "score"):
             result["score"] = score(work, out, args.ar_tolerance)
-    print("command:", shlex.join(["python", "benchmarks/gpu.py", *(argv or sys.argv[1:])]))
+    print("command:", command(__file__, argv))
     return result
 
 

@@ -26,21 +26,15 @@ import json
 import os
 import platform
 import resource
-import shlex
 import statistics
 import subprocess
 import sys
-import time
 
 import torch
+from _common import clocked, report, timings
 
 from poseflow.flows.dit import PointDiT
 from poseflow.fusion import GatedCrossAttentionFusion
-
-
-def _sync(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
 
 
 def _rss_mib() -> float:
@@ -73,22 +67,11 @@ def run_case(args: argparse.Namespace) -> dict:
         torch.cuda.reset_peak_memory_stats(device)
     rss0 = _rss_mib()
     with torch.inference_mode():
-        t0 = time.perf_counter()
-        dit()
-        _sync(device)
-        first_s = time.perf_counter() - t0
-        times = []
-        for _ in range(args.repeats):
-            t0 = time.perf_counter()
-            dit()
-            _sync(device)
-            times.append(time.perf_counter() - t0)
+        first_s, _ = clocked(dit, device=device)
+        times, _ = timings(dit, args.repeats, device=device)
         fusion(g[:1], s[:1])
-        _sync(device)
-        t0 = time.perf_counter()
-        fusion(g, s)  # Q and T of all B instances: 2B clouds of N points
-        _sync(device)
-        fusion_ms = 1e3 * (time.perf_counter() - t0)
+        # Q and T of all B instances: 2B clouds of N points
+        fusion_s, _ = clocked(lambda: fusion(g, s), device=device)
     if device.type == "cuda":
         peak = torch.cuda.max_memory_allocated(device) / 2**20
         peak_kind = "cuda_max_memory_allocated"
@@ -102,7 +85,7 @@ def run_case(args: argparse.Namespace) -> dict:
         "dit_forward_ms": round(1e3 * statistics.median(times), 2),
         "dit_forward_ms_all": [round(1e3 * v, 2) for v in times],
         "first_call_s": round(first_s, 2),
-        "fusion_forward_ms": round(fusion_ms, 2),
+        "fusion_forward_ms": round(1e3 * fusion_s, 2),
         "peak_memory_mib": round(peak, 1),
         "peak_memory_kind": peak_kind,
     }
@@ -176,8 +159,7 @@ def main() -> None:
         "compiled_speedup": speedups,
         "paper_dit_forward_ms_a100": 91.21,
     }
-    print(json.dumps(result))
-    print("reproduce: " + shlex.join(["python", *sys.argv]))
+    report(result, __file__)
 
 
 if __name__ == "__main__":

@@ -19,6 +19,7 @@ import tempfile
 from pathlib import Path
 
 import torch
+from _common import report
 
 from poseflow.assets import DEMO_CHECKPOINT
 from poseflow.cli import main as poseflow
@@ -64,10 +65,10 @@ def main() -> None:
                 command += ["--threads", str(args.cpu_threads)]
             if poseflow(command) != 0:
                 sys.exit(f"poseflow bench failed on {device}")
-            report = json.loads((out / "bench.json").read_text())
-            rows = report["settings"]
-            summary["devices"][report["device"]] = {
-                "fastest_equal_ar": report["fastest_equal_ar"],
+            bench = json.loads((out / "bench.json").read_text())
+            rows = bench["settings"]
+            summary["devices"][bench["device"]] = {
+                "fastest_equal_ar": bench["fastest_equal_ar"],
                 "settings": {
                     name: {
                         "ms_per_image": round(row["ms_per_image"], 1),
@@ -85,8 +86,7 @@ def main() -> None:
             mark = " <- fastest at equal AR" if name == dev["fastest_equal_ar"] else ""
             ar = f"{row['AR']:>6.3f}" if row["AR"] is not None else f"{'-':>6}"
             print(f"{where:<40} {name:<10} {row['ms_per_image']:>9.1f} {ratio:>8.2f}x {ar}{mark}")
-    print(json.dumps(summary))
-    print("command:", " ".join([sys.executable, *sys.argv]))
+    report(summary, __file__)
 
 
 if __name__ == "__main__":

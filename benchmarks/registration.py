@@ -4,7 +4,8 @@ RANSAC: a batch of instances with putative correspondences (40% outliers), 1,000
 against ``registration_ransac_based_on_correspondence`` looped over the batch with the same
 iteration count (confidence 1.0 on both sides, so neither stops early). ICP: point-to-point on
 clouds of 2,000 points from a perturbed start, against ``registration_icp`` looped over the batch
-with the same criteria. Prints one JSON line with both times, their ratio and both accuracies.
+with the same criteria. Prints one JSON line with both times, their ratio and both accuracies,
+then the command.
 Where Open3D is not installed (a GPU machine, say) only poseflow's side is measured.
 
 ICP is timed alternately on both sides after a warm-up, and reported as the best of
@@ -16,15 +17,12 @@ ICP is timed alternately on both sides after a warm-up, and reported as the best
 from __future__ import annotations
 
 import argparse
-import json
 import math
-import platform
 import statistics
-import sys
-import time
 
 import numpy as np
 import torch
+from _common import machine, report, timed, timed_pair
 
 from poseflow.cli.registration_demo import make_scenes
 from poseflow.geometry.se3 import (
@@ -48,39 +46,6 @@ def cloud(points: torch.Tensor):
     pcd = o3d.geometry.PointCloud()
     pcd.points = o3d.utility.Vector3dVector(points.double().cpu().numpy())
     return pcd
-
-
-def timed(fn, repeats: int):
-    """Run ``fn`` once to warm up, then ``repeats`` times; median seconds and the last output."""
-    out = fn()
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        out = fn()
-        if torch.cuda.is_available():
-            torch.cuda.synchronize()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times), out
-
-
-def timed_pair(ours, theirs, repeats: int):
-    """Both functions warmed up, then timed alternately ``repeats`` times each (seconds).
-
-    Alternating keeps a change of the machine's load from favouring one side. Returns both
-    lists of times and both last outputs.
-    """
-    out_ours, out_theirs = ours(), theirs()
-    t_ours, t_theirs = [], []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        out_ours = ours()
-        if torch.cuda.is_available():
-            torch.cuda.synchronize()
-        t_ours.append(time.perf_counter() - start)
-        start = time.perf_counter()
-        out_theirs = theirs()
-        t_theirs.append(time.perf_counter() - start)
-    return t_ours, t_theirs, out_ours, out_theirs
 
 
 def errors(T: torch.Tensor, pose: torch.Tensor) -> tuple[float, float]:
@@ -115,7 +80,7 @@ def bench_ransac(args: argparse.Namespace, device: torch.device, dtype: torch.dt
         )
 
     n = args.correspondences
-    ours_s, result = timed(ours, args.repeats)
+    ours_s, result = timed(ours, args.repeats, device=device)
     rot, trans = errors(result.transformation, scenes.pose)
     record = {
         "instances": len(truth),
@@ -189,7 +154,7 @@ def bench_icp(args: argparse.Namespace, device: torch.device, dtype: torch.dtype
         "repeats": args.repeats,
     }
     if o3d is None:
-        ours_s, result = timed(ours, args.repeats)
+        ours_s, result = timed(ours, args.repeats, device=device)
         rot, trans = errors(result.transformation, scenes.pose)
         return {
             **record,
@@ -212,7 +177,7 @@ def bench_icp(args: argparse.Namespace, device: torch.device, dtype: torch.dtype
         return torch.from_numpy(np.stack([r.transformation for r in results]))
 
     # alternated, best of the repeats (the ratio of the medians too)
-    t_ours, t_theirs, result, o3d_T = timed_pair(ours, theirs, args.repeats)
+    t_ours, t_theirs, result, o3d_T = timed_pair(ours, theirs, args.repeats, device=device)
     rot, trans = errors(result.transformation, scenes.pose)
     rot_o3d, trans_o3d = errors(o3d_T, scenes.pose)
     return {
@@ -252,15 +217,14 @@ def main(argv: list[str] | None = None) -> None:
     record = {
         "benchmark": "registration",
         "device": str(device),
-        "machine": f"{platform.machine()}, {torch.get_num_threads()} torch threads",
+        "machine": machine(),
         "dtype": args.dtype,
         "torch": torch.__version__,
         "open3d": None if o3d is None else o3d.__version__,
         "ransac": bench_ransac(args, device, dtype),
         "icp": bench_icp(args, device, dtype),
-        "command": " ".join(["python", "benchmarks/registration.py", *sys.argv[1:]]),
     }
-    print(json.dumps(record))
+    report(record, __file__, argv)
 
 
 if __name__ == "__main__":

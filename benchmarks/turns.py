@@ -19,12 +19,10 @@ Run ``python benchmarks/turns.py DATASET --obj ID --results A.csv [B.csv ...] [-
 from __future__ import annotations
 
 import argparse
-import json
 import math
-import shlex
-import sys
 from pathlib import Path
 
+import _common
 import torch
 
 from poseflow.data.bop import BOPDataset
@@ -117,8 +115,7 @@ def main() -> None:
             "margin": args.margin,
         }
         print(f"scan: {report['scan']}")
-    print(json.dumps(report))
-    print("command: python " + " ".join(shlex.quote(a) for a in sys.argv))
+    _common.report(report, __file__)
 
 
 if __name__ == "__main__":
