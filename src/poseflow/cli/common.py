@@ -4,10 +4,12 @@
   :func:`command_output` (status lines and warnings through :mod:`logging`, written around the
   progress bars), :func:`check_writable` (an output path is checked before any work);
 - option types: :func:`positive_int`, :func:`nonnegative_int`, :func:`solver_name`;
-- models: :func:`resolve_model` (``--model``: a folder, ``demo``, or by default the shipped demo
-  model) and :func:`load_model` (a clear error for a truncated or malformed checkpoint);
+- models: :func:`add_model_argument` (``--model``), :func:`resolve_model` (its value: a folder,
+  ``demo``, or by default the shipped demo model) and :func:`load_model` (a clear error for a
+  truncated or malformed checkpoint);
 - ``--device``: :func:`add_device_argument` and :func:`resolve_device`;
 - ``--threads``: :func:`add_threads_argument` (every subcommand has it) and :func:`command_threads`;
+- ``--seed``: :func:`add_seed_argument`, with one default for every command (:data:`DEFAULT_SEED`);
 - the model configuration: :func:`add_config_arguments` registers ``--config`` (a JSON file of
   :class:`~poseflow.models.FunFlow6DConfig` fields), ``--preset`` and a few common fields as
   flags, and ``--set KEY=VALUE`` for any field; :func:`build_config` turns them into a config.
@@ -35,10 +37,13 @@ from typing import Any
 
 __all__ = [
     "CONFIG_FLAGS",
+    "DEFAULT_SEED",
     "LOG",
     "add_config_arguments",
     "add_device_argument",
+    "add_model_argument",
     "add_output_arguments",
+    "add_seed_argument",
     "add_threads_argument",
     "build_config",
     "check_writable",
@@ -248,6 +253,25 @@ def solver_name(text: str) -> str:
 # ------------------------------------------------------------------------------ models
 
 
+def add_model_argument(
+    parser: Any, *, default: str | None = None, without: str = "the demo model, with a note"
+) -> None:
+    """Add ``--model MODEL_DIR`` (read by :func:`resolve_model`) to a parser or argument group.
+
+    Args:
+        parser: a parser or an argument group.
+        default: the value without the option (None: :func:`resolve_model` notes the demo model).
+        without: what the command uses without the option, for the help.
+    """
+    parser.add_argument(
+        "--model",
+        default=default,
+        metavar="MODEL_DIR",
+        help="FunFlow6D model folder written by `poseflow train`, or demo for the one shipped "
+        f"with poseflow (default: {without})",
+    )
+
+
 def resolve_model(value: str | None) -> Path:
     """The model folder that ``--model VALUE`` names.
 
@@ -407,6 +431,26 @@ def command_threads(args: argparse.Namespace) -> Iterator[int]:
     threads = default_num_threads() if threads is None else threads
     with num_threads(threads):
         yield threads
+
+
+# ------------------------------------------------------------------------------ seed
+
+#: The default ``--seed`` of every command (but ``bench``'s, whose generated split is that of its
+#: recorded figures: :data:`poseflow.cli.bench.BENCH_SEED`).
+DEFAULT_SEED = 0
+
+
+def add_seed_argument(parser: Any, *, draws: str, default: int = DEFAULT_SEED) -> None:
+    """Add ``--seed N`` to a parser or argument group.
+
+    Args:
+        parser: a parser or an argument group.
+        draws: what the seed seeds, for the help (e.g. ``"the noise, sampling and RANSAC"``).
+        default: the seed without the option.
+    """
+    parser.add_argument(
+        "--seed", type=int, default=default, help=f"seed of {draws} (default: {default})"
+    )
 
 
 # ------------------------------------------------------------------------------ configuration

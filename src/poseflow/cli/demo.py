@@ -17,7 +17,13 @@ import time
 from pathlib import Path
 from typing import Any
 
-from poseflow.cli.common import add_device_argument, add_output_arguments, positive_int
+from poseflow.cli.common import (
+    add_device_argument,
+    add_model_argument,
+    add_output_arguments,
+    add_seed_argument,
+    positive_int,
+)
 
 __all__ = ["DESCRIPTION", "add_parser", "run", "write_timing_chart"]
 
@@ -47,13 +53,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     )
     parser.add_argument("--out", default="demo_output", help="folder for everything written")
     parser.add_argument("--images", type=positive_int, default=6, help="test images to generate")
-    parser.add_argument("--seed", type=int, default=2026, help="seed of the scenes and the model")
-    parser.add_argument(
-        "--model",
-        default="demo",
-        metavar="MODEL_DIR",
-        help="FunFlow6D model folder, or demo for the one shipped with poseflow (default)",
-    )
+    add_seed_argument(parser, draws="the scenes and the model")
+    add_model_argument(parser, default="demo", without="demo")
     add_device_argument(parser)
     parser.add_argument("--no-baseline", action="store_true", help="skip the classic baseline")
     parser.add_argument("--no-overlays", action="store_true", help="write no overlay pictures")
@@ -83,7 +84,7 @@ def _add_registration_parser(subparsers: argparse._SubParsersAction) -> None:
         "--flow-noise", type=float, default=0.004, help="noise std of the predictions, metres"
     )
     parser.add_argument("--iterations", type=int, default=1000, help="RANSAC hypotheses")
-    parser.add_argument("--seed", type=int, default=0)
+    add_seed_argument(parser, draws="the generated scenes and RANSAC")
     parser.add_argument("--no-open3d", action="store_true", help="skip the Open3D comparison")
     parser.set_defaults(run=_run_registration)
 
@@ -125,7 +126,6 @@ def run(args: argparse.Namespace) -> int:
     """Run the pose demo; prints the AR table and the timing breakdown."""
     import torch
 
-    from poseflow.baselines import ClassicBaseline
     from poseflow.cli.common import (
         LOG,
         check_writable,
@@ -134,12 +134,8 @@ def run(args: argparse.Namespace) -> int:
         resolve_model,
         show_progress,
     )
-    from poseflow.cli.eval import format_table
-    from poseflow.data.bop import BOPDataset
-    from poseflow.data.object_folder import load_object_models, object_cache_dir
     from poseflow.data.synthetic import generate_dataset
-    from poseflow.eval import StageTimer, evaluate_bop, write_result_overlays, write_results
-    from poseflow.features import FPFHEncoder
+    from poseflow.eval import evaluate_bop
 
     start = time.perf_counter()
     out = check_writable(args.out, folder=True)
@@ -160,29 +156,15 @@ def run(args: argparse.Namespace) -> int:
         progress=progress,
         overwrite=True,  # the demo's own folder, made again on every run
     )
-    # the objects as the dataset's models/ hold them, as `poseflow predict` reads them: the
-    # prepared objects shipped with the model are keyed by these meshes
-    models = load_object_models(root, progress=progress)
-    shipped = object_cache_dir(model_dir, root)
-    cache = shipped if shipped.is_dir() else out / "objects"
-    model.prepare_objects(models, cache_dir=cache, progress=progress)
+    models = _prepared(model, model_dir, root, out, progress)
 
     LOG.info("[3/5] FunFlow6D: estimating every target instance")
-    timer = StageTimer()
-    funflow = model.predict(root, seed=args.seed, timer=timer, progress=progress)
-    write_results(out / "funflow6d.csv", funflow)
-    timer.to_json(out / "timing.json")
-    written = ["funflow6d.csv", "timing.json"]
-    if write_timing_chart(timer, out / "timing.png", title="FunFlow6D"):
-        written.append("timing.png")
-
+    funflow, timer, written = _predict_funflow(model, root, out, seed=args.seed, progress=progress)
     reports = {"FunFlow6D": evaluate_bop(root, funflow)}
     times = {"FunFlow6D": funflow.average_time()}
     if not args.no_baseline:
         LOG.info("[4/5] classic baseline: FPFH + RANSAC + ICP on the same masks")
-        baseline = ClassicBaseline(models, encoder=FPFHEncoder(), seed=args.seed)
-        base = baseline.predict(root, progress=progress)
-        write_results(out / "baseline.csv", base)
+        base = _predict_baseline(models, root, out, seed=args.seed, progress=progress)
         written.append("baseline.csv")
         reports["baseline"] = evaluate_bop(root, base)
         times["baseline"] = base.average_time()
@@ -190,6 +172,61 @@ def run(args: argparse.Namespace) -> int:
         LOG.info("[4/5] classic baseline skipped")
 
     LOG.info("[5/5] scoring")
+    _print_scores(reports, times, timer)
+    if not args.no_overlays:
+        _write_overlays(out / "overlays", root, models, funflow)
+        written.append("overlays/")
+    print(f"\nwrote {out}/{', '.join(written)} in {time.perf_counter() - start:.0f} s")
+    return 0
+
+
+def _prepared(model: Any, model_dir: Path, root: Path, out: Path, progress: bool) -> dict:
+    """Prepare the objects of ``root``'s models/ (from the model's cache); returns the models.
+
+    The objects as the dataset's models/ hold them, as ``poseflow predict`` reads them: the
+    prepared objects shipped with the model are keyed by these meshes.
+    """
+    from poseflow.data.object_folder import load_object_models, object_cache_dir
+
+    models = load_object_models(root, progress=progress)
+    shipped = object_cache_dir(model_dir, root)
+    cache = shipped if shipped.is_dir() else out / "objects"
+    model.prepare_objects(models, cache_dir=cache, progress=progress)
+    return models
+
+
+def _predict_funflow(
+    model: Any, root: Path, out: Path, *, seed: int, progress: bool
+) -> tuple[Any, Any, list[str]]:
+    """FunFlow6D's results, its stage timer and the files written (CSV, timing JSON and chart)."""
+    from poseflow.eval import StageTimer, write_results
+
+    timer = StageTimer()
+    funflow = model.predict(root, seed=seed, timer=timer, progress=progress)
+    write_results(out / "funflow6d.csv", funflow)
+    timer.to_json(out / "timing.json")
+    written = ["funflow6d.csv", "timing.json"]
+    if write_timing_chart(timer, out / "timing.png", title="FunFlow6D"):
+        written.append("timing.png")
+    return funflow, timer, written
+
+
+def _predict_baseline(models: dict, root: Path, out: Path, *, seed: int, progress: bool) -> Any:
+    """The classic baseline's results on the same masks, written to ``baseline.csv``."""
+    from poseflow.baselines import ClassicBaseline
+    from poseflow.eval import write_results
+    from poseflow.features import FPFHEncoder
+
+    baseline = ClassicBaseline(models, encoder=FPFHEncoder(), seed=seed)
+    base = baseline.predict(root, progress=progress)
+    write_results(out / "baseline.csv", base)
+    return base
+
+
+def _print_scores(reports: dict[str, Any], times: dict[str, float], timer: Any) -> None:
+    """The AR table of every method, FunFlow6D's per object and its time per stage."""
+    from poseflow.cli.eval import format_table
+
     print("BOP 2019 Average Recall (GT visible masks)\n")
     print(
         f"{'method':<10}  {'AR':>6}  {'AR_VSD':>6}  {'AR_MSSD':>7}  {'AR_MSPD':>7}  {'s/image':>7}"
@@ -207,16 +244,18 @@ def run(args: argparse.Namespace) -> int:
         share = breakdown["percent"].get(stage, 0.0)
         print(f"  {stage:<20} {ms:>8.1f} ms  {share:>5.1f}%")
 
-    if not args.no_overlays:
-        dataset = BOPDataset(root, "test")
-        write_result_overlays(
-            out / "overlays",
-            dataset,
-            {o: m.mesh for o, m in models.items()},
-            funflow,
-            images=[(s, i) for s in dataset.scene_ids for i in dataset.scene(s).im_ids],
-            method="FunFlow6D",
-        )
-        written.append("overlays/")
-    print(f"\nwrote {out}/{', '.join(written)} in {time.perf_counter() - start:.0f} s")
-    return 0
+
+def _write_overlays(folder: Path, root: Path, models: dict, funflow: Any) -> None:
+    """One overlay picture per test image: FunFlow6D's estimates and the ground truth."""
+    from poseflow.data.bop import BOPDataset
+    from poseflow.eval import write_result_overlays
+
+    dataset = BOPDataset(root, "test")
+    write_result_overlays(
+        folder,
+        dataset,
+        {o: m.mesh for o, m in models.items()},
+        funflow,
+        images=[(s, i) for s in dataset.scene_ids for i in dataset.scene(s).im_ids],
+        method="FunFlow6D",
+    )

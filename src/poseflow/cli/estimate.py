@@ -26,7 +26,12 @@ import re
 from pathlib import Path
 from typing import Any
 
-from poseflow.cli.common import add_device_argument, add_output_arguments
+from poseflow.cli.common import (
+    add_device_argument,
+    add_model_argument,
+    add_output_arguments,
+    add_seed_argument,
+)
 
 __all__ = ["DESCRIPTION", "add_parser", "load_meshes", "run"]
 
@@ -55,7 +60,25 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         description=DESCRIPTION,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    frame = parser.add_argument_group("the frame")
+    _add_frame_arguments(parser.add_argument_group("the frame"))
+    _add_instance_arguments(parser.add_argument_group("the instances"))
+    _add_object_arguments(parser.add_argument_group("the objects and the estimator"))
+    parser.add_argument("--out", default="estimate_output", help="folder for poses.json, overlay")
+    parser.add_argument(
+        "--view",
+        action="store_true",
+        help="also write the frame in 3D: scene.rrd (a Rerun recording: the image, the depth as a "
+        "coloured cloud, each posed mesh with its score and validity) and scene.glb (any mesh "
+        "viewer); needs pip install 'poseflow[viz]'",
+    )
+    add_device_argument(parser)
+    add_output_arguments(parser)
+    parser.set_defaults(run=run)
+    return parser
+
+
+def _add_frame_arguments(frame: Any) -> None:
+    """``--rgb``, ``--depth``, ``--depth-scale``, ``--K``, ``--im-id`` and ``--scene-id``."""
     frame.add_argument("--rgb", required=True, metavar="IMAGE", help="colour image")
     frame.add_argument("--depth", required=True, metavar="IMAGE", help="depth image")
     frame.add_argument(
@@ -79,7 +102,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         "--im-id", type=int, default=None, help="image id in scene_camera.json / detections"
     )
     frame.add_argument("--scene-id", type=int, default=None, help="scene id in the detections")
-    inst = parser.add_argument_group("the instances")
+
+
+def _add_instance_arguments(inst: Any) -> None:
+    """``--mask``, ``--obj-id``, ``--detections`` and ``--score-threshold``."""
     inst.add_argument(
         "--mask", action="append", default=[], metavar="PNG", help="an instance mask; repeatable"
     )
@@ -97,7 +123,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     inst.add_argument(
         "--score-threshold", type=float, default=0.0, help="drop detections scoring below this"
     )
-    objs = parser.add_argument_group("the objects and the estimator")
+
+
+def _add_object_arguments(objs: Any) -> None:
+    """``--mesh``, ``--mesh-scale``, ``--model``, ``--cache`` and ``--seed``."""
     objs.add_argument(
         "--mesh",
         action="append",
@@ -112,28 +141,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         default=None,
         help="factor from the mesh's units to metres (default 1; 0.001 for a BOP models folder)",
     )
-    objs.add_argument(
-        "--model",
-        default=None,
-        metavar="MODEL_DIR",
-        help="a FunFlow6D model folder, or demo (default: the classic baseline)",
-    )
+    add_model_argument(objs, without="the classic baseline")
     objs.add_argument(
         "--cache", default=None, metavar="DIR", help="cache prepared objects here (FunFlow6D)"
     )
-    objs.add_argument("--seed", type=int, default=0, help="seed of sampling and RANSAC")
-    parser.add_argument("--out", default="estimate_output", help="folder for poses.json, overlay")
-    parser.add_argument(
-        "--view",
-        action="store_true",
-        help="also write the frame in 3D: scene.rrd (a Rerun recording: the image, the depth as a "
-        "coloured cloud, each posed mesh with its score and validity) and scene.glb (any mesh "
-        "viewer); needs pip install 'poseflow[viz]'",
-    )
-    add_device_argument(parser)
-    add_output_arguments(parser)
-    parser.set_defaults(run=run)
-    return parser
+    add_seed_argument(objs, draws="sampling and RANSAC")
 
 
 def _mesh_id(path: Path, index: int) -> int:
@@ -243,14 +255,9 @@ def _estimator(args: argparse.Namespace, objects: dict[int, Any], progress: bool
 
 def run(args: argparse.Namespace) -> int:
     """Read the frame and the meshes, estimate, write the JSON and the overlay; returns 0."""
-    import torch
-
-    from poseflow._units import check_depth_extent
-    from poseflow.cli.common import LOG, check_writable, show_progress
-    from poseflow.data.frame import read_frame
+    from poseflow.cli.common import check_writable, show_progress
     from poseflow.errors import UsageError
     from poseflow.eval.frame import estimate_frame, write_poses_json
-    from poseflow.eval.overlay import write_overlay
 
     if not args.mask and args.detections is None:
         raise UsageError("give the instances: one --mask PNG per instance, or --detections")
@@ -259,34 +266,7 @@ def run(args: argparse.Namespace) -> int:
     out = check_writable(args.out, flag="--out", folder=True)
     progress = show_progress(args)
     objects = load_meshes(args.mesh, mesh_scale=args.mesh_scale, progress=progress)
-    ids = _obj_ids(args, objects)
-    K: Any = args.K[0] if len(args.K) == 1 else [_number(x) for x in args.K]
-    frame = read_frame(
-        args.rgb,
-        args.depth,
-        K,
-        masks=args.mask,
-        obj_ids=ids,
-        detections=args.detections,
-        depth_scale=args.depth_scale,
-        scene_id=args.scene_id,
-        im_id=args.im_id,
-        score_threshold=args.score_threshold,
-    )
-    unknown = sorted({int(o) for o in frame.obj_ids.tolist()} - set(objects))
-    if unknown:
-        raise UsageError(f"the detections name objects {unknown} that no --mesh gives")
-    if len(frame) == 0:
-        LOG.warning("no instance to estimate: the detections hold none for this image")
-    check_depth_extent(  # before preparing anything: a depth off by a power of ten stops here
-        frame.depth,
-        frame.K,
-        frame.masks,
-        [objects[int(o)].diameter for o in frame.obj_ids.tolist()],
-        where=f"depth {args.depth}",
-        scale_name="--depth-scale",
-        scale=frame.depth_scale,
-    )
+    frame = _read_checked_frame(args, objects)
     estimator, method = _estimator(args, objects, progress)
     diameters = {o: m.diameter for o, m in objects.items()}
     result = estimate_frame(estimator, frame, diameters=diameters)
@@ -299,9 +279,63 @@ def run(args: argparse.Namespace) -> int:
         "meshes": {str(o): m.name for o, m in objects.items()},
     }
     write_poses_json(out / "poses.json", result, meta=meta)
+    _write_overlay(out / "overlay.png", frame, objects, result, method)
+    if args.view:
+        _write_view(out, frame, objects, result, method, name=f"{method}: {args.rgb}")
+    _print_poses(result, method, out)
+    return 0
+
+
+def _read_checked_frame(args: argparse.Namespace, objects: dict[int, Any]) -> Any:
+    """The frame of the options, its objects known and its depth in plausible units.
+
+    Raises:
+        UsageError: the detections name an object that no ``--mesh`` gives.
+        UnitsError: the masked depth spans far more or less than the objects (before any
+            preparation: a depth off by a power of ten stops here).
+    """
+    from poseflow._units import check_depth_extent
+    from poseflow.cli.common import LOG
+    from poseflow.data.frame import read_frame
+    from poseflow.errors import UsageError
+
+    K: Any = args.K[0] if len(args.K) == 1 else [_number(x) for x in args.K]
+    frame = read_frame(
+        args.rgb,
+        args.depth,
+        K,
+        masks=args.mask,
+        obj_ids=_obj_ids(args, objects),
+        detections=args.detections,
+        depth_scale=args.depth_scale,
+        scene_id=args.scene_id,
+        im_id=args.im_id,
+        score_threshold=args.score_threshold,
+    )
+    unknown = sorted({int(o) for o in frame.obj_ids.tolist()} - set(objects))
+    if unknown:
+        raise UsageError(f"the detections name objects {unknown} that no --mesh gives")
+    if len(frame) == 0:
+        LOG.warning("no instance to estimate: the detections hold none for this image")
+    check_depth_extent(
+        frame.depth,
+        frame.K,
+        frame.masks,
+        [objects[int(o)].diameter for o in frame.obj_ids.tolist()],
+        where=f"depth {args.depth}",
+        scale_name="--depth-scale",
+        scale=frame.depth_scale,
+    )
+    return frame
+
+
+def _write_overlay(path: Path, frame: Any, objects: dict, result: Any, method: str) -> None:
+    """Every instance drawn on the image: an invalid one dashed and named so in the legend."""
+    from poseflow.eval.overlay import write_overlay
+
     order = sorted(objects)
-    write_overlay(  # every instance: an invalid one dashed and named so in the legend
-        out / "overlay.png",
+    write_overlay(
+        path,
         frame.rgb,
         frame.K.float(),
         [objects[o].mesh for o in order],
@@ -312,8 +346,12 @@ def run(args: argparse.Namespace) -> int:
         valid=result.valid,
         mesh_names=[f"obj {o}" for o in order],
     )
-    if args.view:
-        _write_view(out, frame, objects, result, method, name=f"{method}: {args.rgb}")
+
+
+def _print_poses(result: Any, method: str, out: Path) -> None:
+    """One line per pose (its score and translation, or why it is invalid), then a summary."""
+    import torch
+
     for pose in result.to_json():
         where = f"obj {pose['obj_id']} ({pose['source']})"
         if pose["valid"]:
@@ -326,7 +364,6 @@ def run(args: argparse.Namespace) -> int:
         f"{method}: {n_valid} of {len(result)} poses valid in {result.seconds:.1f} s; wrote "
         f"{out / 'poses.json'} and {out / 'overlay.png'}"
     )
-    return 0
 
 
 def _number(text: str) -> float:

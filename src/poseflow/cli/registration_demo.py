@@ -234,40 +234,55 @@ def run(args: argparse.Namespace) -> int:
     rot_c = rotation_angle_error(coarse_pose, scenes.pose)
     rot = rotation_angle_error(pose, scenes.pose)
     trans = translation_error(pose, scenes.pose) * 1000
-    if not args.no_open3d:
-        _open3d_pipeline(first, args.iterations, threshold, icp_scales)  # warm-up
-        o3d_pose, o3d_s = _open3d_pipeline(scenes, args.iterations, threshold, icp_scales)
-        rot_o3d = rotation_angle_error(o3d_pose, scenes.pose)
-        trans_o3d = translation_error(o3d_pose, scenes.pose) * 1000
+    ours = (coarse.fitness, rot_c, rot, trans, total_s, ransac_s)
+    if args.no_open3d:
+        _print_report(args, ours, None)
+        return 0
+    _open3d_pipeline(first, args.iterations, threshold, icp_scales)  # warm-up
+    o3d_pose, o3d_s = _open3d_pipeline(scenes, args.iterations, threshold, icp_scales)
+    rot_o3d = rotation_angle_error(o3d_pose, scenes.pose)
+    trans_o3d = translation_error(o3d_pose, scenes.pose) * 1000
+    _print_report(args, ours, (rot_o3d, trans_o3d, o3d_s))
+    return 0
 
+
+def _print_report(args: argparse.Namespace, ours: tuple, open3d: tuple | None) -> None:
+    """The per-object errors ``(B,)`` of poseflow (and Open3D), their medians and the times.
+
+    Args:
+        args: the parsed arguments.
+        ours: RANSAC's inlier fractions, its rotation errors, the rotation and translation
+            errors after ICP (degrees, mm), the total and the RANSAC seconds.
+        open3d: Open3D's rotation and translation errors and its seconds, or None.
+    """
+    fitness, rot_c, rot, trans, total_s, ransac_s = ours
     print(
         f"poseflow registration demo: {args.instances} objects, {args.points} correspondences "
         f"each, {args.outliers:.0%} outliers, noise {args.noise * 1000:.1f} mm (depth) and "
         f"{args.flow_noise * 1000:.1f} mm (predictions), seed {args.seed}"
     )
     header = f"{'object':>6} {'inliers':>8} {'RANSAC rot':>11} {'+ICP rot':>9} {'+ICP trans':>11}"
-    if not args.no_open3d:
+    if open3d is not None:
         header += f" {'Open3D rot':>11} {'Open3D trans':>13}"
     print(header)
     for b in range(args.instances):
         line = (
-            f"{b:>6} {coarse.fitness[b].item():>8.1%} {rot_c[b].item():>9.3f} ° "
+            f"{b:>6} {fitness[b].item():>8.1%} {rot_c[b].item():>9.3f} ° "
             f"{rot[b].item():>7.3f} ° {trans[b].item():>8.2f} mm"
         )
-        if not args.no_open3d:
-            line += f" {rot_o3d[b].item():>9.3f} ° {trans_o3d[b].item():>10.2f} mm"
+        if open3d is not None:
+            line += f" {open3d[0][b].item():>9.3f} ° {open3d[1][b].item():>10.2f} mm"
         print(line)
     print(
         f"median rotation error: poseflow {rot.median().item():.3f}°"
-        + ("" if args.no_open3d else f", Open3D {rot_o3d.median().item():.3f}°")
+        + ("" if open3d is None else f", Open3D {open3d[0].median().item():.3f}°")
     )
     print(
         f"time for all {args.instances}: poseflow {total_s * 1000:.1f} ms "
         f"(RANSAC {ransac_s * 1000:.1f} ms)"
         + (
             ""
-            if args.no_open3d
-            else f", Open3D {o3d_s * 1000:.1f} ms ({o3d_s / total_s:.1f}x poseflow's time)"
+            if open3d is None
+            else f", Open3D {open3d[2] * 1000:.1f} ms ({open3d[2] / total_s:.1f}x poseflow's time)"
         )
     )
-    return 0
