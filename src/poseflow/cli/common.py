@@ -10,6 +10,8 @@
 - ``--device``: :func:`add_device_argument` and :func:`resolve_device`;
 - ``--threads``: :func:`add_threads_argument` (every subcommand has it) and :func:`command_threads`;
 - ``--seed``: :func:`add_seed_argument`, with one default for every command (:data:`DEFAULT_SEED`);
+- inference: :func:`add_inference_arguments` (``--hypotheses``, ``--steps``, ``--solver``,
+  ``--verify/--no-verify``, ``--set``) and :func:`inference_changes`, their one check;
 - the model configuration: :func:`add_config_arguments` registers ``--config`` (a JSON file of
   :class:`~poseflow.models.FunFlow6DConfig` fields), ``--preset`` and a few common fields as
   flags, and ``--set KEY=VALUE`` for any field; :func:`build_config` turns them into a config.
@@ -41,6 +43,7 @@ __all__ = [
     "LOG",
     "add_config_arguments",
     "add_device_argument",
+    "add_inference_arguments",
     "add_model_argument",
     "add_output_arguments",
     "add_seed_argument",
@@ -50,6 +53,7 @@ __all__ = [
     "command_output",
     "command_threads",
     "config_requested",
+    "inference_changes",
     "load_model",
     "nonnegative_int",
     "parse_set",
@@ -303,12 +307,16 @@ def resolve_model(value: str | None) -> Path:
     return Path(value)
 
 
-def load_model(folder: str | Path, *, device: Any = "cpu") -> Any:
+def load_model(
+    folder: str | Path, *, device: Any = "cpu", inference: dict[str, Any] | None = None
+) -> Any:
     """Load a FunFlow6D model folder, with errors that say what is wrong and what to do.
 
     Args:
         folder: the model folder (``config.json`` + ``model.safetensors``).
         device: where to put the model.
+        inference: inference settings to change (:func:`inference_changes`), checked here,
+            before any work (:meth:`~poseflow.models.FunFlow6DConfig.with_inference`).
 
     Returns:
         The :class:`~poseflow.models.FunFlow6D`.
@@ -317,8 +325,10 @@ def load_model(folder: str | Path, *, device: Any = "cpu") -> Any:
         MissingWeightsError: the folder holds no checkpoint.
         CheckpointError: ``config.json`` is not valid JSON or holds a value of the wrong type,
             or ``model.safetensors`` is truncated or corrupt.
+        ValueRangeError: ``inference`` changes a setting that is not an inference setting, or to
+            a value of the wrong kind.
     """
-    from poseflow.errors import MissingWeightsError
+    from poseflow.errors import MissingWeightsError, ValueRangeError
     from poseflow.models import FunFlow6D
     from poseflow.models.checkpoint import is_checkpoint
 
@@ -328,7 +338,13 @@ def load_model(folder: str | Path, *, device: Any = "cpu") -> Any:
             f"{folder} holds no FunFlow6D checkpoint (config.json + model.safetensors); train "
             "one with `poseflow train`, or pass --model demo for the shipped demo model"
         )
-    return FunFlow6D.load(folder, device=device)
+    model = FunFlow6D.load(folder, device=device)
+    if inference is not None:
+        try:
+            model.config = model.config.with_inference(inference)
+        except TypeError as exc:  # a value of the wrong kind reaching the dataclass
+            raise ValueRangeError(f"invalid --set: {exc}") from None
+    return model
 
 
 # ------------------------------------------------------------------------------ device
@@ -567,3 +583,89 @@ def build_config(args: argparse.Namespace) -> Any:
         return apply_overrides(config, overrides)
     except (TypeError, ValueRangeError) as exc:  # TypeError: a value of the wrong kind
         raise UsageError(f"invalid FunFlow6D configuration: {exc}") from None
+
+
+# ------------------------------------------------------------------------------ inference
+
+
+def add_inference_arguments(
+    parser: argparse.ArgumentParser, *, set_help: str, sampler: bool = True
+) -> None:
+    """Add the inference options (read by :func:`inference_changes`) to ``parser``.
+
+    ``--hypotheses``, with ``sampler`` ``--steps`` and ``--solver``, ``--verify/--no-verify``
+    and ``--set``.
+
+    Args:
+        parser: a subcommand's parser.
+        set_help: what ``--set`` changes in this command.
+        sampler: add ``--steps`` and ``--solver`` (``bench`` sets the sampler otherwise).
+    """
+    group = parser.add_argument_group(
+        "inference", "What a trained model may change at inference (default: its own settings)."
+    )
+    group.add_argument(
+        "--hypotheses", type=int, default=None, metavar="H", help="noise samples per instance"
+    )
+    if sampler:
+        group.add_argument(
+            "--steps", type=int, default=None, metavar="K", help="integration steps K"
+        )
+        group.add_argument(
+            "--solver",
+            type=solver_name,
+            default=None,
+            help="ODE solver: euler, midpoint, heun, rk4",
+        )
+    group.add_argument(
+        "--verify",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="check every pose by rendering and comparing, and score it so (default: on)",
+    )
+    add_set_argument(group, set_help)
+
+
+def inference_changes(args: argparse.Namespace, *, method: str = "funflow6d") -> dict[str, Any]:
+    """The inference settings that the options of :func:`add_inference_arguments` change.
+
+    ``--set`` items first, then ``--hypotheses``, ``--steps`` and ``--solver``; ``--no-verify``
+    drops the verifier, whatever ``--set`` says of it. The model's settings are checked where
+    they are applied (:func:`load_model`); the classic baseline's verifier, the one thing
+    ``--set`` changes for it, is checked here and returned built.
+
+    Args:
+        args: the parsed arguments.
+        method: ``funflow6d``, ``hybrid`` (both the model's settings) or ``baseline``.
+
+    Returns:
+        ``{key: value}`` for :meth:`~poseflow.models.FunFlow6DConfig.with_inference`, or for the
+        baseline ``{"verifier": VerifierConfig | None}``.
+
+    Raises:
+        UsageError: ``--no-verify`` with ``hybrid`` (it chooses by verification), or a ``--set``
+            item that is not ``KEY=VALUE``.
+        ValueRangeError: with ``baseline``, a ``--set`` key outside the verifier.
+    """
+    from poseflow.baselines import BaselineConfig
+    from poseflow.errors import UsageError, ValueRangeError
+    from poseflow.models import apply_overrides
+
+    changes = parse_set(args.set_fields)
+    if method == "hybrid" and not args.verify:
+        raise UsageError("--method hybrid chooses by verification: --no-verify does not apply")
+    if not args.verify:  # off, whatever --set says of the verifier
+        changes = {k: v for k, v in changes.items() if k.split(".")[0] != "verifier"}
+    changes.setdefault("verifier", {} if args.verify else None)
+    if method == "baseline":
+        other = sorted(key for key in changes if key.split(".")[0] != "verifier")
+        if other:
+            raise ValueRangeError(
+                f"--set can change only verifier with --method baseline; got {', '.join(other)}"
+            )
+        return {"verifier": apply_overrides(BaselineConfig(), changes).verifier}
+    for name, flag in (("num_hypotheses", "hypotheses"), ("steps", "steps"), ("solver", "solver")):
+        value = getattr(args, flag, None)
+        if value is not None:
+            changes[name] = value
+    return changes

@@ -52,14 +52,19 @@ from typing import TYPE_CHECKING, Any
 
 from poseflow.cli.common import (
     add_device_argument,
+    add_inference_arguments,
+    add_model_argument,
     add_output_arguments,
-    add_set_argument,
+    add_seed_argument,
+    inference_changes,
     positive_int,
-    solver_name,
 )
 
 if TYPE_CHECKING:
+    import torch
+
     from poseflow.eval.distributed import PredictionPart, Ranks
+    from poseflow.eval.predict import Estimator
 
 #: The estimators of ``--method``; all but ``baseline`` need a model.
 METHODS = ("funflow6d", "baseline", "hybrid")
@@ -89,15 +94,42 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         ),
     )
     parser.add_argument("dataset", help="BOP dataset folder")
-    parser.add_argument(
-        "--model",
-        default=None,
-        metavar="MODEL_DIR",
-        help="model folder written by `poseflow train`, or demo for the model shipped with "
-        "poseflow (the default, with a note)",
-    )
+    add_model_argument(parser)
     parser.add_argument("--out", required=True, metavar="CSV", help="results CSV to write")
     parser.add_argument("--split", default="test", help="split folder (default: test)")
+    _add_instance_arguments(parser)
+    parser.add_argument(
+        "--method",
+        choices=METHODS,
+        default="funflow6d",
+        help="estimator: the model, the classic baseline, or both under one verification",
+    )
+    add_inference_arguments(
+        parser,
+        set_help="change an inference-time config field of the model (num_hypotheses, "
+        "pose_solver, ransac_*, icp_*, verifier or verifier.FIELD, ...; with --method baseline: "
+        "verifier only, its fields changing the baseline's defaults); VALUE read as JSON, "
+        "repeatable",
+    )
+    parser.add_argument(
+        "--max-images", type=positive_int, default=None, metavar="N", help="stop after N images"
+    )
+    _add_report_arguments(parser)
+    parser.add_argument(
+        "--cache",
+        default=None,
+        metavar="DIR",
+        help="folder holding prepared objects (objects/); default the model folder",
+    )
+    add_seed_argument(parser, draws="the noise, sampling and RANSAC")
+    add_device_argument(parser)
+    add_output_arguments(parser)
+    parser.set_defaults(run=run)
+    return parser
+
+
+def _add_instance_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--detections``, ``--score-threshold`` and ``--targets`` or ``--all-instances``."""
     parser.add_argument(
         "--detections",
         default=None,
@@ -117,47 +149,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     targets.add_argument(
         "--all-instances", action="store_true", help="ignore the targets: every instance"
     )
-    parser.add_argument(
-        "--method",
-        choices=METHODS,
-        default="funflow6d",
-        help="estimator: the model, the classic baseline, or both under one verification",
-    )
-    parser.add_argument(
-        "--hypotheses",
-        type=int,
-        default=None,
-        metavar="H",
-        help="noise samples per instance (model's)",
-    )
-    parser.add_argument(
-        "--steps",
-        type=int,
-        default=None,
-        metavar="K",
-        help="integration steps K (default: model's)",
-    )
-    parser.add_argument(
-        "--solver",
-        type=solver_name,
-        default=None,
-        help="ODE solver: euler, midpoint, heun, rk4 (model's)",
-    )
-    parser.add_argument(
-        "--verify",
-        action=argparse.BooleanOptionalAction,
-        default=True,
-        help="check every pose by rendering and comparing, and score it so (default: on)",
-    )
-    add_set_argument(
-        parser,
-        "change an inference-time config field of the model (num_hypotheses, pose_solver, "
-        "ransac_*, icp_*, verifier or verifier.FIELD, ...; with --method baseline: verifier "
-        "only, its fields changing the baseline's defaults); VALUE read as JSON, repeatable",
-    )
-    parser.add_argument(
-        "--max-images", type=positive_int, default=None, metavar="N", help="stop after N images"
-    )
+
+
+def _add_report_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--timing``, ``--overlays`` and ``--clock``."""
     parser.add_argument(
         "--timing", default=None, metavar="JSON", help="write the stage breakdown JSON here"
     )
@@ -175,17 +170,6 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         help="what --timing measures: wall-clock time, or this process's CPU time (steadier on "
         "a busy machine; with one thread, the cost of each stage)",
     )
-    parser.add_argument(
-        "--cache",
-        default=None,
-        metavar="DIR",
-        help="folder holding prepared objects (objects/); default the model folder",
-    )
-    parser.add_argument("--seed", type=int, default=0, help="seed of noise, sampling, RANSAC")
-    add_device_argument(parser)
-    add_output_arguments(parser)
-    parser.set_defaults(run=run)
-    return parser
 
 
 def select_targets(
@@ -273,54 +257,6 @@ def _targets_option(args: argparse.Namespace, root: Path) -> str | bool | None:
     return True if found and args.split.startswith("test") else None
 
 
-def _config_changes(args: argparse.Namespace) -> dict[str, Any]:
-    """The configuration fields the options change.
-
-    The model checks its own (:meth:`~poseflow.models.FunFlow6DConfig.with_inference`); the
-    baseline's verifier, the one thing ``--set`` changes with ``--method baseline``, is checked
-    here and returned built.
-    """
-    from poseflow.baselines import BaselineConfig
-    from poseflow.cli.common import parse_set
-    from poseflow.errors import UsageError, ValueRangeError
-    from poseflow.models import apply_overrides
-
-    changes = parse_set(args.set_fields)
-    if args.method == "hybrid" and not args.verify:
-        raise UsageError("--method hybrid chooses by verification: --no-verify does not apply")
-    if not args.verify:  # off, whatever --set says of the verifier
-        changes = {k: v for k, v in changes.items() if k.split(".")[0] != "verifier"}
-    changes.setdefault("verifier", {} if args.verify else None)
-    if args.method == "baseline":
-        other = sorted(key for key in changes if key.split(".")[0] != "verifier")
-        if other:
-            raise ValueRangeError(
-                f"--set can change only verifier with --method baseline; got {', '.join(other)}"
-            )
-        return {"verifier": apply_overrides(BaselineConfig(), changes).verifier}
-    for name, value in (
-        ("num_hypotheses", args.hypotheses),
-        ("steps", args.steps),
-        ("solver", args.solver),
-    ):
-        if value is not None:
-            changes[name] = value
-    return changes
-
-
-def _load_model(args: argparse.Namespace, device: Any, changes: dict[str, Any]) -> Any:
-    from poseflow.cli.common import load_model, resolve_model
-    from poseflow.errors import ValueRangeError
-
-    args.model = str(resolve_model(args.model))
-    model = load_model(args.model, device=device)
-    try:  # validated here, before the first image
-        model.config = model.config.with_inference(changes)
-    except TypeError as exc:  # a value of the wrong kind reaching the dataclass
-        raise ValueRangeError(f"invalid --set: {exc}") from None
-    return model
-
-
 def _cache_dir(args: argparse.Namespace, root: Path) -> Path | None:
     import os
 
@@ -354,7 +290,7 @@ def run(args: argparse.Namespace) -> int:
     if args.overlays is not None:
         check_writable(args.overlays, flag="--overlays", folder=True)
     device = resolve_device(args.device)
-    changes = _config_changes(args)
+    changes = inference_changes(args, method=args.method)
     ranks = join_ranks(device)
     if ranks is None:
         _report(args, _predict(args, root, device, changes))
@@ -377,67 +313,28 @@ def _predict(
     """Estimate the images (this rank's share under ``torchrun``)."""
     import time
 
-    import torch
-
-    from poseflow.cli.common import LOG, show_progress
+    from poseflow.cli.common import load_model, resolve_model, show_progress
     from poseflow.data.bop import BOPDataset
-    from poseflow.data.object_folder import load_object_models
     from poseflow.eval.distributed import PredictionPart, image_seed
-    from poseflow.eval.predict import Estimator, predict_dataset
+    from poseflow.eval.predict import predict_dataset
     from poseflow.eval.timing import StageTimer
 
     show = show_progress(args) and (ranks is None or ranks.is_main)
-    model = _load_model(args, device, changes) if args.method != "baseline" else None
+    model = None
+    if args.method != "baseline":
+        args.model = str(resolve_model(args.model))
+        model = load_model(args.model, device=device, inference=changes)
     ds = BOPDataset(root, args.split)
     wanted = _targets_option(args, root)
     detections = _detections(args, ds, wanted) if args.detections is not None else None
     targets = select_targets(ds, targets=wanted, detections=detections)
-    images = set(sorted({(t.scene_id, t.im_id) for t in targets})[: args.max_images])
-    if ranks is not None:  # this rank's share of the images, balanced by instances
-        targets = ranks.shard_targets([t for t in targets if (t.scene_id, t.im_id) in images])
-        images = {(t.scene_id, t.im_id) for t in targets}
-        LOG.info(
-            "rank %d of %d: %d images on %s (%d threads)",
-            ranks.rank,
-            ranks.world_size,
-            len(images),
-            device,
-            ranks.threads,
-        )
-    infos = ds.models_info()
-    needed = sorted({t.obj_id for t in targets if (t.scene_id, t.im_id) in images})
-    missing = [o for o in needed if o not in infos]
-    if missing:
-        warnings.warn(f"objects {missing} have no model; their instances are skipped", stacklevel=1)
-    objects = load_object_models(root, obj_ids=[o for o in needed if o in infos], progress=show)
+    targets, images = _share(targets, args, device, ranks)
+    objects = _objects(ds, root, [t for t in targets if (t.scene_id, t.im_id) in images], show)
     from poseflow.render import import_open3d
 
     if importlib.util.find_spec("open3d") is not None:  # import it before any clock starts
         import_open3d("prediction")  # a missing system library: the error names its package
-
-    estimator: Estimator
-    # Every image's draws are seeded from --seed and its ids: its estimate does not depend on the
-    # images before it, so that any split of the images over processes gives the same results.
-    generator: torch.Generator | None = None
-    if model is not None:
-        model.prepare_objects(objects, cache_dir=_cache_dir(args, root), progress=show)
-        generator = torch.Generator(device=device)
-        estimator = model.estimator(generator=generator)
-        if args.method == "hybrid":
-            from poseflow.baselines import ClassicBaseline
-            from poseflow.models import Hybrid
-
-            baseline = ClassicBaseline(objects, verifier=None, seed=args.seed)
-            baseline.prepare()  # its banks now, so that no image's time includes them
-            estimator = Hybrid(model, baseline).estimator(generator=generator)
-    else:
-        from poseflow.baselines import ClassicBaseline
-
-        if objects:  # without any, no image reaches the estimator
-            baseline = ClassicBaseline(objects, verifier=changes["verifier"], seed=args.seed)
-            baseline.prepare()  # banks and verifier now, so that no image's time includes them
-            estimator = baseline.estimator()  # seeds each instance itself
-
+    estimator, generator = _estimator(args, root, model, objects, device, changes, progress=show)
     instances = 0
 
     def counted(rgb: Any, depth: Any, K: Any, masks: Any, obj_ids: Any) -> Any:
@@ -469,6 +366,81 @@ def _predict(
         results = _add_detection_time(results, detections)
     config = model.config.to_dict() if model is not None else None
     return PredictionPart(results, timer, instances, [str(device)], [timer.num_images], config)
+
+
+def _share(
+    targets: list[Any], args: argparse.Namespace, device: Any, ranks: Ranks | None
+) -> tuple[list[Any], set[tuple[int, int]]]:
+    """The targets and the images to estimate: the first ``--max-images`` images of the split.
+
+    Under ``torchrun`` this rank's share of them, balanced by instances
+    (:meth:`~poseflow.eval.distributed.Ranks.shard_targets`).
+    """
+    from poseflow.cli.common import LOG
+
+    images = set(sorted({(t.scene_id, t.im_id) for t in targets})[: args.max_images])
+    if ranks is None:
+        return targets, images
+    targets = ranks.shard_targets([t for t in targets if (t.scene_id, t.im_id) in images])
+    images = {(t.scene_id, t.im_id) for t in targets}
+    LOG.info(
+        "rank %d of %d: %d images on %s (%d threads)",
+        ranks.rank,
+        ranks.world_size,
+        len(images),
+        device,
+        ranks.threads,
+    )
+    return targets, images
+
+
+def _objects(ds: Any, root: Path, targets: list[Any], progress: bool) -> dict[int, Any]:
+    """The models of the targets' objects; the instances of an object without one are skipped."""
+    from poseflow.data.object_folder import load_object_models
+
+    infos = ds.models_info()
+    needed = sorted({t.obj_id for t in targets})
+    missing = [o for o in needed if o not in infos]
+    if missing:
+        warnings.warn(f"objects {missing} have no model; their instances are skipped", stacklevel=1)
+    return load_object_models(root, obj_ids=[o for o in needed if o in infos], progress=progress)
+
+
+def _estimator(
+    args: argparse.Namespace,
+    root: Path,
+    model: Any,
+    objects: dict[int, Any],
+    device: Any,
+    changes: dict[str, Any],
+    *,
+    progress: bool,
+) -> tuple[Estimator | None, torch.Generator | None]:
+    """The estimator of ``--method``, prepared, and the generator it draws from (None: baseline).
+
+    Every image's draws are seeded from ``--seed`` and its ids (reseeding the generator before
+    each image): its estimate does not depend on the images before it, so that any split of the
+    images over processes gives the same results. The classic baseline seeds each instance.
+    """
+    import torch
+
+    from poseflow.baselines import ClassicBaseline
+
+    if model is None:
+        if not objects:  # without any, no image reaches the estimator
+            return None, None
+        baseline = ClassicBaseline(objects, verifier=changes["verifier"], seed=args.seed)
+        baseline.prepare()  # banks and verifier now, so that no image's time includes them
+        return baseline.estimator(), None
+    model.prepare_objects(objects, cache_dir=_cache_dir(args, root), progress=progress)
+    generator = torch.Generator(device=device)
+    if args.method != "hybrid":
+        return model.estimator(generator=generator), generator
+    from poseflow.models import Hybrid
+
+    baseline = ClassicBaseline(objects, verifier=None, seed=args.seed)
+    baseline.prepare()  # its banks now, so that no image's time includes them
+    return Hybrid(model, baseline).estimator(generator=generator), generator
 
 
 def _report(args: argparse.Namespace, part: PredictionPart) -> None:

@@ -11,7 +11,12 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from poseflow.cli.common import add_output_arguments, nonnegative_int, positive_int
+from poseflow.cli.common import (
+    add_output_arguments,
+    add_seed_argument,
+    nonnegative_int,
+    positive_int,
+)
 
 __all__ = ["add_parser", "check_output_folder", "run"]
 
@@ -54,7 +59,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     )
     parser.add_argument("--width", type=positive_int, default=640)
     parser.add_argument("--height", type=positive_int, default=480)
-    parser.add_argument("--seed", type=int, default=0)
+    add_seed_argument(parser, draws="the layouts, viewpoints, light and sensor noise")
     parser.add_argument(
         "--objects", default=None, metavar="DIR", help="folder of .ply/.obj meshes to use"
     )

@@ -32,7 +32,12 @@ import time
 from pathlib import Path
 from typing import Any
 
-from poseflow.cli.common import add_config_arguments, add_device_argument, add_output_arguments
+from poseflow.cli.common import (
+    add_config_arguments,
+    add_device_argument,
+    add_output_arguments,
+    add_seed_argument,
+)
 
 __all__ = ["RESUME_SETTINGS", "add_parser", "run"]
 
@@ -91,7 +96,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         "--precision", default="bf16", help="bf16, fp16 or fp32 autocast on CUDA (default bf16)"
     )
     parser.add_argument("--ckpt-every", type=int, default=1000, help="steps between checkpoints")
-    parser.add_argument("--seed", type=int, default=0)
+    add_seed_argument(parser, draws="the network's initialisation, the augmentation and training")
     parser.add_argument(
         "--resume", action="store_true", help="continue from RUN_DIR's latest checkpoint"
     )
@@ -284,20 +289,12 @@ def _run_record(
 
 def run(args: argparse.Namespace) -> int:
     """Prepare, build the training set, train and save; prints the times; returns 0."""
-    import torch
     import torch.distributed as dist
 
-    from poseflow._cache import atomic_write
-    from poseflow.cli.common import check_writable, resolve_device, show_progress
-    from poseflow.data.object_folder import check_dataset, load_object_models, object_cache_dir
+    from poseflow.cli.common import check_writable, resolve_device
+    from poseflow.data.object_folder import check_dataset
     from poseflow.errors import PoseflowError, UsageError
-    from poseflow.flows import (
-        TrainConfig,
-        destroy_distributed,
-        init_distributed,
-        main_rank_succeeded,
-    )
-    from poseflow.models import FunFlow6D
+    from poseflow.flows import destroy_distributed, init_distributed, main_rank_succeeded
     from poseflow.models.training import train
 
     start = time.perf_counter()
@@ -305,18 +302,7 @@ def run(args: argparse.Namespace) -> int:
     out = check_writable(args.out, folder=True)
     if args.copies < 1 or args.steps < 1:
         raise UsageError("--copies and --steps must be at least 1")
-    warmup = min(500, args.steps // 10) if args.warmup_steps is None else args.warmup_steps
-    train_config = TrainConfig(
-        steps=args.steps,
-        batch_size=args.batch_size,
-        lr=args.lr,
-        warmup_steps=warmup,
-        ema_decay=args.ema_decay,
-        precision=args.precision,
-        ckpt_every=args.ckpt_every,
-        seed=args.seed,
-        progress=show_progress(args),
-    )
+    train_config = _train_config(args)
     device = resolve_device(args.device)
     had_group = dist.is_available() and dist.is_initialized()
     ctx = init_distributed(device=device)
@@ -326,34 +312,14 @@ def run(args: argparse.Namespace) -> int:
         if not ctx.is_main and not main_rank_succeeded(ctx):
             raise PoseflowError("rank 0 failed to prepare the objects or the training set")
         try:
-            config = _run_config(args, out)
-            torch.manual_seed(args.seed)
-            model = FunFlow6D(config)
-            cache = Path(args.cache) if args.cache is not None else out / "model"
-            show = show_progress(args) and ctx.is_main
-            times = {}
-            t0 = time.perf_counter()
-            models = load_object_models(root, progress=show)
-            model.prepare_objects(models, cache_dir=object_cache_dir(cache, root), progress=show)
-            times["objects"] = time.perf_counter() - t0
-            t0 = time.perf_counter()
-            symmetries = {oid: m.symmetries for oid, m in models.items()}
-            data, reused = _training_set(
-                model, root, args, out, symmetries=symmetries, write=ctx.is_main, progress=show
-            )
-            times["training set"] = time.perf_counter() - t0
-            if ctx.is_main:
-                out.mkdir(parents=True, exist_ok=True)
-                text = json.dumps(_run_record(out, args, root, config, train_config), indent=1)
-                atomic_write(out / "run.json", lambda tmp: tmp.write_text(text))
+            model, data, reused, times = _prepare(args, root, out, train_config, ctx.is_main)
         except BaseException:
             if ctx.is_main:
                 main_rank_succeeded(ctx, False)
             raise
         if ctx.is_main:
             main_rank_succeeded(ctx, True)
-        where = "reused" if reused else "built"
-        if ctx.is_main:
+            where = "reused" if reused else "built"
             print(f"training set {where}: {len(data)} instances from {root}/{args.split}")
         if args.data_only:
             if ctx.is_main:
@@ -380,6 +346,64 @@ def run(args: argparse.Namespace) -> int:
     finally:
         if not had_group:
             destroy_distributed()
+
+
+def _train_config(args: argparse.Namespace) -> Any:
+    """The trainer's settings of the options (warm-up by default a tenth of the steps, ≤ 500)."""
+    from poseflow.cli.common import show_progress
+    from poseflow.flows import TrainConfig
+
+    warmup = min(500, args.steps // 10) if args.warmup_steps is None else args.warmup_steps
+    return TrainConfig(
+        steps=args.steps,
+        batch_size=args.batch_size,
+        lr=args.lr,
+        warmup_steps=warmup,
+        ema_decay=args.ema_decay,
+        precision=args.precision,
+        ckpt_every=args.ckpt_every,
+        seed=args.seed,
+        progress=show_progress(args),
+    )
+
+
+def _prepare(
+    args: argparse.Namespace, root: Path, out: Path, train_config: Any, main: bool
+) -> tuple[Any, Any, bool, dict[str, float]]:
+    """The model with its objects prepared and its training set (rank 0 writes ``run.json``).
+
+    Returns:
+        The model, the training set, whether the set was reused from the cache, and the seconds
+        of each step.
+    """
+    import torch
+
+    from poseflow._cache import atomic_write
+    from poseflow.cli.common import show_progress
+    from poseflow.data.object_folder import load_object_models, object_cache_dir
+    from poseflow.models import FunFlow6D
+
+    config = _run_config(args, out)
+    torch.manual_seed(args.seed)
+    model = FunFlow6D(config)
+    cache = Path(args.cache) if args.cache is not None else out / "model"
+    show = show_progress(args) and main
+    times = {}
+    t0 = time.perf_counter()
+    models = load_object_models(root, progress=show)
+    model.prepare_objects(models, cache_dir=object_cache_dir(cache, root), progress=show)
+    times["objects"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    symmetries = {oid: m.symmetries for oid, m in models.items()}
+    data, reused = _training_set(
+        model, root, args, out, symmetries=symmetries, write=main, progress=show
+    )
+    times["training set"] = time.perf_counter() - t0
+    if main:
+        out.mkdir(parents=True, exist_ok=True)
+        text = json.dumps(_run_record(out, args, root, config, train_config), indent=1)
+        atomic_write(out / "run.json", lambda tmp: tmp.write_text(text))
+    return model, data, reused, times
 
 
 def _fmt(times: dict[str, float]) -> str:
