@@ -45,16 +45,16 @@ def test_bad_inputs(bracket):
     depth = torch.zeros(8, 8)
     masks = torch.zeros(1, 8, 8, dtype=torch.bool)
     with pytest.raises(ValueRangeError, match="no model"):
-        baseline.estimate(depth, K, masks, [7])
+        baseline.estimate(None, depth, K, masks, [7])
     with pytest.raises(ValueRangeError, match="object ids"):
-        baseline.estimate(depth, K, masks, [3, 3])
+        baseline.estimate(None, depth, K, masks, [3, 3])
     with pytest.raises(ShapeError):
-        baseline.estimate(depth, K, torch.zeros(1, 8, 9, dtype=torch.bool), [3])
+        baseline.estimate(None, depth, K, torch.zeros(1, 8, 9, dtype=torch.bool), [3])
     for bad in (torch.eye(2), [[100.0, 0], [0, 100.0]], [1.0] * 8):
         with pytest.raises(ShapeError, match="K must be 9 numbers"):
-            baseline.estimate(depth, bad, masks, [3])
+            baseline.estimate(None, depth, bad, masks, [3])
     with pytest.raises(ValueRangeError, match="transposed"):
-        baseline.estimate(depth, K.T, masks, [3])
+        baseline.estimate(None, depth, K.T, masks, [3])
 
 
 def test_baseline_config_merges_changes_and_round_trips(bracket):
@@ -78,11 +78,11 @@ def test_intrinsics_as_lists_or_arrays_and_no_masks(bracket):
     baseline = ClassicBaseline({3: bracket}, num_views=4)
     K = torch.tensor([[100.0, 0, 4], [0, 100.0, 4], [0, 0, 1]], dtype=torch.float64)
     depth, masks = torch.full((8, 8), 0.5), torch.ones(1, 8, 8, dtype=torch.bool)
-    ref = baseline.estimate(depth, K, masks, [3])
+    ref = baseline.estimate(None, depth, K, masks, [3])
     for same in (K.tolist(), K.numpy(), K.reshape(9).tolist()):
-        est = baseline.estimate(depth, same, masks, [3])
+        est = baseline.estimate(None, depth, same, masks, [3])
         assert torch.equal(est.poses, ref.poses) and torch.equal(est.valid, ref.valid)
-    est = baseline.estimate(depth, K.tolist(), masks[:0], [])
+    est = baseline.estimate(None, depth, K.tolist(), masks[:0], [])
     assert est.poses.shape == (0, 4, 4) and est.scores.shape == est.valid.shape == (0,)
 
 
@@ -99,7 +99,7 @@ def test_a_pose_behind_the_camera_is_never_valid(bracket, monkeypatch):
     monkeypatch.setattr(baseline, "_estimate_one", estimate_one)
     K = torch.tensor([[100.0, 0, 4], [0, 100.0, 4], [0, 0, 1]], dtype=torch.float64)
     est = baseline.estimate(
-        torch.full((8, 8), 0.5), K, torch.ones(2, 8, 8, dtype=torch.bool), [3, 3]
+        None, torch.full((8, 8), 0.5), K, torch.ones(2, 8, 8, dtype=torch.bool), [3, 3]
     )
     assert est.valid.tolist() == [True, False] and est.scores.tolist() == [0.8, 0.0]
 
@@ -107,7 +107,8 @@ def test_a_pose_behind_the_camera_is_never_valid(bracket, monkeypatch):
 def test_empty_mask_is_invalid_not_nan(bracket):
     baseline = ClassicBaseline({3: bracket}, num_views=4)
     K = torch.tensor([[100.0, 0, 4], [0, 100.0, 4], [0, 0, 1]], dtype=torch.float64)
-    est = baseline.estimate(torch.full((8, 8), 0.5), K, torch.zeros(1, 8, 8, dtype=torch.bool), [3])
+    depth, masks = torch.full((8, 8), 0.5), torch.zeros(1, 8, 8, dtype=torch.bool)
+    est = baseline.estimate(None, depth, K, masks, [3])
     assert est.valid.tolist() == [False]
     assert torch.equal(est.poses[0], torch.eye(4, dtype=torch.float64))
     assert est.scores.tolist() == [0.0]
@@ -151,17 +152,17 @@ def test_verification_picks_the_printed_side_of_a_labelled_box(labelled_box):
     light = Light(direction=(0.3, -0.4, -1.0), ambient=0.4, diffuse=0.6)
     out = Renderer([labelled_box.mesh]).render(pose[None], K, 160, 120, light=light)
     rgb = out.rgb.permute(2, 0, 1).contiguous()  # uint8, as BOP images are read
-    args = (out.depth, K, out.masks_visible, [1])
+    args = (rgb, out.depth, K, out.masks_visible, [1])
     on = ClassicBaseline({1: labelled_box}, num_views=6, restarts=4, verifier=LIGHT)
     timer = StageTimer()
     with timer.active():
-        verified = on.estimate(*args, rgb=rgb)
+        verified = on.estimate(*args)
     assert timer.counts["verification"] == 1
     assert bool(verified.valid[0])
     assert float(rotation_angle_error(verified.poses, pose[None].double())[0]) < 3.0
     assert float(translation_error(verified.poses, pose[None].double())[0]) < 0.003
     off = ClassicBaseline({1: labelled_box}, num_views=6, restarts=4, verifier=None)
-    plain = off.estimate(*args, rgb=rgb)
+    plain = off.estimate(*args)
     # depth alone settles on the box turned end for end (seed 0)
     assert float(rotation_angle_error(plain.poses, pose[None].double())[0]) > 150
     # the score is the verifier's render-and-compare score, not ICP fitness
@@ -186,3 +187,20 @@ def test_baseline_with_verification_on_a_generated_scene(labelled_box, tmp_path)
     assert len(results[True]) == len(results[False]) == 1
     assert 0 < float(results[True].scores[0]) <= 1
     assert float(results[True].scores[0]) != float(results[False].scores[0])
+
+
+def test_estimate_takes_the_estimators_arguments_in_their_order(bracket):
+    """rgb first, as FunFlow6D and Hybrid take it; keyword calls of the old order still work."""
+    import inspect
+
+    from poseflow.models import FunFlow6D, Hybrid
+
+    first = ["rgb", "depth", "K", "masks", "obj_ids"]
+    for estimate in (ClassicBaseline.estimate, FunFlow6D.estimate, Hybrid.estimate):
+        assert list(inspect.signature(estimate).parameters)[1:6] == first
+    baseline = ClassicBaseline({3: bracket}, num_views=4, verifier=None)
+    assert baseline.estimator() == baseline.estimate
+    K = torch.tensor([[100.0, 0, 4], [0, 100.0, 4], [0, 0, 1]], dtype=torch.float64)
+    depth, masks = torch.full((8, 8), 0.5), torch.ones(1, 8, 8, dtype=torch.bool)
+    by_name = baseline.estimate(depth=depth, K=K, masks=masks, obj_ids=[3], rgb=None)
+    assert torch.equal(by_name.poses, baseline.estimate(None, depth, K, masks, [3]).poses)

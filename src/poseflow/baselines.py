@@ -47,10 +47,9 @@ from poseflow.data.bop import BOPDataset
 from poseflow.data.objects import ObjectModel, sample_surface
 from poseflow.errors import DegenerateInputError, ValueRangeError
 from poseflow.eval.inliers import mutual_nearest_neighbors
-from poseflow.eval.predict import Estimator, PoseEstimate, invalidate_implausible, predict_dataset
-from poseflow.eval.recall import Target
+from poseflow.eval.predict import Estimator, PoseEstimate, invalidate_implausible, predict_seeded
 from poseflow.eval.results import PoseResults
-from poseflow.eval.timing import StageTimer, stage
+from poseflow.eval.timing import stage
 from poseflow.features.geometric import FPFHEncoder
 from poseflow.features.lifting import viewpoint_poses
 from poseflow.geometry.pointcloud import (
@@ -65,7 +64,15 @@ from poseflow.registration.ransac import ransac_procrustes
 from poseflow.render.raycast import Renderer
 from poseflow.verify import PoseVerifier, VerifierConfig
 
-__all__ = ["BASELINE_VERIFIER", "BaselineConfig", "ClassicBaseline"]
+__all__ = [
+    "BASELINE_VERIFIER",
+    "BaselineConfig",
+    "ClassicBaseline",
+    "build_bank",
+    "describe_target",
+    "register_target",
+    "verify_estimates",
+]
 
 #: The baseline's default verifier configuration: :class:`VerifierConfig()` but for
 #: ``refine_estimate``, off because the baseline's own ICP (up to 500 points, four scales of 30
@@ -178,7 +185,7 @@ class ClassicBaseline:
         >>> pose[:3, :3] = axis_angle_rotation(axis, angle)[0]
         >>> out = Renderer([mesh]).render(pose[None], K, 160, 120, rgb=False)
         >>> baseline = ClassicBaseline({1: model}, num_views=6, restarts=4, verifier=None)
-        >>> est = baseline.estimate(out.depth, K, out.masks_full, [1])
+        >>> est = baseline.estimate(None, out.depth, K, out.masks_full, [1])
         >>> bool(est.valid[0]), round(float(est.poses[0, 2, 3]), 2)
         (True, 0.4)
     """
@@ -202,34 +209,6 @@ class ClassicBaseline:
         self.verifier = PoseVerifier(self.config.verifier, seed=self.config.seed)
         self._banks: dict[int, tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = {}
 
-    def _describe(
-        self,
-        depth: torch.Tensor,
-        K: torch.Tensor,
-        mask: torch.Tensor,
-        diameter: float,
-        generator: torch.Generator,
-    ) -> tuple[torch.Tensor, torch.Tensor] | None:
-        """Lift, clean, thin and describe one masked depth image: points ``(M, 3)``, FPFH."""
-        with stage("lifting"):
-            cloud = backproject_depth(depth[None], K, mask[None])
-            pts, ok = cloud.points, cloud.mask
-            if int(ok.sum()) < self.config.min_points:
-                return None
-            ok = ok & remove_statistical_outliers(pts, ok)
-            idx, vok = voxel_downsample(pts, self.config.voxel_size * diameter, ok)
-            t = pts[0, idx[0][vok[0]]]
-            if t.shape[0] > self.config.max_target_points:
-                pick = torch.randperm(t.shape[0], generator=generator)
-                pick = pick[: self.config.max_target_points]
-                t = t[pick.sort().values]
-            if t.shape[0] < self.config.min_points:
-                return None
-            normals = estimate_normals(t[None], k=min(30, t.shape[0]))
-        with stage("geometric_encoder"):
-            feats = self.encoder.encode(t[None], normals, None, diameter)[0]
-        return t, feats
-
     def prepare(self, obj_ids: Sequence[int] | None = None) -> None:
         """Build the descriptor banks now, and prepare the objects for the verifier when it is on.
 
@@ -252,54 +231,29 @@ class ClassicBaseline:
         """
         if obj_id not in self._banks:
             m = self.models[obj_id]
-            size, focal = 256, 500.0
-            K = torch.tensor(
-                [[focal, 0, (size - 1) / 2], [0, focal, (size - 1) / 2], [0, 0, 1]],
-                dtype=torch.float64,
-            )
-            # The object spans about 60 % of the image.
-            distance = focal * m.diameter / (0.6 * size)
-            poses = viewpoint_poses(self.config.num_views, distance=distance)
-            renderer = Renderer([m.mesh])
-            gen = torch.Generator().manual_seed(self.config.seed)
-            points, feats = [], []
-            for T in poses:
-                view = renderer.render(T[None], K, size, size, rgb=False)
-                got = self._describe(
-                    view.depth.to(torch.float64), K, view.masks_full[0], m.diameter, gen
-                )
-                if got is None:
-                    continue
-                t, f = got
-                points.append((t - T[:3, 3]) @ T[:3, :3])  # back to the model frame
-                feats.append(f)
-            if not points:
-                raise DegenerateInputError(f"object {obj_id}: no view of the model is usable")
-            # ICP needs a dense model: surface samples thinned to a fine grid.
-            dense, _, _ = sample_surface(m.mesh, 50_000, generator=gen)
-            full = torch.from_numpy(dense)[None]
-            idx, ok = voxel_downsample(full, 0.75 * self.config.icp_distances[-1] * m.diameter)
-            self._banks[obj_id] = (torch.cat(points), torch.cat(feats), full[0, idx[0][ok[0]]])
+            self._banks[obj_id] = build_bank(m, self.encoder, self.config, name=f"object {obj_id}")
         return self._banks[obj_id]
 
     def estimate(
         self,
+        rgb: torch.Tensor | None,
         depth: torch.Tensor,
         K: torch.Tensor,
         masks: torch.Tensor,
         obj_ids: Sequence[int] | torch.Tensor,
-        *,
-        rgb: torch.Tensor | None = None,
     ) -> PoseEstimate:
         """Estimate the pose of every masked instance of one image.
 
+        The arguments of every estimator (:data:`~poseflow.eval.predict.Estimator`), in its order.
+
         Args:
+            rgb: the colour image ``(3, H, W)`` (uint8, or float in ``[0, 1]``) for the
+                verifier's appearance term, or None (depth and silhouette are compared); unused
+                without verification.
             depth: depth in metres, ``(H, W)``, 0 (or NaN) where missing.
             K: intrinsics ``(3, 3)``: a tensor, an array, nested lists or 9 numbers.
             masks: instance masks ``(n, H, W)`` bool (``n`` may be 0).
             obj_ids: object id of each instance, ``(n,)``.
-            rgb: the colour image ``(3, H, W)`` (uint8, or float in ``[0, 1]``) for the
-                verifier's appearance term; unused without verification.
 
         Returns:
             A :class:`PoseEstimate` (float64); with verification, the verified poses
@@ -316,7 +270,10 @@ class ClassicBaseline:
         estimate, clouds = self._solve(d, Kd, masks, ids)
         if self.config.verifier is None or not bool(estimate.valid.any()):
             return estimate
-        return invalidate_implausible(self._verify(rgb, d, Kd, masks, ids, estimate, clouds))
+        for obj_id in sorted(set(ids)):
+            self.verifier.prepare(obj_id, self.models[obj_id])
+        verified = verify_estimates(self.verifier, rgb, d, Kd, masks, ids, estimate, clouds)
+        return invalidate_implausible(verified)
 
     def solve(
         self,
@@ -327,7 +284,7 @@ class ClassicBaseline:
     ) -> tuple[PoseEstimate, list[torch.Tensor]]:
         """The pose of every masked instance of one image, before verification (steps 1-6).
 
-        Args: as :meth:`estimate`.
+        Args: as :meth:`estimate`, which has the colour image first.
 
         Returns:
             The :class:`PoseEstimate` (float64; implausible poses flagged invalid) and each
@@ -382,133 +339,238 @@ class ClassicBaseline:
                 poses[i], scores[i], valid[i] = pose, score, True
         return invalidate_implausible(PoseEstimate(poses, scores, valid)), clouds
 
-    def _verify(
-        self,
-        rgb: torch.Tensor | None,
-        depth: torch.Tensor,
-        K: torch.Tensor,
-        masks: torch.Tensor,
-        ids: list[int],
-        estimate: PoseEstimate,
-        clouds: list[torch.Tensor],
-    ) -> PoseEstimate:
-        """Verify the estimates, ICP of the verifier registering the lifted clouds ``(M_i, 3)``."""
-        for obj_id in sorted(set(ids)):
-            self.verifier.prepare(obj_id, self.models[obj_id])
-        M = max(3, max(len(c) for c in clouds))
-        observed = torch.zeros(len(clouds), M, 3, dtype=torch.float32)
-        observed_mask = torch.zeros(len(clouds), M, dtype=torch.bool)
-        for i, c in enumerate(clouds):
-            observed[i, : len(c)], observed_mask[i, : len(c)] = c, True
-        # the verifier runs in the poses' dtype: float32 is twice as fast as float64
-        with stage("verification"):
-            out = self.verifier.verify(
-                rgb, depth.float(), K.float(), masks, ids, estimate.poses.float(), observed,
-                observed_mask, estimated=estimate.valid,
-            )  # fmt: skip
-        # an estimate kept as it was: at its full precision
-        kept = (out.chosen == 0) & (not self.verifier.config.refine_estimate)
-        poses = torch.where(kept[:, None, None], estimate.poses, out.poses.to(estimate.poses.dtype))
-        return PoseEstimate(poses, out.scores.to(estimate.scores.dtype), estimate.valid)
-
     def _estimate_one(
         self, depth: torch.Tensor, K: torch.Tensor, mask: torch.Tensor, obj_id: int, index: int
     ) -> tuple[torch.Tensor | None, float, torch.Tensor]:
         """The pose, score and lifted target cloud ``(M, 3)`` (empty if too small) of one mask."""
-        diam = self.models[obj_id].diameter
-        bank_pts, bank_feats, model_pts = self.bank(obj_id)
-        cfg = self.config
-        gen = torch.Generator().manual_seed(cfg.seed * 1_000_003 + index)
-        got = self._describe(depth, K, mask, diam, gen)
+        diameter = self.models[obj_id].diameter
+        bank = self.bank(obj_id)
+        gen = torch.Generator().manual_seed(self.config.seed * 1_000_003 + index)
+        got = describe_target(depth, K, mask, diameter, self.encoder, self.config, gen)
         if got is None:
             return None, 0.0, depth.new_zeros(0, 3)
         t, ft = got
-        with stage("matching"):
-            mutual = mutual_nearest_neighbors(bank_feats[None], ft[None])[0]  # (M,) or -1
-            has = mutual >= 0
-            src, dst = bank_pts[mutual[has]], t[has]  # model points, their observed partners
-            if src.shape[0] < cfg.min_mutual:
-                nearest = torch.cdist(ft, bank_feats).argmin(-1)
-                src, dst = torch.cat((src, bank_pts[nearest])), torch.cat((dst, t))
-            R = cfg.restarts
-            # Each restart sees a random half of the pairs (the first sees all): the hypotheses
-            # differ, and ICP picks the one that explains the observation best.
-            subset = torch.rand(R, src.shape[0], generator=gen) < 0.5
-            subset[0] = True
-        with stage("ransac"):
-            hyp = ransac_procrustes(
-                src[None].expand(R, -1, -1),
-                dst[None].expand(R, -1, -1),
-                subset,
-                max_correspondence_distance=cfg.ransac_distance * diam,
-                max_iterations=cfg.ransac_iterations,
-                generator=gen,
-            )
-        with stage("icp"):
-            # The paper's direction: the observed cloud onto the model, then invert.
-            refined = multi_scale_icp(
-                t[None].expand(R, -1, -1),
-                model_pts[None].expand(R, -1, -1),
-                inverse_transform(hyp.transformation),
-                max_correspondence_distances=[f * diam for f in cfg.icp_distances],
-                max_iterations=cfg.icp_iterations,
-            )
-        fitness = torch.where(hyp.valid & refined.valid, refined.fitness, -1.0)
-        best = int(fitness.argmax())
-        if float(fitness[best]) < 0:
-            return None, 0.0, t
-        pose = inverse_transform(refined.transformation[best : best + 1])[0]
-        return pose, float(fitness[best]), t
+        pose, score = register_target(t, ft, bank, diameter, self.config, gen)
+        return pose, score, t
 
     def estimator(self) -> Estimator:
-        """This baseline as an :data:`~poseflow.eval.predict.Estimator`.
+        """This baseline as an :data:`~poseflow.eval.predict.Estimator`: its :meth:`estimate`.
 
         The colour image is used by the verification only.
         """
-        return lambda rgb, depth, K, masks, obj_ids: self.estimate(
-            depth, K, masks, obj_ids, rgb=rgb
-        )
+        return self.estimate
 
-    def predict(
-        self,
-        dataset: str | os.PathLike[str] | BOPDataset,
-        *,
-        split: str = "test",
-        targets: Sequence[Target] | None = None,
-        detections: Sequence[Any] | None = None,
-        max_images: int | None = None,
-        timer: StageTimer | None = None,
-        progress: bool = False,
-    ) -> PoseResults:
-        """Estimate every target instance of a split (:func:`~poseflow.eval.predict_dataset`).
+    def predict(self, dataset: str | os.PathLike[str] | BOPDataset, **options: Any) -> PoseResults:
+        """Estimate every target instance of a BOP split: :func:`~poseflow.eval.predict_seeded`.
 
-        Args:
-            dataset: the dataset folder or a :class:`~poseflow.data.bop.BOPDataset`.
-            split: the split folder, when ``dataset`` is a path.
-            targets: restrict to these targets; default the dataset's ``test_targets_bop19.json``
-                when present, else every GT instance.
-            detections: masks from a BOP segmentation file instead of the ground truth.
-            max_images: stop after this many images.
-            timer: optional :class:`~poseflow.eval.timing.StageTimer`, active while each image
-                is estimated.
-            progress: show a progress bar.
-
-        Returns:
-            :class:`~poseflow.eval.results.PoseResults` with one estimate per valid instance of
-            a target object, and the wall-clock time of each image (image loading and the
-            objects' one-time preparation, done first, excluded).
-            The colour images are read only with verification on.
+        ``options`` as for :meth:`FunFlow6D.predict <poseflow.models.FunFlow6D.predict>` but
+        ``seed``: the baseline seeds each instance from ``config.seed``. The objects are
+        prepared first, so that no image's time includes them; the colour images are read only
+        with a verifier. Returns :class:`~poseflow.eval.results.PoseResults`, one row per valid
+        estimate.
         """
         self.prepare()  # the banks (and the verifier's objects) are not any image's time
-        return predict_dataset(
-            self.estimator(),
+        return predict_seeded(
+            lambda _: self.estimator(),
             dataset,
-            split=split,
+            device="cpu",
             object_ids=sorted(self.models),
-            targets=targets,
-            detections=detections,
             load_rgb=self.config.verifier is not None,
-            max_images=max_images,
-            timer=timer,
-            progress=progress,
+            **options,
         )
+
+
+def describe_target(
+    depth: torch.Tensor,
+    K: torch.Tensor,
+    mask: torch.Tensor,
+    diameter: float,
+    encoder: FPFHEncoder,
+    config: BaselineConfig,
+    generator: torch.Generator,
+) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """Lift, clean, thin and describe one masked depth image (steps 1 and 2).
+
+    Args:
+        depth: depth ``(H, W)`` in metres, float64, 0 where missing.
+        K: intrinsics ``(3, 3)``, float64.
+        mask: the instance's mask ``(H, W)``.
+        diameter: its object's diameter, metres.
+        encoder: the geometric descriptor.
+        config: the thinning (``voxel_size``, ``max_target_points``, ``min_points``).
+        generator: draws the subset of a cloud above ``max_target_points``.
+
+    Returns:
+        The points ``(M, 3)`` and their descriptors ``(M, D)``, or None with fewer than
+        ``config.min_points`` points.
+    """
+    with stage("lifting"):
+        cloud = backproject_depth(depth[None], K, mask[None])
+        pts, ok = cloud.points, cloud.mask
+        if int(ok.sum()) < config.min_points:
+            return None
+        ok = ok & remove_statistical_outliers(pts, ok)
+        idx, vok = voxel_downsample(pts, config.voxel_size * diameter, ok)
+        t = pts[0, idx[0][vok[0]]]
+        if t.shape[0] > config.max_target_points:
+            pick = torch.randperm(t.shape[0], generator=generator)
+            pick = pick[: config.max_target_points]
+            t = t[pick.sort().values]
+        if t.shape[0] < config.min_points:
+            return None
+        normals = estimate_normals(t[None], k=min(30, t.shape[0]))
+    with stage("geometric_encoder"):
+        feats = encoder.encode(t[None], normals, None, diameter)[0]
+    return t, feats
+
+
+def build_bank(
+    model: ObjectModel, encoder: FPFHEncoder, config: BaselineConfig, *, name: str = "object"
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The descriptor bank of a model, from ``config.num_views`` rendered partial views (step 3).
+
+    Each view's depth is lifted, thinned and described like a target (:func:`describe_target`).
+
+    Args:
+        model: the object model (metres).
+        encoder: the geometric descriptor.
+        config: the views, the thinning and the finest ICP distance (the dense cloud's grid).
+        name: the object, for the error.
+
+    Returns:
+        Points ``(P, 3)`` in the model frame, their descriptors ``(P, D)``, and the dense model
+        cloud ``(Q, 3)`` that ICP registers to.
+
+    Raises:
+        DegenerateInputError: no view of the model is usable.
+    """
+    size, focal = 256, 500.0
+    K = torch.tensor(
+        [[focal, 0, (size - 1) / 2], [0, focal, (size - 1) / 2], [0, 0, 1]],
+        dtype=torch.float64,
+    )
+    # The object spans about 60 % of the image.
+    distance = focal * model.diameter / (0.6 * size)
+    poses = viewpoint_poses(config.num_views, distance=distance)
+    renderer = Renderer([model.mesh])
+    gen = torch.Generator().manual_seed(config.seed)
+    points, feats = [], []
+    for T in poses:
+        view = renderer.render(T[None], K, size, size, rgb=False)
+        depth = view.depth.to(torch.float64)
+        got = describe_target(depth, K, view.masks_full[0], model.diameter, encoder, config, gen)
+        if got is None:
+            continue
+        t, f = got
+        points.append((t - T[:3, 3]) @ T[:3, :3])  # back to the model frame
+        feats.append(f)
+    if not points:
+        raise DegenerateInputError(f"{name}: no view of the model is usable")
+    # ICP needs a dense model: surface samples thinned to a fine grid.
+    dense, _, _ = sample_surface(model.mesh, 50_000, generator=gen)
+    full = torch.from_numpy(dense)[None]
+    idx, ok = voxel_downsample(full, 0.75 * config.icp_distances[-1] * model.diameter)
+    return torch.cat(points), torch.cat(feats), full[0, idx[0][ok[0]]]
+
+
+def register_target(
+    t: torch.Tensor,
+    ft: torch.Tensor,
+    bank: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+    diameter: float,
+    config: BaselineConfig,
+    generator: torch.Generator,
+) -> tuple[torch.Tensor | None, float]:
+    """The pose of a described target cloud: matching, RANSAC restarts and ICP (steps 4 to 6).
+
+    Args:
+        t: the target cloud ``(M, 3)``, camera frame.
+        ft: its descriptors ``(M, D)``.
+        bank: the object's bank (:func:`build_bank`).
+        diameter: the object's diameter, metres.
+        config: matching, RANSAC and ICP settings.
+        generator: draws the restarts' pairs and RANSAC's samples.
+
+    Returns:
+        The model-to-camera pose ``(4, 4)`` that explains most of ``t`` and its ICP fitness, or
+        None and 0 where no hypothesis is valid.
+    """
+    bank_pts, bank_feats, model_pts = bank
+    with stage("matching"):
+        mutual = mutual_nearest_neighbors(bank_feats[None], ft[None])[0]  # (M,) or -1
+        has = mutual >= 0
+        src, dst = bank_pts[mutual[has]], t[has]  # model points, their observed partners
+        if src.shape[0] < config.min_mutual:
+            nearest = torch.cdist(ft, bank_feats).argmin(-1)
+            src, dst = torch.cat((src, bank_pts[nearest])), torch.cat((dst, t))
+        R = config.restarts
+        # Each restart sees a random half of the pairs (the first sees all): the hypotheses
+        # differ, and ICP picks the one that explains the observation best.
+        subset = torch.rand(R, src.shape[0], generator=generator) < 0.5
+        subset[0] = True
+    with stage("ransac"):
+        hyp = ransac_procrustes(
+            src[None].expand(R, -1, -1),
+            dst[None].expand(R, -1, -1),
+            subset,
+            max_correspondence_distance=config.ransac_distance * diameter,
+            max_iterations=config.ransac_iterations,
+            generator=generator,
+        )
+    with stage("icp"):
+        # The paper's direction: the observed cloud onto the model, then invert.
+        refined = multi_scale_icp(
+            t[None].expand(R, -1, -1),
+            model_pts[None].expand(R, -1, -1),
+            inverse_transform(hyp.transformation),
+            max_correspondence_distances=[f * diameter for f in config.icp_distances],
+            max_iterations=config.icp_iterations,
+        )
+    fitness = torch.where(hyp.valid & refined.valid, refined.fitness, -1.0)
+    best = int(fitness.argmax())
+    if float(fitness[best]) < 0:
+        return None, 0.0
+    return inverse_transform(refined.transformation[best : best + 1])[0], float(fitness[best])
+
+
+def verify_estimates(
+    verifier: PoseVerifier,
+    rgb: torch.Tensor | None,
+    depth: torch.Tensor,
+    K: torch.Tensor,
+    masks: torch.Tensor,
+    ids: list[int],
+    estimate: PoseEstimate,
+    clouds: list[torch.Tensor],
+) -> PoseEstimate:
+    """Verify an image's estimates, the verifier's ICP registering the lifted clouds (step 7).
+
+    Args:
+        verifier: the verifier, its objects prepared.
+        rgb: the colour image ``(3, H, W)``, or None.
+        depth: depth ``(H, W)`` in metres, float64.
+        K: intrinsics ``(3, 3)``, float64.
+        masks: the instances' masks ``(n, H, W)``.
+        ids: their object ids.
+        estimate: the estimates (float64).
+        clouds: each instance's lifted target cloud ``(M_i, 3)``.
+
+    Returns:
+        The verified poses (an estimate kept as it was at its full precision), the verifier's
+        scores, the estimate's validity.
+    """
+    M = max(3, max(len(c) for c in clouds))
+    observed = torch.zeros(len(clouds), M, 3, dtype=torch.float32)
+    observed_mask = torch.zeros(len(clouds), M, dtype=torch.bool)
+    for i, c in enumerate(clouds):
+        observed[i, : len(c)], observed_mask[i, : len(c)] = c, True
+    # the verifier runs in the poses' dtype: float32 is twice as fast as float64
+    with stage("verification"):
+        out = verifier.verify(
+            rgb, depth.float(), K.float(), masks, ids, estimate.poses.float(), observed,
+            observed_mask, estimated=estimate.valid,
+        )  # fmt: skip
+    # an estimate kept as it was: at its full precision
+    kept = (out.chosen == 0) & (not verifier.config.refine_estimate)
+    poses = torch.where(kept[:, None, None], estimate.poses, out.poses.to(estimate.poses.dtype))
+    return PoseEstimate(poses, out.scores.to(estimate.scores.dtype), estimate.valid)

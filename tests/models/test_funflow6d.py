@@ -129,7 +129,7 @@ def test_no_masks_give_an_empty_estimate(tiny_model, scene):
 
 @pytest.mark.parametrize("verification", [False, True])
 def test_a_pose_behind_the_camera_is_never_valid(tiny_model, scene, monkeypatch, verification):
-    import poseflow.models.funflow6d as funflow6d
+    import poseflow.models.proposals as proposals
     import poseflow.models.verification as verification_module
 
     behind = torch.eye(4).repeat(2, 1, 1)
@@ -138,7 +138,7 @@ def test_a_pose_behind_the_camera_is_never_valid(tiny_model, scene, monkeypatch,
     if verification:
         monkeypatch.setattr(verification_module, "verify_estimate", lambda *a, **k: flagged)
     else:
-        monkeypatch.setattr(funflow6d, "select_hypotheses", lambda *a, **k: flagged)
+        monkeypatch.setattr(proposals, "select_hypotheses", lambda *a, **k: flagged)
     config = tiny_model.config if verification else tiny_model.config.replace(verifier=None)
     model = FunFlow6D(config)
     model.objects, model.verifier = tiny_model.objects, tiny_model.verifier

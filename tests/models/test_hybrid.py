@@ -119,11 +119,7 @@ def test_a_depth_in_the_wrong_unit_is_a_units_error_for_every_estimator(
 ):
     """Depth in millimetres passed as metres (or the reverse) is never estimated."""
     rgb, depth, K, masks, ids = _args(scene)
-    for estimate in (
-        tiny_model.estimate,
-        hybrid.estimate,
-        lambda *a: baseline.estimate(*a[1:], rgb=a[0]),
-    ):
+    for estimate in (tiny_model.estimate, hybrid.estimate, baseline.estimate):
         with pytest.raises(UnitsError, match="depth"):
             estimate(rgb, depth * factor, K, masks, ids)
 

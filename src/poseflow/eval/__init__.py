@@ -5,7 +5,8 @@
 - the recall protocol (:func:`assign`, :func:`match`) and the dataset-level
   :func:`evaluate_bop` returning AR, AR_VSD, AR_MSSD, AR_MSPD, per object and per threshold;
 - :func:`predict_dataset`, the loop that runs any estimator over a BOP split (ground-truth or
-  detected masks) into results, and :func:`estimate_frame` for one frame, written by
+  detected masks) into results (:func:`predict_seeded`: reseeding its generator per image, the
+  estimators' ``predict``), and :func:`estimate_frame` for one frame, written by
   :func:`write_poses_json`; a pose behind the camera is never valid
   (:func:`invalidate_implausible`);
 - the same loop split over the processes of a ``torchrun`` job (:func:`join_ranks`,
@@ -60,6 +61,8 @@ from poseflow.eval.predict import (
     invalidate_implausible,
     on_device,
     predict_dataset,
+    predict_seeded,
+    seeded_estimator,
 )
 from poseflow.eval.recall import Assignment, Recall, Target, assign, match, targets_from_gt
 from poseflow.eval.results import HEADER, PoseResults, read_results, write_results
@@ -148,8 +151,10 @@ __all__ = [
     "overlay_poses",
     "place_mesh",
     "predict_dataset",
+    "predict_seeded",
     "project_points",
     "read_results",
+    "seeded_estimator",
     "shard_images",
     "stage",
     "symmetries_from_model_info",

@@ -8,6 +8,7 @@ masks of a detection file) go to the estimator in one call, and the estimates be
 
 from __future__ import annotations
 
+import functools
 import os
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -24,7 +25,15 @@ from poseflow.eval.recall import Target
 from poseflow.eval.results import PoseResults
 from poseflow.eval.timing import StageTimer
 
-__all__ = ["Estimator", "PoseEstimate", "invalidate_implausible", "on_device", "predict_dataset"]
+__all__ = [
+    "Estimator",
+    "PoseEstimate",
+    "invalidate_implausible",
+    "on_device",
+    "predict_dataset",
+    "predict_seeded",
+    "seeded_estimator",
+]
 
 
 @dataclass
@@ -124,6 +133,30 @@ def on_device(estimator: Estimator, device: torch.device | str) -> Estimator:
     return estimate
 
 
+def seeded_estimator(
+    estimate: Callable[..., PoseEstimate],
+    device: torch.device | str,
+    *,
+    seed: int = 0,
+    generator: torch.Generator | None = None,
+) -> Estimator:
+    """An estimator's ``estimate`` as an :data:`Estimator` that draws from one generator.
+
+    Inputs are moved to ``device``; one generator serves all calls: ``generator`` (on
+    ``device``), e.g. to be reseeded per image, or a new one seeded ``seed``, so that a sequence
+    of images gives the same estimates on every run.
+
+    Args:
+        estimate: called as ``estimate(rgb, depth, K, masks, obj_ids, generator=generator)``.
+        device: the estimator's device.
+        seed: the seed of a new generator.
+        generator: the generator to draw from instead.
+    """
+    if generator is None:
+        generator = torch.Generator(device=device).manual_seed(seed)
+    return on_device(functools.partial(estimate, generator=generator), device)
+
+
 def predict_dataset(
     estimator: Estimator,
     dataset: str | os.PathLike[str] | BOPDataset,
@@ -204,6 +237,46 @@ def predict_dataset(
             scores, poses = est.scores.cpu()[ok], est.poses.cpu()[ok]
             parts.append(PoseResults.from_columns([s] * k, [i] * k, ids, scores, poses, elapsed))
     return PoseResults.concat(parts)
+
+
+def predict_seeded(
+    make_estimator: Callable[[torch.Generator], Estimator],
+    dataset: str | os.PathLike[str] | BOPDataset,
+    *,
+    device: torch.device | str,
+    object_ids: Sequence[int],
+    seed: int = 0,
+    **options: Any,
+) -> PoseResults:
+    """:func:`predict_dataset` of an estimator drawing from one generator, reseeded per image.
+
+    The ``predict`` of every estimator of poseflow (FunFlow6D, the classic baseline, the
+    hybrid): each image's draws come from ``seed`` and its ids
+    (:func:`~poseflow.eval.distributed.image_seed`), as in ``poseflow predict``, so that an
+    image's estimate does not depend on the images before it.
+
+    Args:
+        make_estimator: builds the :data:`Estimator` that draws from the generator it is given.
+        dataset: the dataset folder or a :class:`~poseflow.data.bop.BOPDataset`.
+        device: the generator's device.
+        object_ids: the objects the estimator knows (others are skipped).
+        seed: the run's seed.
+        options: more keyword arguments of :func:`predict_dataset` (``split``, ``targets``,
+            ``detections``, ``load_rgb``, ``max_images``, ``timer``, ``progress``).
+
+    Returns:
+        One row per valid estimate.
+    """
+    from poseflow.eval.distributed import image_seed
+
+    generator = torch.Generator(device=device)
+
+    def reseed(scene_id: int, im_id: int) -> None:
+        generator.manual_seed(image_seed(seed, scene_id, im_id))
+
+    return predict_dataset(
+        make_estimator(generator), dataset, object_ids=object_ids, before_image=reseed, **options
+    )
 
 
 def _timed(

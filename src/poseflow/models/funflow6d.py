@@ -14,8 +14,8 @@ Shape letters: ``B`` instances, ``N`` points per cloud, ``H`` hypotheses per ins
 
 from __future__ import annotations
 
-import functools
-from collections.abc import Callable, Mapping, Sequence
+import contextlib
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -30,12 +30,12 @@ from poseflow.eval.predict import (
     Estimator,
     PoseEstimate,
     invalidate_implausible,
-    on_device,
-    predict_dataset,
+    predict_seeded,
+    seeded_estimator,
 )
 from poseflow.eval.results import PoseResults
-from poseflow.eval.timing import StageTimer, stage
-from poseflow.flows import get_sampler
+from poseflow.eval.timing import stage
+from poseflow.features import AppearanceEncoder, GeometricEncoder
 from poseflow.models.checkpoint import read_checkpoint, write_checkpoint
 from poseflow.models.components import build_appearance_encoder, build_geometric_encoder
 from poseflow.models.config import FunFlow6DConfig
@@ -43,16 +43,11 @@ from poseflow.models.inputs import FlowInputs
 from poseflow.models.network import FunFlow6DNet, NetInputs
 from poseflow.models.objects import PreparedObject, prepare_objects, select_objects
 from poseflow.models.observe import Observation, observe
-from poseflow.models.pose import select_hypotheses, solve_pose
-from poseflow.models.verification import (
-    Proposals,
-    other_hypotheses,
-    prepare_verification,
-    verify_proposals,
-)
+from poseflow.models.proposals import flow_proposals, no_proposals
+from poseflow.models.verification import Proposals, prepare_verification, verify_proposals
 from poseflow.verify import PoseVerifier
 
-__all__ = ["FunFlow6D", "predict_seeded"]
+__all__ = ["FunFlow6D"]
 
 
 class FunFlow6D(nn.Module):
@@ -77,18 +72,7 @@ class FunFlow6D(nn.Module):
     def __init__(self, config: FunFlow6DConfig | None = None) -> None:
         super().__init__()
         self.config = cfg = FunFlow6DConfig() if config is None else config
-        self.geometric_encoder = build_geometric_encoder(
-            cfg.geometric_encoder, radii=cfg.geometric_radii
-        )
-        self.appearance_encoder = build_appearance_encoder(
-            cfg.appearance_encoder, crop_size=cfg.crop_size
-        )
-        appearance = self.appearance_encoder
-        semantic_dim = None  # the reducer's output, or the raw features without reduction
-        if appearance is not None:
-            semantic_dim = appearance.dim if cfg.reducer == "identity" else cfg.feature_dim
-        geometric_dim = getattr(self.geometric_encoder, "dim", None)
-        self.net = FunFlow6DNet(cfg.net_config(geometric_dim, semantic_dim))
+        self.geometric_encoder, self.appearance_encoder, self.net = _build_parts(cfg)
         self.objects: dict[int, PreparedObject] = {}
         self.verifier = PoseVerifier(cfg.verifier)
 
@@ -107,22 +91,16 @@ class FunFlow6D(nn.Module):
 
         Args:
             models: ``{obj_id: ObjectModel}`` (metres, textured meshes for appearance).
-            cache_dir: where prepared objects are stored and looked up (safetensors + JSON), one
-                entry per object, mesh content (and scale) and configuration
-                (:func:`~poseflow.models.objects.object_cache_entry`), each written whole; None
-                computes everything in memory.
+            cache_dir: where prepared objects are stored and looked up, one entry per object,
+                mesh and configuration (:func:`~poseflow.models.objects.object_cache_entry`);
+                None computes everything in memory.
             progress: show a progress bar.
         """
-        self.objects.update(
-            prepare_objects(
-                models,
-                self.config,
-                geometric_encoder=self.geometric_encoder,
-                appearance_encoder=self.appearance_encoder,
-                cache_dir=cache_dir,
-                progress=progress,
-            )
-        )
+        prepared = prepare_objects(
+            models, self.config, geometric_encoder=self.geometric_encoder,
+            appearance_encoder=self.appearance_encoder, cache_dir=cache_dir, progress=progress,
+        )  # fmt: skip
+        self.objects.update(prepared)
         if self.config.verifier is not None:
             if self.verifier.config != self.config.verifier:
                 self.verifier = PoseVerifier(self.config.verifier)
@@ -140,11 +118,9 @@ class FunFlow6D(nn.Module):
         generator: torch.Generator | None = None,
         crop_jitter: float = 0.0,
     ) -> Observation:
-        """The target clouds of an image; see :func:`~poseflow.models.observe.observe`.
+        """The target clouds of an image: :func:`~poseflow.models.observe.observe`.
 
-        ``K`` may be a tensor, an array, nested lists or 9 numbers; without masks (``B = 0``)
-        the observation is empty. Without a ``generator``, the draws come from one seeded 0,
-        as in :meth:`estimate`.
+        Arguments as :meth:`estimate`; without masks (``B = 0``) the observation is empty.
 
         Raises:
             ShapeError: inconsistent shapes, or ``K`` not 9 numbers.
@@ -171,15 +147,16 @@ class FunFlow6D(nn.Module):
             query_pooling=getattr(self.appearance_encoder, "query_pooling", "mean"),
         )
 
-    def velocity(
+    def forward(
         self, *, x: torch.Tensor, t: torch.Tensor, x_0: torch.Tensor, **inputs: torch.Tensor
     ) -> torch.Tensor:
-        """``Ψ(t, X(t) | C)`` ``(B, 2N, 3)``; ``inputs`` are named as :class:`NetInputs`' fields."""
+        """``Ψ(t, X(t) | C)`` ``(B, 2N, 3)``; ``inputs`` are named as :class:`NetInputs`' fields.
+
+        The model plugs into :class:`~poseflow.flows.CFMTrainer`; :meth:`velocity` is the same.
+        """
         return self.net(x=x, t=t, inputs=NetInputs.from_kwargs(inputs), x_0=x_0)
 
-    def forward(self, **kwargs: Any) -> torch.Tensor:
-        """Same as :meth:`velocity`, so the model plugs into :class:`~poseflow.flows.CFMTrainer`."""
-        return self.velocity(**kwargs)
+    velocity = forward
 
     @torch.no_grad()
     def estimate(
@@ -248,51 +225,16 @@ class FunFlow6D(nn.Module):
             :class:`~poseflow.models.verification.Proposals` of the ``B`` instances, with the
             observation's cleaned clouds for the verifier's ICP.
         """
-        cfg = self.config
-        if cfg.verifier is not None and self.verifier.config != cfg.verifier:
-            raise ValueRangeError(
-                "config.verifier changed after the objects were prepared for verification; "
-                "call prepare_objects again"
-            )
-        sizes = check_tensor(depth, "depth", ("H", "W"), floating=False)
-        K = check_intrinsics(K, sizes["W"], sizes["H"], dtype=torch.float32, device=depth.device)
-        diameters = [o.diameter for o in select_objects(self.objects, obj_ids)]
-        with stage("lifting"):  # the check back-projects every mask
-            check_depth_extent(depth, K, masks, diameters, where="the depth")
+        K = _checked_image(self, depth, K, masks, obj_ids)
         if generator is None:
             generator = torch.Generator(device=depth.device).manual_seed(0)
-        was_training = self.training
-        self.eval()
-        try:
+        with _evaluating(self):
             obs = self.observe(rgb, depth, K, masks, obj_ids, generator=generator)
-            H = cfg.num_hypotheses
             if obs.points.shape[0] == 0:
-                est = PoseEstimate.empty(device=depth.device)
-                return Proposals(est, est.poses[:, None][:, :0], est.valid[:, None][:, :0])
+                return no_proposals(depth.device)
             with stage("flow_inputs"):
                 inputs = self.flow_inputs(obs)
-            x_1 = self.net.sample(
-                inputs,
-                get_sampler(cfg.solver, steps=cfg.steps),
-                frozen_mask=inputs.frozen_mask,
-                x_frozen=inputs.anchor if cfg.anchor == "pinned" else None,
-                generator=generator,
-                num_samples=H,
-            )
-            rep = inputs.repeat_interleave(H)
-            dense = [o.dense_points for o in select_objects(self.objects, rep.obj_ids)]
-            n = rep.points.shape[1] // 2
-            solved = solve_pose(rep, x_1[:, n:], dense, cfg, generator=generator)
-            est = select_hypotheses(*solved, obs.valid, H)
-            est = invalidate_implausible(est)  # nothing behind the camera is verified
-            rank = cfg.verifier is not None and cfg.verifier.rank_hypotheses and H > 1
-            if rank:
-                others, others_mask = other_hypotheses(*solved, H)
-            else:
-                others, others_mask = est.poses[:, None][:, :0], est.valid[:, None][:, :0]
-            return Proposals(est, others, others_mask, obs.cloud, obs.cloud_mask, rank=rank)
-        finally:
-            self.train(was_training)
+            return flow_proposals(self.net, inputs, obs, self.objects, self.config, generator)
 
     def verify(
         self,
@@ -305,73 +247,40 @@ class FunFlow6D(nn.Module):
     ) -> PoseEstimate:
         """Choose and verify each instance's pose among ``proposals`` with :attr:`verifier`.
 
-        See :func:`~poseflow.models.verification.verify_proposals`; arguments as
-        :meth:`estimate`.
+        :func:`~poseflow.models.verification.verify_proposals`; arguments as :meth:`estimate`.
 
         Raises:
             ValueRangeError: an object the verifier has not prepared.
         """
-        sizes = check_tensor(depth, "depth", ("H", "W"), floating=False)
-        K = check_intrinsics(K, sizes["W"], sizes["H"], dtype=torch.float32, device=depth.device)
+        K = _image_intrinsics(depth, K)
         obj_ids = torch.as_tensor(obj_ids).reshape(-1)
         verified = verify_proposals(self.verifier, proposals, rgb, depth, K, masks, obj_ids)
         return invalidate_implausible(verified)
 
     def estimator(self, *, seed: int = 0, generator: torch.Generator | None = None) -> Estimator:
-        """This model as an :data:`~poseflow.eval.predict.Estimator` of :func:`predict_dataset`.
+        """This model as an estimator of one generator: :func:`~poseflow.eval.seeded_estimator`."""
+        return seeded_estimator(self.estimate, self.device, seed=seed, generator=generator)
 
-        Inputs are moved to the network's device; one generator serves all calls: ``generator``
-        (on the network's device), e.g. to be reseeded per image, or a new one seeded ``seed``,
-        so that a sequence of images gives the same estimates on every run.
-        """
-        device = next(self.net.parameters()).device
-        if generator is None:
-            generator = torch.Generator(device=device).manual_seed(seed)
-        return on_device(functools.partial(self.estimate, generator=generator), device)
+    @property
+    def device(self) -> torch.device:
+        """The device of the network's weights."""
+        return next(self.net.parameters()).device
 
-    def predict(
-        self,
-        dataset: str | Path | Any,
-        *,
-        split: str = "test",
-        targets: Sequence[Any] | None = None,
-        detections: Sequence[Any] | None = None,
-        max_images: int | None = None,
-        seed: int = 0,
-        timer: StageTimer | None = None,
-        progress: bool = False,
-    ) -> PoseResults:
-        """Estimate every target instance of a BOP split; see :func:`poseflow.eval.predict_dataset`.
+    def predict(self, dataset: str | Path | Any, *, seed: int = 0, **options: Any) -> PoseResults:
+        """Estimate every target instance of a BOP split: :func:`~poseflow.eval.predict_seeded`.
 
-        Args:
-            dataset: the dataset folder or a :class:`~poseflow.data.bop.BOPDataset`.
-            split: the split folder.
-            targets: :class:`~poseflow.eval.recall.Target` records to estimate (default: the
-                split's ``test_targets_bop19.json`` when present, else every instance).
-            detections: masks from a BOP segmentation file instead of the ground truth.
-            max_images: stop after this many images.
-            seed: seeds the noise, sampling and RANSAC: each image's draws come from ``seed`` and
-                its ids (:func:`~poseflow.eval.distributed.image_seed`), as in ``poseflow
-                predict``, so an image's estimate does not depend on the images before it.
-            timer: optional :class:`~poseflow.eval.timing.StageTimer`, active while each image
-                is estimated.
-            progress: show a progress bar.
-
-        Returns:
-            :class:`~poseflow.eval.results.PoseResults`, one row per valid estimate.
+        ``seed`` seeds the noise, sampling and RANSAC of each image with its ids, as ``poseflow
+        predict`` does; ``options`` (``split``, ``targets``, ``detections``, ``max_images``,
+        ``timer``, ``progress``) are those of :func:`~poseflow.eval.predict_dataset`. Returns
+        :class:`~poseflow.eval.results.PoseResults`, one row per valid estimate.
         """
         return predict_seeded(
             lambda generator: self.estimator(generator=generator),
-            next(self.net.parameters()).device,
             dataset,
+            device=self.device,
             object_ids=sorted(self.objects),
-            split=split,
-            targets=targets,
-            detections=detections,
-            max_images=max_images,
             seed=seed,
-            timer=timer,
-            progress=progress,
+            **options,
         )
 
     def save(self, folder: str | Path) -> Path:
@@ -389,48 +298,77 @@ class FunFlow6D(nn.Module):
         """
         config, state = read_checkpoint(folder)
         model = cls(config)
-        try:
-            model.net.load_state_dict(state)
-        except RuntimeError as exc:
-            lines = str(exc).strip().splitlines()  # a title, then one line per problem
-            detail = (lines[1] if len(lines) > 1 else lines[0]).strip()[:200]
-            raise CheckpointError(
-                f"{Path(folder) / 'model.safetensors'} does not fit its config.json ({detail}); "
-                "restore the pair or train again"
-            ) from None
+        _load_weights(model.net, state, Path(folder) / "model.safetensors")
         return model.to(device)
 
 
-def predict_seeded(
-    make_estimator: Callable[[torch.Generator], Estimator],
-    device: torch.device | str,
-    dataset: str | Path | Any,
-    *,
-    object_ids: Sequence[int],
-    seed: int,
-    **options: Any,
-) -> PoseResults:
-    """:func:`~poseflow.eval.predict_dataset` with one generator reseeded before each image.
+def _checked_image(
+    model: FunFlow6D, depth: torch.Tensor, K: Any, masks: torch.Tensor, obj_ids: Any
+) -> torch.Tensor:
+    """``K`` checked (:func:`_image_intrinsics`), once the model and the depth are checked.
 
-    Each image's draws come from ``seed`` and its ids
-    (:func:`~poseflow.eval.distributed.image_seed`), as in ``poseflow predict``, so that an
-    image's estimate does not depend on the images before it.
-
-    Args:
-        make_estimator: builds the estimator that draws from the given generator.
-        device: the generator's device.
-        dataset: the dataset folder or a :class:`~poseflow.data.bop.BOPDataset`.
-        object_ids: the objects to estimate.
-        seed: the run's seed.
-        options: more keyword arguments of :func:`~poseflow.eval.predict_dataset`.
+    Raises:
+        ValueRangeError: ``config.verifier`` changed since the objects were prepared for it, an
+            object id that is not prepared, or a ``K`` that is not a pinhole matrix of the image.
+        UnitsError: the masked depth spans far more or far less than the objects.
     """
-    from poseflow.eval.distributed import image_seed
+    if model.config.verifier is not None and model.verifier.config != model.config.verifier:
+        raise ValueRangeError(
+            "config.verifier changed after the objects were prepared for verification; "
+            "call prepare_objects again"
+        )
+    K = _image_intrinsics(depth, K)
+    diameters = [o.diameter for o in select_objects(model.objects, obj_ids)]
+    with stage("lifting"):  # the check back-projects every mask
+        check_depth_extent(depth, K, masks, diameters, where="the depth")
+    return K
 
-    generator = torch.Generator(device=device)
 
-    def reseed(scene_id: int, im_id: int) -> None:
-        generator.manual_seed(image_seed(seed, scene_id, im_id))
+@contextlib.contextmanager
+def _evaluating(module: nn.Module) -> Iterator[None]:
+    """``module`` in evaluation mode, then back in the mode it was in."""
+    was_training = module.training
+    module.eval()
+    try:
+        yield
+    finally:
+        module.train(was_training)
 
-    return predict_dataset(
-        make_estimator(generator), dataset, object_ids=object_ids, before_image=reseed, **options
-    )
+
+def _build_parts(
+    config: FunFlow6DConfig,
+) -> tuple[GeometricEncoder | None, AppearanceEncoder | None, FunFlow6DNet]:
+    """The frozen encoders of ``config`` and the network for the widths of their descriptors.
+
+    The semantic width is the reducer's output, or the raw appearance features' without
+    reduction; None without an encoder.
+    """
+    geometric = build_geometric_encoder(config.geometric_encoder, radii=config.geometric_radii)
+    appearance = build_appearance_encoder(config.appearance_encoder, crop_size=config.crop_size)
+    semantic_dim = None
+    if appearance is not None:
+        semantic_dim = appearance.dim if config.reducer == "identity" else config.feature_dim
+    net_config = config.net_config(getattr(geometric, "dim", None), semantic_dim)
+    return geometric, appearance, FunFlow6DNet(net_config)
+
+
+def _image_intrinsics(depth: torch.Tensor, K: Any) -> torch.Tensor:
+    """``K`` as a float32 ``(3, 3)`` on the depth's device, checked against the image ``(H, W)``."""
+    sizes = check_tensor(depth, "depth", ("H", "W"), floating=False)
+    return check_intrinsics(K, sizes["W"], sizes["H"], dtype=torch.float32, device=depth.device)
+
+
+def _load_weights(net: nn.Module, state: dict[str, torch.Tensor], path: Path) -> None:
+    """Load ``state`` into ``net``, or say which weight of the file ``path`` does not fit.
+
+    Raises:
+        CheckpointError: the weights do not fit the network.
+    """
+    try:
+        net.load_state_dict(state)
+    except RuntimeError as exc:
+        lines = str(exc).strip().splitlines()  # a title, then one line per problem
+        detail = (lines[1] if len(lines) > 1 else lines[0]).strip()[:200]
+        raise CheckpointError(
+            f"{path} does not fit its config.json ({detail}); restore the pair or train again"
+        ) from None

@@ -22,7 +22,6 @@ Shape letters: ``B`` instances of an image.
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -31,9 +30,9 @@ import torch
 
 from poseflow.baselines import ClassicBaseline
 from poseflow.errors import ValueRangeError
-from poseflow.eval.predict import Estimator, PoseEstimate, on_device
+from poseflow.eval.predict import Estimator, PoseEstimate, predict_seeded, seeded_estimator
 from poseflow.eval.results import PoseResults
-from poseflow.models.funflow6d import FunFlow6D, predict_seeded
+from poseflow.models.funflow6d import FunFlow6D
 from poseflow.models.verification import keep_better
 
 __all__ = ["Hybrid"]
@@ -112,30 +111,19 @@ class Hybrid:
     def estimator(self, *, seed: int = 0, generator: torch.Generator | None = None) -> Estimator:
         """This estimator as an :data:`~poseflow.eval.predict.Estimator` of one generator.
 
-        See :meth:`FunFlow6D.estimator <poseflow.models.FunFlow6D.estimator>`.
+        See :func:`~poseflow.eval.predict.seeded_estimator`.
         """
-        device = next(self.model.net.parameters()).device
-        if generator is None:
-            generator = torch.Generator(device=device).manual_seed(seed)
-        return on_device(functools.partial(self.estimate, generator=generator), device)
+        return seeded_estimator(self.estimate, self.model.device, seed=seed, generator=generator)
 
     def predict(self, dataset: str | Path | Any, *, seed: int = 0, **options: Any) -> PoseResults:
-        """Estimate every target instance of a BOP split.
+        """Estimate every target instance of a BOP split: :func:`~poseflow.eval.predict_seeded`.
 
-        Args:
-            dataset: the dataset folder or a :class:`~poseflow.data.bop.BOPDataset`.
-            seed: seeds each image's draws from its ids, as
-                :meth:`FunFlow6D.predict <poseflow.models.FunFlow6D.predict>` does.
-            options: ``split``, ``targets``, ``detections``, ``max_images``, ``timer`` and
-                ``progress``, as for :meth:`FunFlow6D.predict <poseflow.models.FunFlow6D.predict>`.
-
-        Returns:
-            :class:`~poseflow.eval.results.PoseResults`, one row per valid estimate.
+        Arguments as :meth:`FunFlow6D.predict <poseflow.models.FunFlow6D.predict>`.
         """
         return predict_seeded(
             lambda generator: self.estimator(generator=generator),
-            next(self.model.net.parameters()).device,
             dataset,
+            device=self.model.device,
             object_ids=sorted(self.model.objects),
             seed=seed,
             **options,
