@@ -7,6 +7,7 @@ so it imports these helpers as ``from _common import ...``.
   median after a warm-up call, :func:`timed_pair` times two functions alternately, and
   :func:`clocked` times one call;
 - :func:`machine` names the CPU and its torch threads;
+- :func:`target_instances` reads the instances of a BOP image that a benchmark scores;
 - :func:`report` prints the run's JSON line and then the command that reproduces it
   (:func:`command`).
 """
@@ -25,7 +26,17 @@ from typing import Any, TypeVar
 
 import torch
 
-__all__ = ["clocked", "command", "machine", "report", "sync", "timed", "timed_pair", "timings"]
+__all__ = [
+    "clocked",
+    "command",
+    "machine",
+    "report",
+    "sync",
+    "target_instances",
+    "timed",
+    "timed_pair",
+    "timings",
+]
 
 T = TypeVar("T")
 
@@ -98,6 +109,29 @@ def timed_pair(
 def machine() -> str:
     """The CPU architecture and torch's threads, e.g. ``x86_64, 1 torch threads``."""
     return f"{platform.machine()}, {torch.get_num_threads()} torch threads"
+
+
+def target_instances(scene: Any, im_id: int, wanted: set[int]) -> tuple[Any, ...]:
+    """The ground-truth instances of the ``wanted`` objects in one image of a BOP scene.
+
+    Args:
+        scene: a :class:`~poseflow.data.bop.BOPScene`.
+        im_id: the image.
+        wanted: the object ids to keep.
+
+    Returns:
+        ``(obj_ids, masks, poses, rgb, depth, K)``: the instances' object ids, visible masks
+        ``(B, H, W)``, ground-truth poses ``(B, 4, 4)`` float32, the image ``(3, H, W)``, its
+        depth ``(H, W)`` in metres and intrinsics ``(3, 3)`` float32.
+    """
+    gts = scene.gt_of(im_id)
+    sel = [k for k, gt in enumerate(gts) if gt.obj_id in wanted]
+    obj_ids = [gts[k].obj_id for k in sel]
+    masks = torch.stack([scene.load_mask(im_id, k, visible=True) for k in sel])
+    poses = torch.stack([torch.as_tensor(gts[k].pose, dtype=torch.float32) for k in sel])
+    rgb, depth = scene.load_rgb_image(im_id), scene.load_depth_image(im_id)
+    K = torch.as_tensor(scene.camera[im_id].K, dtype=torch.float32)
+    return obj_ids, masks, poses, rgb, depth, K
 
 
 def command(script: str, argv: Sequence[str] | None = None) -> str:

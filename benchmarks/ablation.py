@@ -41,8 +41,6 @@ import argparse
 import dataclasses
 import json
 import platform
-import shlex
-import sys
 import tempfile
 import time
 from collections.abc import Mapping
@@ -50,6 +48,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from _common import clocked, command
 
 from poseflow.eval import PoseEstimate, PoseResults, predict_dataset, read_results, write_results
 from poseflow.flows import PRESETS, TrainConfig
@@ -306,16 +305,14 @@ def train_row(
         steps=steps, batch_size=4 if quick else 16, lr=1e-3, warmup_steps=steps // 10,
         ema_decay=0.995, progress=False,
     )  # fmt: skip
-    start = time.perf_counter()
-    train(model, data, config=schedule, device=device)
-    train_s = time.perf_counter() - start
+    train_s, _ = clocked(lambda: train(model, data, config=schedule, device=device))
     info = {
         "row": name,
         "steps": steps,
         "train_s": round(train_s, 1),
         "device": device_name(device),
         "torch": torch.__version__,
-        "command": shlex.join(["python", *sys.argv]),
+        "command": command(__file__),
     }
     model.save(folder)
     (folder / "train.json").write_text(json.dumps(info, indent=1))
@@ -341,9 +338,8 @@ def score_row(work: Path, folder: Path, test_root: Path) -> dict[str, Any]:
             raise SystemExit(f"{folder} holds neither predictions.csv nor model.safetensors")
         model = FunFlow6D.load(folder)
         prepare(model, demo_object_map(), work / "objects" / feature_key(model.config))
-        start = time.perf_counter()
-        results = model.predict(test_root, seed=TEST_SEED)
-        save_predictions(folder, results, device="cpu", seconds=time.perf_counter() - start)
+        seconds, results = clocked(lambda: model.predict(test_root, seed=TEST_SEED))
+        save_predictions(folder, results, device="cpu", seconds=seconds)
     report = evaluate_bop(test_root, read_results(predictions))
     info = json.loads((folder / "train.json").read_text())
     return {
@@ -410,9 +406,6 @@ def main() -> None:
         base = base.replace(
             dit_preset=args.preset, net=dataclasses.replace(base.net, dit=DiTOverrides())
         )
-    label = args.preset or "base"
-    device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
-    steps = 10 if args.quick else args.steps
     n_test = 2 if args.quick else args.test_images
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(args.work or tmp)
@@ -426,44 +419,54 @@ def main() -> None:
             configs = [row_config(base, n, quick=args.quick) for n in names]
             build_features(work, configs, train_root, test_root, demo_object_map())
         if args.phase in ("all", "train"):
-            for name in names:
-                cfg = row_config(base, name, quick=args.quick)
-                folder = work / "rows" / label / name
-                if args.skip_trained and (folder / "train.json").is_file():
-                    print(f"{label}/{name}: already trained, kept")
-                    if not args.predict or (folder / "predictions.csv").is_file():
-                        continue
-                    model = FunFlow6D.load(folder, device=device)
-                    prepare(model, None, work / "objects" / feature_key(cfg))
-                else:
-                    model = train_row(
-                        work, name, cfg, folder, steps=steps, quick=args.quick, device=device
-                    )
-                if args.predict:
-                    start = time.perf_counter()
-                    results = predict_recorded(model, observations_path(work, cfg))
-                    seconds = time.perf_counter() - start
-                    save_predictions(folder, results, device=device, seconds=seconds)
-                    print(f"{label}/{name}: predicted the test split in {seconds:.1f} s")
+            _train_rows(args, work, names, base)
         if args.phase in ("all", "score"):
-            test_root = make_test_split(work, quick=args.quick, images=n_test)
-            out: dict[str, Any] = {"test_images": n_test, "rows": {}}
-            commands = {}
-            for info in sorted((work / "rows").glob("*/*/train.json")):
-                folder = info.parent
-                if folder.name not in names:
-                    continue
-                row = f"{folder.parent.name}/{folder.name}"
-                out["rows"][row] = score_row(work, folder, test_root)
-                commands[folder.parent.name] = json.loads(info.read_text())["command"]
-                print(row, out["rows"][row], flush=True)
-            if not out["rows"]:
-                raise SystemExit(f"no trained row under {work / 'rows'}: run --phase train first")
-            print_table(out["rows"])
-            print(json.dumps(out))
-            for lab, command in sorted(commands.items()):
-                print(f"trained ({lab}):", command)
-    print("command:", shlex.join(["python", *sys.argv]))
+            _score_rows(work, names, make_test_split(work, quick=args.quick, images=n_test), n_test)
+    print("command:", command(__file__))
+
+
+def _train_rows(args: argparse.Namespace, work: Path, names: list[str], base: Any) -> None:
+    """Train every row (or keep a saved one with ``--skip-trained``); predict with ``--predict``."""
+    label = args.preset or "base"
+    device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
+    steps = 10 if args.quick else args.steps
+    for name in names:
+        cfg = row_config(base, name, quick=args.quick)
+        folder = work / "rows" / label / name
+        if args.skip_trained and (folder / "train.json").is_file():
+            print(f"{label}/{name}: already trained, kept")
+            if not args.predict or (folder / "predictions.csv").is_file():
+                continue
+            model = FunFlow6D.load(folder, device=device)
+            prepare(model, None, work / "objects" / feature_key(cfg))
+        else:
+            model = train_row(work, name, cfg, folder, steps=steps, quick=args.quick, device=device)
+        if args.predict:
+            seconds, results = clocked(
+                lambda model=model, cfg=cfg: predict_recorded(model, observations_path(work, cfg))
+            )
+            save_predictions(folder, results, device=device, seconds=seconds)
+            print(f"{label}/{name}: predicted the test split in {seconds:.1f} s")
+
+
+def _score_rows(work: Path, names: list[str], test_root: Path, n_test: int) -> None:
+    """Score every trained row of ``names``; print the table, the JSON line and their commands."""
+    out: dict[str, Any] = {"test_images": n_test, "rows": {}}
+    commands = {}
+    for info in sorted((work / "rows").glob("*/*/train.json")):
+        folder = info.parent
+        if folder.name not in names:
+            continue
+        row = f"{folder.parent.name}/{folder.name}"
+        out["rows"][row] = score_row(work, folder, test_root)
+        commands[folder.parent.name] = json.loads(info.read_text())["command"]
+        print(row, out["rows"][row], flush=True)
+    if not out["rows"]:
+        raise SystemExit(f"no trained row under {work / 'rows'}: run --phase train first")
+    print_table(out["rows"])
+    print(json.dumps(out))
+    for lab, trained in sorted(commands.items()):
+        print(f"trained ({lab}):", trained)
 
 
 if __name__ == "__main__":

@@ -23,15 +23,14 @@ two images with ``N = 64`` and four query views.
 from __future__ import annotations
 
 import argparse
-import json
-import shlex
+import functools
 import statistics
-import sys
-import time
 from collections import defaultdict
 from pathlib import Path
 
+import _common
 import torch
+from _common import clocked, target_instances
 
 from poseflow.data.bop import BOPDataset
 from poseflow.data.object_folder import load_object_models
@@ -87,30 +86,21 @@ def measure(
     model = FunFlow6D(cfg)
     if pooling is not None and isinstance(model.appearance_encoder, LearnedAppearanceEncoder):
         model.appearance_encoder.query_pooling = pooling
-    start = time.perf_counter()
-    model.prepare_objects(objects, progress=False)
-    prepare_s = time.perf_counter() - start
+    prepare_s, _ = clocked(lambda: model.prepare_objects(objects, progress=False))
     ds = BOPDataset(root, "test")
     g = torch.Generator().manual_seed(seed)
     res: dict = {s: {th: defaultdict(list) for th in THRESHOLDS} for s in ("conditioning", "raw",
                                                                            "ceiling")}  # fmt: skip
     observe_s = 0.0
     for (s, i), wanted in sorted(images.items()):
-        scene = ds.scene(s)
-        gts = scene.gt_of(i)
-        sel = [k for k, gt in enumerate(gts) if gt.obj_id in wanted]
-        obj_ids = [gts[k].obj_id for k in sel]
-        masks = torch.stack([scene.load_mask(i, k, visible=True) for k in sel])
-        gt = torch.stack([torch.as_tensor(gts[k].pose, dtype=torch.float32) for k in sel])
-        rgb, depth = scene.load_rgb_image(i), scene.load_depth_image(i)
-        K = torch.as_tensor(scene.camera[i].K, dtype=torch.float32)
+        obj_ids, masks, gt, *image = target_instances(ds.scene(s), i, wanted)
         with torch.no_grad():
-            t0 = time.perf_counter()
-            obs = model.observe(rgb, depth, K, masks, obj_ids, generator=g)
-            observe_s += time.perf_counter() - t0
+            observe = functools.partial(model.observe, *image, masks, obj_ids, generator=g)
+            seconds, obs = clocked(observe)
+            observe_s += seconds
             inputs = model.flow_inputs(obs, poses=gt)
         n = num_points
-        B = len(sel)
+        B = len(obj_ids)
         pooled = model.appearance_encoder.query_pooling
         raw_q = []
         for b, o in enumerate(obj_ids):
@@ -187,44 +177,53 @@ def main() -> None:
                 query_views=args.query_views, seed=args.seed,
             )  # fmt: skip
             per_n[label] = out
-        ceiling = next(iter(per_n.values()))["inliers"]["ceiling"]
-        summary: dict = {"ceiling": {}, "encoders": {}}
-        for th in THRESHOLDS:
-            summary["ceiling"][str(th)] = {
-                **{str(o): _mean(ceiling[th][o]) for o in obj_set},
-                "all": _mean([x for o in obj_set for x in ceiling[th][o]]),
-            }
-        for label, out in per_n.items():
-            entry: dict = {
-                "prepare_s": round(out["prepare_s"], 1),
-                "observe_s": round(out["observe_s"], 1),
-            }
-            for stage in ("conditioning", "raw"):
-                for th in THRESHOLDS:
-                    d = out["inliers"][stage][th]
-                    entry[f"{stage}@{th}"] = {
-                        **{str(o): _mean(d[o]) for o in obj_set},
-                        "all": _mean([x for o in obj_set for x in d[o]]),
-                    }
-            summary["encoders"][label] = entry
+        summary = _summary(per_n, obj_set)
         report["results"][str(N)] = summary
-        instances = sum(len(ceiling[THRESHOLDS[0]][o]) for o in obj_set)
-        print(f"\nN = {N}: mean mutual-NN inliers per instance ({instances} instances)")
-        cols = [str(o) for o in obj_set] + ["all"]
+        _print_summary(N, summary, per_n, obj_set)
+    _common.report(report, __file__)
+
+
+def _summary(per_n: dict, obj_set: list[int]) -> dict:
+    """Mean inliers per object and overall: the ceiling, then each encoder's stages and times."""
+
+    def means(d: dict) -> dict[str, float]:
+        return {
+            **{str(o): _mean(d[o]) for o in obj_set},
+            "all": _mean([x for o in obj_set for x in d[o]]),
+        }
+
+    ceiling = next(iter(per_n.values()))["inliers"]["ceiling"]
+    summary: dict = {"ceiling": {str(th): means(ceiling[th]) for th in THRESHOLDS}, "encoders": {}}
+    for label, out in per_n.items():
+        entry: dict = {
+            "prepare_s": round(out["prepare_s"], 1),
+            "observe_s": round(out["observe_s"], 1),
+        }
         for stage in ("conditioning", "raw"):
             for th in THRESHOLDS:
-                print(f"\n{stage}, within {th:.0%} of the diameter")
-                print(f"{'':<16}" + "".join(f"{c:>8}" for c in cols))
-                for label in per_n:
-                    row = summary["encoders"][label][f"{stage}@{th}"]
-                    print(f"{label:<16}" + "".join(f"{row[c]:>8.2f}" for c in cols))
-                row = summary["ceiling"][str(th)]
-                print(f"{'ceiling':<16}" + "".join(f"{row[c]:>8.2f}" for c in cols))
-        for label in per_n:
-            e = summary["encoders"][label]
-            print(f"{label}: query preparation {e['prepare_s']} s, observation {e['observe_s']} s")
-    print(json.dumps(report))
-    print("command:", shlex.join([Path(sys.executable).name, *sys.argv]))
+                entry[f"{stage}@{th}"] = means(out["inliers"][stage][th])
+        summary["encoders"][label] = entry
+    return summary
+
+
+def _print_summary(N: int, summary: dict, per_n: dict, obj_set: list[int]) -> None:
+    """The tables of one ``N``: per stage and threshold, each encoder's row and the ceiling."""
+    ceiling = next(iter(per_n.values()))["inliers"]["ceiling"]
+    instances = sum(len(ceiling[THRESHOLDS[0]][o]) for o in obj_set)
+    print(f"\nN = {N}: mean mutual-NN inliers per instance ({instances} instances)")
+    cols = [str(o) for o in obj_set] + ["all"]
+    for stage in ("conditioning", "raw"):
+        for th in THRESHOLDS:
+            print(f"\n{stage}, within {th:.0%} of the diameter")
+            print(f"{'':<16}" + "".join(f"{c:>8}" for c in cols))
+            for label in per_n:
+                row = summary["encoders"][label][f"{stage}@{th}"]
+                print(f"{label:<16}" + "".join(f"{row[c]:>8.2f}" for c in cols))
+            row = summary["ceiling"][str(th)]
+            print(f"{'ceiling':<16}" + "".join(f"{row[c]:>8.2f}" for c in cols))
+    for label in per_n:
+        e = summary["encoders"][label]
+        print(f"{label}: query preparation {e['prepare_s']} s, observation {e['observe_s']} s")
 
 
 if __name__ == "__main__":

@@ -35,17 +35,17 @@ model on a one-image generated split.
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
-import sys
 import tempfile
 from collections import defaultdict
 from pathlib import Path
+from typing import Any
 
 import torch
+from _common import report, target_instances
 
 from poseflow.assets import DEMO_CHECKPOINT
-from poseflow.cli.common import add_set_argument, parse_set
+from poseflow.cli.common import add_set_argument, inference_changes, load_model
 from poseflow.data.bop import BOPDataset
 from poseflow.data.object_folder import load_object_models, object_cache_dir
 from poseflow.eval import evaluate_bop
@@ -118,6 +118,7 @@ def main() -> None:
     )
     parser.add_argument("--max-images", type=int, default=None)
     parser.add_argument("--seed", type=int, default=0)
+    parser.set_defaults(verify=True)  # the verified variants need a verifier
     parser.add_argument(
         "--inlier-threshold", type=float, default=0.1, help="inlier distance, x diameter"
     )
@@ -135,19 +136,8 @@ def main() -> None:
             args.model = str(DEMO_CHECKPOINT)
         if args.dataset is None:
             parser.error("give a BOP dataset folder, or --quick")
-        report = diagnose(args, Path(args.out or Path(tmp) / "diagnosis"))
-    print(json.dumps(report))
-    print("command:", " ".join([sys.executable, *sys.argv]))
-
-
-def _config_changes(args: argparse.Namespace) -> dict:
-    """The inference fields ``--set``, ``--hypotheses`` and ``--steps`` change."""
-    changes = parse_set(args.set_fields)
-    for name, value in (("num_hypotheses", args.hypotheses), ("steps", args.steps)):
-        if value is not None:
-            changes[name] = value
-    changes["verifier"] = changes.get("verifier", {})  # the verified variants need a verifier
-    return changes
+        record = diagnose(args, Path(args.out or Path(tmp) / "diagnosis"))
+    report(record, __file__)
 
 
 def _closest(poses, mask, gt, objects, obj_ids) -> torch.Tensor:
@@ -194,10 +184,7 @@ def _refined_candidates(model, solved, obj_ids, obs) -> tuple[torch.Tensor, torc
 def diagnose(args: argparse.Namespace, out: Path) -> dict:
     """Run the variants over the split; returns the report (also printed as a table)."""
     root = Path(args.dataset)
-    model = FunFlow6D.load(args.model)
-    model.config = model.config.with_inference(_config_changes(args))
-    cfg = model.config
-    H = cfg.num_hypotheses
+    model = load_model(args.model, inference=inference_changes(args))
     ds = BOPDataset(root, "test")
     targets = _targets(ds, args.max_images)
     images: dict[tuple[int, int], set[int]] = defaultdict(set)
@@ -207,89 +194,14 @@ def diagnose(args: argparse.Namespace, out: Path) -> dict:
     model.prepare_objects(objects, cache_dir=object_cache_dir(args.model, root), progress=False)
     model.eval()
     g = torch.Generator().manual_seed(args.seed)
-    sampler = get_sampler(cfg.solver, steps=cfg.steps)
-    no_icp = cfg.replace(icp_distances=())
     rows: dict[str, list[PoseResults]] = defaultdict(list)
-    epe: dict[int, list[float]] = defaultdict(list)
-    # Inliers of the conditioning's features, and of perfect features (the true canonical
-    # coordinates) as the ceiling this cloud size allows.
-    inliers: dict[str, dict[int, list[float]]] = {
-        k: defaultdict(list) for k in ("geometric", "semantic", "ceiling")
-    }
+    quality = _FlowQuality(args.inlier_threshold)
     for (s, i), wanted in sorted(images.items()):
-        scene = ds.scene(s)
-        gts = scene.gt_of(i)
-        sel = [g_ for g_, gt in enumerate(gts) if gt.obj_id in wanted]
-        obj_ids = [gts[k].obj_id for k in sel]
-        masks = torch.stack([scene.load_mask(i, k, visible=True) for k in sel])
-        gt = torch.stack([torch.as_tensor(gts[k].pose, dtype=torch.float32) for k in sel])
-        rgb, depth = scene.load_rgb_image(i), scene.load_depth_image(i)
-        K = torch.as_tensor(scene.camera[i].K, dtype=torch.float32)
+        obj_ids, masks, gt, rgb, depth, K = target_instances(ds.scene(s), i, wanted)
+        image = (rgb, depth, K, masks, obj_ids)
         with torch.no_grad():
-            obs = model.observe(rgb, depth, K, masks, obj_ids, generator=g)
-            inputs = model.flow_inputs(obs, poses=gt)
-            n = inputs.points.shape[1] // 2
-            x = model.net.sample(inputs, sampler, frozen_mask=inputs.frozen_mask,
-                                 x_frozen=inputs.anchor if cfg.anchor == "pinned" else None,
-                                 generator=g, num_samples=H)  # fmt: skip
-            rep = inputs.repeat_interleave(H)
-            dense = [o.dense_points for o in select_objects(model.objects, rep.obj_ids)]
-            solved = solve_pose(rep, x[:, n:], dense, cfg, generator=g)
-            est = {"model": select_hypotheses(*solved, obs.valid, H)}
-            # Oracle choice: the hypothesis with the smallest MSSD to the ground truth.
-            poses_h = torch.linalg.inv(solved[0].double()).float()  # camera->canonical inverted
-            B = len(sel)
-            pick = _closest(poses_h.reshape(B, H, 4, 4), torch.ones(B, H, dtype=torch.bool), gt,
-                            objects, obj_ids)  # fmt: skip
-            onehot = torch.zeros(B, H)
-            onehot[torch.arange(B), pick] = 1.0
-            est["oracle_choice"] = select_hypotheses(
-                solved[0], onehot.reshape(-1) * solved[1].clamp_min(1e-6), solved[2], obs.valid, H
-            )
-            dense1 = [o.dense_points for o in select_objects(model.objects, inputs.obj_ids)]
-            oracle = solve_pose(inputs, inputs.x_1[:, n:], dense1, cfg, generator=g)
-            est["oracle_flow"] = select_hypotheses(*oracle, obs.valid, 1)
-            est["no_icp"] = select_hypotheses(
-                *solve_pose(rep, x[:, n:], dense, no_icp, generator=g), obs.valid, H
-            )
-            shipped = invalidate_implausible(est["model"])
-            extra = extra_mask = None
-            if cfg.verifier.rank_hypotheses:  # as FunFlow6D.estimate
-                extra, extra_mask = other_hypotheses(*solved, H)
-                shipped, extra, extra_mask = rank_estimate(
-                    model.verifier, shipped, extra, extra_mask, rgb, depth, K, masks, obj_ids
-                )
-            ver = model.verifier.verify(
-                rgb, depth, K, masks, obj_ids, shipped.poses, obs.cloud, obs.cloud_mask,
-                extra=extra, extra_mask=extra_mask, estimated=shipped.valid,
-            )  # fmt: skip
-            est["verified"] = PoseEstimate(ver.poses, ver.scores, shipped.valid)
-            rows_b = torch.arange(B)
-            kept = ver.score.valid & shipped.valid[:, None]
-            best = _closest(ver.hypotheses, kept, gt, objects, obj_ids)
-            est["oracle_verified"] = PoseEstimate(
-                ver.hypotheses[rows_b, best], torch.ones(B), shipped.valid
-            )
-            cand, cand_mask = _refined_candidates(model, solved, obj_ids, obs)
-            best = _closest(cand, cand_mask, gt, objects, obj_ids)
-            est["oracle_candidates"] = PoseEstimate(
-                cand[rows_b, best], torch.ones(B), cand_mask.any(1) & obs.valid
-            )
-            truth = rep.x_1[:, n:]
-            syms = [objects[o].symmetries for o in rep.obj_ids.tolist()]
-            e = _symmetric_epe(x[:, n:], truth, rep.mask[:, n:], syms, rep.scale)
-            for r, o in enumerate(rep.obj_ids.tolist()):
-                if bool(obs.valid[r // H]):
-                    epe[o].append(float(e[r]))
-            for kind in inliers:
-                feats = inputs.x_1 if kind == "ceiling" else getattr(inputs, kind)
-                res = correspondence_inliers(
-                    feats[:, :n], feats[:, n:], inputs.points[:, :n], inputs.x_1[:, n:],
-                    torch.full((B,), 2.0), args.inlier_threshold, t_mask=inputs.mask[:, n:],
-                    metric="euclidean" if kind == "ceiling" else "cosine",
-                )  # fmt: skip
-                for b, o in enumerate(obj_ids):
-                    inliers[kind][o].append(float(res.num_inliers[b]))
+            est, obs, solved = _flow_variants(model, objects, image, gt, g, quality)
+            est.update(_verified_variants(model, objects, image, gt, est["model"], obs, solved))
         for name, e_ in est.items():
             ok = e_.valid
             k = int(ok.sum())
@@ -299,32 +211,162 @@ def diagnose(args: argparse.Namespace, out: Path) -> dict:
                     PoseResults.from_columns([s] * k, [i] * k, ids, e_.scores[ok], e_.poses[ok], -1)
                 )
     out.mkdir(parents=True, exist_ok=True)
-    report: dict = {"dataset": root.name, "model": args.model, "hypotheses": H, "variants": {}}
+    H = model.config.num_hypotheses
+    record: dict = {"dataset": root.name, "model": args.model, "hypotheses": H, "variants": {}}
     for name in VARIANTS:
         csv = out / f"{name}_{root.name}-test.csv"
         write_results(csv, PoseResults.concat(rows[name]))
         r = evaluate_bop(root, csv, targets=targets)
-        report["variants"][name] = {
+        record["variants"][name] = {
             "AR": round(r["AR"], 4),
             "per_object": {o: round(v["AR"], 4) for o, v in r["per_object"].items()},
         }
-    report["epe"] = {str(o): round(statistics.median(v), 4) for o, v in sorted(epe.items())}
-    report["inliers"] = {
-        k: {str(o): round(statistics.fmean(v), 2) for o, v in sorted(d.items())}
-        for k, d in inliers.items()
-    }
-    objs = sorted(report["epe"], key=int)
+    record.update(quality.summary())
+    _print_table(record)
+    return record
+
+
+def _flow_variants(
+    model: FunFlow6D, objects: dict, image: tuple, gt: torch.Tensor, g: torch.Generator, quality
+) -> tuple[dict[str, PoseEstimate], Any, tuple]:
+    """The model's estimates of one image and its oracle and no-ICP variants.
+
+    Also adds the flow's endpoint errors and the conditioning's inliers to ``quality``.
+
+    Returns:
+        ``{variant: PoseEstimate}`` of ``model``, ``oracle_choice``, ``oracle_flow`` and
+        ``no_icp``, the observation, and the solved hypotheses ``(B·H, ...)``.
+    """
+    rgb, depth, K, masks, obj_ids = image
+    cfg = model.config
+    H = cfg.num_hypotheses
+    obs = model.observe(rgb, depth, K, masks, obj_ids, generator=g)
+    inputs = model.flow_inputs(obs, poses=gt)
+    n = inputs.points.shape[1] // 2
+    x = model.net.sample(inputs, get_sampler(cfg.solver, steps=cfg.steps),
+                         frozen_mask=inputs.frozen_mask,
+                         x_frozen=inputs.anchor if cfg.anchor == "pinned" else None,
+                         generator=g, num_samples=H)  # fmt: skip
+    rep = inputs.repeat_interleave(H)
+    dense = [o.dense_points for o in select_objects(model.objects, rep.obj_ids)]
+    solved = solve_pose(rep, x[:, n:], dense, cfg, generator=g)
+    est = {"model": select_hypotheses(*solved, obs.valid, H)}
+    # Oracle choice: the hypothesis with the smallest MSSD to the ground truth.
+    poses_h = torch.linalg.inv(solved[0].double()).float()  # camera->canonical inverted
+    B = len(obj_ids)
+    pick = _closest(poses_h.reshape(B, H, 4, 4), torch.ones(B, H, dtype=torch.bool), gt,
+                    objects, obj_ids)  # fmt: skip
+    onehot = torch.zeros(B, H)
+    onehot[torch.arange(B), pick] = 1.0
+    est["oracle_choice"] = select_hypotheses(
+        solved[0], onehot.reshape(-1) * solved[1].clamp_min(1e-6), solved[2], obs.valid, H
+    )
+    dense1 = [o.dense_points for o in select_objects(model.objects, inputs.obj_ids)]
+    oracle = solve_pose(inputs, inputs.x_1[:, n:], dense1, cfg, generator=g)
+    est["oracle_flow"] = select_hypotheses(*oracle, obs.valid, 1)
+    no_icp = cfg.replace(icp_distances=())
+    est["no_icp"] = select_hypotheses(
+        *solve_pose(rep, x[:, n:], dense, no_icp, generator=g), obs.valid, H
+    )
+    quality.add(objects, obs, inputs, rep, x, obj_ids, H)
+    return est, obs, solved
+
+
+def _verified_variants(
+    model: FunFlow6D,
+    objects: dict,
+    image: tuple,
+    gt: torch.Tensor,
+    estimate: PoseEstimate,
+    obs: Any,
+    solved: tuple,
+) -> dict[str, PoseEstimate]:
+    """The model's estimates verified as the estimators ship them, and the verifier's oracles."""
+    rgb, depth, K, masks, obj_ids = image
+    H = model.config.num_hypotheses
+    shipped = invalidate_implausible(estimate)
+    extra = extra_mask = None
+    if model.config.verifier.rank_hypotheses:  # as FunFlow6D.estimate
+        extra, extra_mask = other_hypotheses(*solved, H)
+        shipped, extra, extra_mask = rank_estimate(
+            model.verifier, shipped, extra, extra_mask, rgb, depth, K, masks, obj_ids
+        )
+    ver = model.verifier.verify(
+        rgb, depth, K, masks, obj_ids, shipped.poses, obs.cloud, obs.cloud_mask,
+        extra=extra, extra_mask=extra_mask, estimated=shipped.valid,
+    )  # fmt: skip
+    est = {"verified": PoseEstimate(ver.poses, ver.scores, shipped.valid)}
+    B = len(obj_ids)
+    rows_b = torch.arange(B)
+    kept = ver.score.valid & shipped.valid[:, None]
+    best = _closest(ver.hypotheses, kept, gt, objects, obj_ids)
+    est["oracle_verified"] = PoseEstimate(
+        ver.hypotheses[rows_b, best], torch.ones(B), shipped.valid
+    )
+    cand, cand_mask = _refined_candidates(model, solved, obj_ids, obs)
+    best = _closest(cand, cand_mask, gt, objects, obj_ids)
+    est["oracle_candidates"] = PoseEstimate(
+        cand[rows_b, best], torch.ones(B), cand_mask.any(1) & obs.valid
+    )
+    return est
+
+
+class _FlowQuality:
+    """The flow's endpoint errors and the conditioning's inliers, per object."""
+
+    def __init__(self, threshold: float) -> None:
+        self.threshold = threshold
+        self.epe: dict[int, list[float]] = defaultdict(list)
+        # Inliers of the conditioning's features, and of perfect features (the true canonical
+        # coordinates) as the ceiling this cloud size allows.
+        self.inliers: dict[str, dict[int, list[float]]] = {
+            k: defaultdict(list) for k in ("geometric", "semantic", "ceiling")
+        }
+
+    def add(self, objects: dict, obs: Any, inputs: Any, rep: Any, x: torch.Tensor,
+            obj_ids: list, H: int) -> None:  # fmt: skip
+        """Add one image: ``x`` the sampled flows ``(B·H, 2N, 3)`` of ``rep``, ``inputs``'s."""
+        n = inputs.points.shape[1] // 2
+        truth = rep.x_1[:, n:]
+        syms = [objects[o].symmetries for o in rep.obj_ids.tolist()]
+        e = _symmetric_epe(x[:, n:], truth, rep.mask[:, n:], syms, rep.scale)
+        for r, o in enumerate(rep.obj_ids.tolist()):
+            if bool(obs.valid[r // H]):
+                self.epe[o].append(float(e[r]))
+        for kind in self.inliers:
+            feats = inputs.x_1 if kind == "ceiling" else getattr(inputs, kind)
+            res = correspondence_inliers(
+                feats[:, :n], feats[:, n:], inputs.points[:, :n], inputs.x_1[:, n:],
+                torch.full((len(obj_ids),), 2.0), self.threshold, t_mask=inputs.mask[:, n:],
+                metric="euclidean" if kind == "ceiling" else "cosine",
+            )  # fmt: skip
+            for b, o in enumerate(obj_ids):
+                self.inliers[kind][o].append(float(res.num_inliers[b]))
+
+    def summary(self) -> dict:
+        """``{"epe": {obj: median}, "inliers": {kind: {obj: mean}}}``."""
+        return {
+            "epe": {str(o): round(statistics.median(v), 4) for o, v in sorted(self.epe.items())},
+            "inliers": {
+                k: {str(o): round(statistics.fmean(v), 2) for o, v in sorted(d.items())}
+                for k, d in self.inliers.items()
+            },
+        }
+
+
+def _print_table(record: dict) -> None:
+    """Per object: the AR of every variant, the endpoint error and the inliers."""
+    objs = sorted(record["epe"], key=int)
     head = f"{'':<22}" + "".join(f"{o:>8}" for o in objs) + f"{'all':>8}"
     print(head)
     for name in VARIANTS:
-        v = report["variants"][name]
+        v = record["variants"][name]
         cells = "".join(f"{v['per_object'].get(o, 0.0):>8.3f}" for o in objs)
         print(f"{'AR ' + name:<22}{cells}{v['AR']:>8.3f}")
-    print(f"{'EPE (x diameter)':<22}" + "".join(f"{report['epe'][o]:>8.3f}" for o in objs))
-    for k in inliers:
-        cells = "".join(f"{report['inliers'][k][o]:>8.1f}" for o in objs)
+    print(f"{'EPE (x diameter)':<22}" + "".join(f"{record['epe'][o]:>8.3f}" for o in objs))
+    for k in record["inliers"]:
+        cells = "".join(f"{record['inliers'][k][o]:>8.1f}" for o in objs)
         print(f"{'inliers ' + k:<22}{cells}")
-    return report
 
 
 if __name__ == "__main__":
