@@ -38,6 +38,13 @@ from poseflow.data.frame import (
     read_masks,
     read_metric_depth,
 )
+from poseflow.data.object_folder import (
+    check_dataset,
+    dataset_fingerprint,
+    load_object_models,
+    models_fingerprint,
+    object_cache_dir,
+)
 from poseflow.data.objects import (
     ObjectModel,
     discretize_symmetries,
@@ -72,13 +79,18 @@ __all__ = [
     "ObjectModel",
     "SyntheticObject",
     "TestTarget",
+    "check_dataset",
     "collate_images",
+    "dataset_fingerprint",
     "demo_mesh",
     "demo_objects",
     "discretize_symmetries",
     "generate_dataset",
     "load_mesh",
+    "load_object_models",
     "mesh_vertex_arrays",
+    "models_fingerprint",
+    "object_cache_dir",
     "read_color",
     "read_detections",
     "read_frame",
