@@ -200,8 +200,10 @@ def test_recipes_are_the_configs_files(tmp_path):
         assert FunFlow6DConfig.load(name) == FunFlow6DConfig.load(path)
         assert FunFlow6DConfig.recipe(name) == FunFlow6DConfig.from_dict(RECIPES[name])
     learned = FunFlow6DConfig.recipe("learned_small")
-    assert (learned.appearance_encoder, learned.num_hypotheses, learned.steps) == ("learned", 12, 4)
-    assert learned.replace(appearance_encoder="dsift") == FunFlow6DConfig.recipe("demo_small")
+    got = (learned.appearance_encoder, learned.num_hypotheses, learned.solver, learned.steps)
+    assert got == ("learned", 12, "midpoint", 1)
+    as_demo = learned.replace(appearance_encoder="dsift", solver="euler", steps=4)
+    assert as_demo == FunFlow6DConfig.recipe("demo_small")
     write_configs(["--write-configs", str(tmp_path)])
     for name in RECIPES:  # the checkout's files are what the command writes: in sync
         written = (tmp_path / f"{name}.json").read_text()

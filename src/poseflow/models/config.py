@@ -348,8 +348,8 @@ class FunFlow6DConfig:
 
         Example:
             >>> cfg = FunFlow6DConfig.recipe("learned_small")
-            >>> cfg.appearance_encoder, cfg.num_hypotheses, cfg.steps
-            ('learned', 12, 4)
+            >>> cfg.appearance_encoder, cfg.num_hypotheses, cfg.solver, cfg.steps
+            ('learned', 12, 'midpoint', 1)
         """
         check_name("recipe", name, tuple(RECIPES))
         return cls.from_dict(RECIPES[name])
