@@ -45,7 +45,8 @@ import torch
 from _common import report, target_instances
 
 from poseflow.assets import DEMO_CHECKPOINT
-from poseflow.cli.common import add_set_argument, inference_changes, load_model
+from poseflow.cli.common import load_model
+from poseflow.cli.options import add_set_argument, inference_changes
 from poseflow.data.bop import BOPDataset
 from poseflow.data.object_folder import load_object_models, object_cache_dir
 from poseflow.eval import evaluate_bop

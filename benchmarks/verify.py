@@ -34,7 +34,7 @@ from typing import Any
 import torch
 from _common import clocked, report
 
-from poseflow.cli.common import parse_set
+from poseflow.cli.options import parse_set
 from poseflow.data.bop import BOPDataset
 from poseflow.data.object_folder import load_object_models
 from poseflow.eval.results import PoseResults, read_results, write_results

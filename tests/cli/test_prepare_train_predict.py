@@ -12,7 +12,8 @@ import pytest
 import torch
 
 from poseflow.cli import SUBCOMMANDS, main
-from poseflow.cli.common import add_config_arguments, build_config, parse_set, resolve_device
+from poseflow.cli.common import resolve_device
+from poseflow.cli.options import add_config_arguments, build_config, parse_set
 from poseflow.cli.predict import select_targets
 from poseflow.data.bop import BOPDataset, Detection, write_detections
 from poseflow.data.object_folder import (

@@ -33,11 +33,11 @@ from typing import Any
 from poseflow.cli.common import (
     LOG,
     add_device_argument,
-    add_inference_arguments,
     add_model_argument,
     add_output_arguments,
     add_seed_argument,
 )
+from poseflow.cli.options import add_inference_arguments
 
 __all__ = [
     "BENCH_SEED",
@@ -270,13 +270,8 @@ def run(args: argparse.Namespace) -> int:
     """Time every setting, print the table and the stage breakdowns; returns 0."""
     import importlib.util
 
-    from poseflow.cli.common import (
-        inference_changes,
-        load_model,
-        resolve_device,
-        resolve_model,
-        show_progress,
-    )
+    from poseflow.cli.common import load_model, resolve_device, resolve_model, show_progress
+    from poseflow.cli.options import inference_changes
     from poseflow.data.object_folder import load_object_models, object_cache_dir
     from poseflow.errors import ValueRangeError
 

@@ -52,13 +52,12 @@ from typing import TYPE_CHECKING, Any
 
 from poseflow.cli.common import (
     add_device_argument,
-    add_inference_arguments,
     add_model_argument,
     add_output_arguments,
     add_seed_argument,
-    inference_changes,
     positive_int,
 )
+from poseflow.cli.options import add_inference_arguments, inference_changes
 
 if TYPE_CHECKING:
     import torch

@@ -17,7 +17,8 @@ from __future__ import annotations
 import argparse
 import time
 
-from poseflow.cli.common import add_config_arguments, add_output_arguments
+from poseflow.cli.common import add_output_arguments
+from poseflow.cli.options import add_config_arguments
 
 __all__ = ["add_parser", "run"]
 
@@ -55,7 +56,8 @@ def run(args: argparse.Namespace) -> int:
     import torch
     from tqdm.auto import tqdm
 
-    from poseflow.cli.common import build_config, check_writable, config_requested, show_progress
+    from poseflow.cli.common import check_writable, show_progress
+    from poseflow.cli.options import build_config, config_requested
     from poseflow.data.object_folder import check_dataset, load_object_models, object_cache_dir
     from poseflow.errors import UsageError
     from poseflow.models import FunFlow6D, FunFlow6DConfig

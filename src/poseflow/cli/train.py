@@ -32,12 +32,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-from poseflow.cli.common import (
-    add_config_arguments,
-    add_device_argument,
-    add_output_arguments,
-    add_seed_argument,
-)
+from poseflow.cli.common import add_device_argument, add_output_arguments, add_seed_argument
+from poseflow.cli.options import add_config_arguments
 
 __all__ = ["RESUME_SETTINGS", "add_parser", "run"]
 
@@ -126,7 +122,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
 def _run_config(args: argparse.Namespace, out: Path) -> Any:
     """The model configuration: from the options, or the saved run's when resuming."""
-    from poseflow.cli.common import build_config, config_requested
+    from poseflow.cli.options import build_config, config_requested
     from poseflow.errors import UsageError
     from poseflow.flows import latest_checkpoint
     from poseflow.models import FunFlow6DConfig
