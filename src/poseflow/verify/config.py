@@ -61,9 +61,8 @@ class VerifierConfig:
         rank_top_k: hypotheses of an instance that
             :meth:`~poseflow.verify.PoseVerifier.rank_hypotheses` scores again on the full grid,
             the best of its coarse scoring (the coarse grid barely resolves a thin part such as
-            a mug's handle); 0 or 1 ranks on the coarse grid alone. 4 raised devbench's mug by 0.03
-            AR and lowered a textured cylinder of another mesh set by 0.05 (three seeds each),
-            for about 50 ms per image, so it is off by default.
+            a mug's handle); 0 or 1 ranks on the coarse grid alone. Off by default: it helped a
+            mug as much as it cost a printed cylinder (``benchmarks/LOG.md``).
         rank_hypotheses: an estimator that solves several hypotheses per instance (FunFlow6D's
             ``num_hypotheses``) gives them all to the verifier: its coarse score picks the one
             expanded with near-symmetric candidates, and the others are candidates
@@ -89,9 +88,8 @@ class VerifierConfig:
             (a fraction of the diameter) and its inlier count no longer changes.
         max_observed_points: the observed cloud is thinned to at most this many points for ICP.
 
-    The refinement's defaults (20 iterations per scale on 600 observed points; they were 10 on
-    200) raised FunFlow6D's AR on devbench from 0.840 to 0.854 and the classic baseline's from
-    0.837 to 0.842 (three seeds), for about 60 ms more per image of four instances.
+    The refinement's defaults (20 iterations per scale on 600 observed points) are measured
+    against fewer in ``benchmarks/LOG.md``.
     """
 
     num_points: int = 4096
