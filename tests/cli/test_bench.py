@@ -8,7 +8,7 @@ import json
 import pytest
 import torch
 
-from poseflow.cli import bench, main
+from poseflow.cli import add_command, bench, main
 from poseflow.cli.common import command_output, show_progress
 from poseflow.data.synthetic import generate_dataset
 from poseflow.errors import ValueRangeError
@@ -121,7 +121,7 @@ def test_quiet_keeps_the_results_and_drops_the_status_lines(monkeypatch, tmp_pat
             bench.generated_split(tmp_path / "d", images=2, instances=8, seed=1, progress=False)
         out, err = capsys.readouterr()
         assert out == "" and ("generat" in err) is not quiet
-    args = bench.add_parser(argparse.ArgumentParser().add_subparsers()).parse_args(["--quiet"])
+    args = add_command(argparse.ArgumentParser().add_subparsers(), "bench").parse_args(["--quiet"])
     assert args.quiet and not show_progress(args)
 
 

@@ -6,7 +6,7 @@ import json
 import open3d as o3d
 import pytest
 
-from poseflow.cli import eval as eval_cli
+from poseflow.cli import add_command
 from poseflow.data.synthetic import generate_dataset
 from poseflow.eval.evaluate import gt_results
 from poseflow.eval.results import write_results
@@ -14,7 +14,7 @@ from poseflow.eval.results import write_results
 
 def _parse(argv):
     parser = argparse.ArgumentParser(prog="poseflow")
-    eval_cli.add_parser(parser.add_subparsers(dest="command"))
+    add_command(parser.add_subparsers(dest="command"), "eval")
     return parser.parse_args(argv)
 
 

@@ -6,14 +6,14 @@ import argparse
 
 import pytest
 
-from poseflow.cli import demo as demo_cli
+from poseflow.cli import add_command
 from poseflow.cli import registration_demo as demo
 from poseflow.errors import ValueRangeError
 
 
 def _parse(*argv: str) -> argparse.Namespace:
     parser = argparse.ArgumentParser(prog="poseflow")
-    demo_cli.add_parser(parser.add_subparsers(dest="command"))
+    add_command(parser.add_subparsers(dest="command"), "demo")
     return parser.parse_args(["demo", "registration", *argv])
 
 

@@ -4,14 +4,14 @@ import json
 import numpy as np
 import pytest
 
-from poseflow.cli import SUBCOMMANDS, main
+from poseflow.cli import SUBCOMMANDS, add_command, main
 from poseflow.cli import synth as synth_cli
 from poseflow.data.bop import BOPImageDataset
 
 
 def _parser():
     parser = argparse.ArgumentParser(prog="poseflow")
-    synth_cli.add_parser(parser.add_subparsers(dest="command"))
+    add_command(parser.add_subparsers(dest="command"), "synth")
     return parser
 
 

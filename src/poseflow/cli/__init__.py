@@ -1,13 +1,16 @@
 """The ``poseflow`` command line.
 
-Each subcommand lives in its own module that exposes ``add_parser(subparsers)``; the module is
-imported only when listed here, and its heavy imports happen inside its ``run`` function so that
-``poseflow --help`` stays fast.
+Each subcommand lives in its own module, imported only when listed in :data:`SUBCOMMANDS`, which
+defines ``HELP`` (its line in ``poseflow --help``), ``DESCRIPTION`` (its own ``--help``; kept as
+written where the module sets ``FORMATTER = argparse.RawDescriptionHelpFormatter``), optionally
+``EPILOG``, ``add_arguments(parser)`` (its options) and ``run(args)``; :func:`add_command`
+registers it. The heavy imports happen inside ``run`` so that ``poseflow --help`` stays fast.
 
 Exit codes: 0 on success, 1 when the run fails (a :class:`~poseflow.errors.PoseflowError`: a
 missing or malformed file, implausible units, a failed write), 2 for usage errors (argparse's, a
 :class:`~poseflow.errors.UsageError`, or a plain ``ValueRangeError``: an argument's value out of
-its range) and when no subcommand is given. Every subcommand takes ``--threads N``
+its range) and when no subcommand is given. Every subcommand takes ``--no-progress`` and
+``--quiet`` (:func:`~poseflow.cli.common.add_output_arguments`) and ``--threads N``
 (:func:`~poseflow.cli.common.add_threads_argument`), set through :func:`poseflow.num_threads`
 for the whole command. Status lines and warnings go through
 :mod:`logging` to stderr, written around the progress bars; results go to stdout.
@@ -26,6 +29,7 @@ from poseflow.errors import PoseflowError, UsageError, ValueRangeError
 __all__ = [
     "EXIT_FAILED",
     "EXIT_USAGE",
+    "add_command",
     "build_parser",
     "is_usage_error",
     "main",
@@ -61,6 +65,32 @@ def subcommand_parsers(parser: argparse.ArgumentParser) -> Iterator[argparse.Arg
                 yield from subcommand_parsers(command)
 
 
+def add_command(subparsers: argparse._SubParsersAction, name: str) -> argparse.ArgumentParser:
+    """Register the subcommand of module ``poseflow.cli.NAME`` on ``subparsers``.
+
+    Its parser takes the module's ``HELP``, ``DESCRIPTION``, ``EPILOG`` and ``FORMATTER`` (the
+    last two optional), the options of its ``add_arguments``, then ``--no-progress`` and
+    ``--quiet``; the parsed arguments' ``run`` is the module's ``run``.
+
+    Returns:
+        The subcommand's parser.
+    """
+    from poseflow.cli.common import add_output_arguments
+
+    module = importlib.import_module(f"poseflow.cli.{name}")
+    parser = subparsers.add_parser(
+        name,
+        help=module.HELP,
+        description=module.DESCRIPTION,
+        epilog=getattr(module, "EPILOG", None),
+        formatter_class=getattr(module, "FORMATTER", argparse.HelpFormatter),
+    )
+    module.add_arguments(parser)
+    add_output_arguments(parser)
+    parser.set_defaults(run=module.run)
+    return parser
+
+
 def build_parser() -> argparse.ArgumentParser:
     """Build the argument parser with every subcommand registered (each with ``--threads``)."""
     from poseflow.cli.common import add_threads_argument
@@ -73,7 +103,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"poseflow {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in SUBCOMMANDS:
-        importlib.import_module(f"poseflow.cli.{name}").add_parser(sub)
+        add_command(sub, name)
     for command in sub.choices.values():
         command.set_defaults(parser=command)  # for the usage line of a usage error
         add_threads_argument(command)

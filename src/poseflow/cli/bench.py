@@ -30,18 +30,14 @@ import time
 from pathlib import Path
 from typing import Any
 
-from poseflow.cli.common import (
-    LOG,
-    add_device_argument,
-    add_model_argument,
-    add_output_arguments,
-    add_seed_argument,
-)
+from poseflow.cli.common import LOG, add_device_argument, add_model_argument, add_seed_argument
 from poseflow.cli.options import add_inference_arguments
 
 __all__ = [
     "BENCH_SEED",
-    "add_parser",
+    "DESCRIPTION",
+    "HELP",
+    "add_arguments",
     "benchmark_settings",
     "fastest_equal_setting",
     "generated_split",
@@ -57,19 +53,19 @@ DEFAULT_SETTINGS = ("euler:50", "euler:10", "euler:5", "heun:5")
 BENCH_SEED = 7
 
 
-def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
-    """Register the ``bench`` subcommand on ``subparsers``; its ``run`` is :func:`run`."""
-    parser = subparsers.add_parser(
-        "bench",
-        help="per-image latency and stage breakdown of FunFlow6D for several sampler settings",
-        description=(
-            "Time FunFlow6D per image, stage by stage (the paper's stages), for several sampler "
-            "settings; write each setting's BOP results CSV, score it with the BOP 2019 AR where "
-            "Open3D can render VSD, and name the fastest setting within --ar-tolerance of the "
-            "first. Without DATASET, a test split of the demo objects with --instances objects "
-            "per image is generated in OUT/data (and reused)."
-        ),
-    )
+#: ``bench``'s line in ``poseflow --help``.
+HELP = "per-image latency and stage breakdown of FunFlow6D for several sampler settings"
+
+#: What ``poseflow bench --help`` says.
+DESCRIPTION = """\
+Time FunFlow6D per image, stage by stage (the paper's stages), for several sampler settings; write
+each setting's BOP results CSV, score it with the BOP 2019 AR where Open3D can render VSD, and name
+the fastest setting within --ar-tolerance of the first. Without DATASET, a test split of the demo
+objects with --instances objects per image is generated in OUT/data (and reused)."""
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add the options of ``poseflow bench`` (its ``run`` is :func:`run`)."""
     parser.add_argument(
         "dataset", nargs="?", default=None, help="BOP dataset folder (default: generate one)"
     )
@@ -101,9 +97,6 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     parser.add_argument("--no-eval", action="store_true", help="write the CSVs, skip the AR")
     add_seed_argument(parser, draws="the generated data, the noise and RANSAC", default=BENCH_SEED)
     add_device_argument(parser)
-    add_output_arguments(parser)
-    parser.set_defaults(run=run)
-    return parser
 
 
 def parse_setting(text: str) -> tuple[str, int]:

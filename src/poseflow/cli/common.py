@@ -4,9 +4,10 @@
   :func:`command_output` (status lines and warnings through :mod:`logging`, written around the
   progress bars), :func:`check_writable` (an output path is checked before any work);
 - option types: :func:`positive_int`, :func:`nonnegative_int`, :func:`solver_name`;
+- option values: :func:`option_values` (options passed on as keywords of the same names);
 - models: :func:`add_model_argument` (``--model``), :func:`resolve_model` (its value: a folder,
-  ``demo``, or by default the shipped demo model) and :func:`load_model` (a clear error for a
-  truncated or malformed checkpoint);
+  ``demo``, or by default the shipped demo model), :func:`load_model` (a clear error for a
+  truncated or malformed checkpoint) and :func:`add_cache_argument` (``--cache``);
 - ``--device``: :func:`add_device_argument` and :func:`resolve_device`;
 - ``--threads``: :func:`add_threads_argument` (every subcommand has it) and :func:`command_threads`;
 - ``--seed``: :func:`add_seed_argument`, with one default for every command (:data:`DEFAULT_SEED`).
@@ -36,6 +37,7 @@ from typing import Any
 __all__ = [
     "DEFAULT_SEED",
     "LOG",
+    "add_cache_argument",
     "add_device_argument",
     "add_model_argument",
     "add_output_arguments",
@@ -46,6 +48,7 @@ __all__ = [
     "command_threads",
     "load_model",
     "nonnegative_int",
+    "option_values",
     "positive_int",
     "resolve_device",
     "resolve_model",
@@ -230,6 +233,16 @@ def solver_name(text: str) -> str:
     return text
 
 
+def option_values(args: argparse.Namespace, *names: str) -> dict[str, Any]:
+    """The values of the options ``names`` (their ``dest``), to pass on as keywords of those names.
+
+    Example:
+        >>> option_values(argparse.Namespace(seed=3, split="test", quiet=False), "split", "seed")
+        {'split': 'test', 'seed': 3}
+    """
+    return {name: getattr(args, name) for name in names}
+
+
 # ------------------------------------------------------------------------------ models
 
 
@@ -249,6 +262,21 @@ def add_model_argument(
         metavar="MODEL_DIR",
         help="FunFlow6D model folder written by `poseflow train`, or demo for the one shipped "
         f"with poseflow (default: {without})",
+    )
+
+
+def add_cache_argument(parser: Any, *, without: str) -> None:
+    """Add ``--cache DIR``, the folder of the prepared objects (``objects/``), to a parser.
+
+    Args:
+        parser: a parser or an argument group.
+        without: the folder used without the option, for the help.
+    """
+    parser.add_argument(
+        "--cache",
+        default=None,
+        metavar="DIR",
+        help=f"folder holding the prepared objects (objects/); default {without}",
     )
 
 

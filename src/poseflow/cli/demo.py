@@ -20,12 +20,14 @@ from typing import Any
 from poseflow.cli.common import (
     add_device_argument,
     add_model_argument,
-    add_output_arguments,
     add_seed_argument,
     positive_int,
 )
 
-__all__ = ["DESCRIPTION", "add_parser", "run", "write_timing_chart"]
+__all__ = ["DESCRIPTION", "FORMATTER", "HELP", "add_arguments", "run", "write_timing_chart"]
+
+#: ``demo``'s line in ``poseflow --help``.
+HELP = "estimate poses on generated scenes and compare with the classic baseline"
 
 #: What ``poseflow demo --help`` says (plain text: the module docstring is reStructuredText).
 DESCRIPTION = """\
@@ -42,15 +44,12 @@ demo skips the chart and says so.
 
 `poseflow demo registration` runs the registration stage alone against Open3D."""
 
+#: :data:`DESCRIPTION` is shown as written.
+FORMATTER = argparse.RawDescriptionHelpFormatter
 
-def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
-    """Register ``demo`` (and ``demo registration``) on ``subparsers``."""
-    parser = subparsers.add_parser(
-        "demo",
-        help="estimate poses on generated scenes and compare with the classic baseline",
-        description=DESCRIPTION,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add the options of ``poseflow demo`` (:func:`run`) and its ``demo registration``."""
     parser.add_argument("--out", default="demo_output", help="folder for everything written")
     parser.add_argument("--images", type=positive_int, default=6, help="test images to generate")
     add_seed_argument(parser, draws="the scenes and the model")
@@ -58,10 +57,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     add_device_argument(parser)
     parser.add_argument("--no-baseline", action="store_true", help="skip the classic baseline")
     parser.add_argument("--no-overlays", action="store_true", help="write no overlay pictures")
-    add_output_arguments(parser)
-    parser.set_defaults(run=run)
     _add_registration_parser(parser.add_subparsers(dest="demo", metavar="{registration}"))
-    return parser
 
 
 def _add_registration_parser(subparsers: argparse._SubParsersAction) -> None:

@@ -26,14 +26,12 @@ import re
 from pathlib import Path
 from typing import Any
 
-from poseflow.cli.common import (
-    add_device_argument,
-    add_model_argument,
-    add_output_arguments,
-    add_seed_argument,
-)
+from poseflow.cli.common import add_device_argument, add_model_argument, add_seed_argument
 
-__all__ = ["DESCRIPTION", "add_parser", "load_meshes", "run"]
+__all__ = ["DESCRIPTION", "FORMATTER", "HELP", "add_arguments", "load_meshes", "run"]
+
+#: ``estimate``'s line in ``poseflow --help``.
+HELP = "estimate object poses in one RGB-D frame (image files and a mesh)"
 
 #: What ``poseflow estimate --help`` says.
 DESCRIPTION = """\
@@ -51,15 +49,12 @@ BOP scene_camera.json's depth_scale is millimetres per unit (BOP's 0.1 is --dept
 Estimator: the classic baseline (FPFH + RANSAC + ICP, no training) unless --model names a
 trained FunFlow6D model folder (or demo, the small model shipped with poseflow)."""
 
+#: :data:`DESCRIPTION` is shown as written.
+FORMATTER = argparse.RawDescriptionHelpFormatter
 
-def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
-    """Register the ``estimate`` subcommand on ``subparsers``; its ``run`` is :func:`run`."""
-    parser = subparsers.add_parser(
-        "estimate",
-        help="estimate object poses in one RGB-D frame (image files and a mesh)",
-        description=DESCRIPTION,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add the options of ``poseflow estimate`` (its ``run`` is :func:`run`)."""
     _add_frame_arguments(parser.add_argument_group("the frame"))
     _add_instance_arguments(parser.add_argument_group("the instances"))
     _add_object_arguments(parser.add_argument_group("the objects and the estimator"))
@@ -72,9 +67,6 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         "viewer); needs pip install 'poseflow[viz]'",
     )
     add_device_argument(parser)
-    add_output_arguments(parser)
-    parser.set_defaults(run=run)
-    return parser
 
 
 def _add_frame_arguments(frame: Any) -> None:

@@ -14,22 +14,20 @@ import json
 from pathlib import Path
 from typing import Any
 
-from poseflow.cli.common import add_output_arguments
+__all__ = ["DESCRIPTION", "HELP", "add_arguments", "format_table", "run"]
 
-__all__ = ["add_parser", "format_table", "run"]
+#: ``eval``'s line in ``poseflow --help``.
+HELP = "BOP Average Recall (VSD, MSSD, MSPD) of a results CSV"
+
+#: What ``poseflow eval --help`` says.
+DESCRIPTION = """\
+Evaluate pose estimates in the BOP 2019 CSV format on a BOP dataset with the BOP 2019 protocol:
+AR = mean of the VSD, MSSD and MSPD recalls. Prints a per-object table and writes the report as
+JSON."""
 
 
-def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
-    """Register the ``eval`` subcommand on ``subparsers``; its ``run`` is :func:`run`."""
-    parser = subparsers.add_parser(
-        "eval",
-        help="BOP Average Recall (VSD, MSSD, MSPD) of a results CSV",
-        description=(
-            "Evaluate pose estimates in the BOP 2019 CSV format on a BOP dataset with the BOP "
-            "2019 protocol: AR = mean of the VSD, MSSD and MSPD recalls. Prints a per-object "
-            "table and writes the report as JSON."
-        ),
-    )
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add the options of ``poseflow eval`` (its ``run`` is :func:`run`)."""
     parser.add_argument("dataset", type=Path, help="BOP dataset folder (models_eval/, split)")
     parser.add_argument("results", type=Path, help="results CSV (scene_id,im_id,obj_id,...)")
     parser.add_argument("--split", default="test", help="split folder (default: test)")
@@ -52,9 +50,6 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         action="store_true",
         help="with --run-baseline: replace RESULTS when it exists",
     )
-    add_output_arguments(parser)
-    parser.set_defaults(run=run)
-    return parser
 
 
 def format_table(report: dict[str, Any]) -> str:

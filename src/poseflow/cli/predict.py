@@ -51,9 +51,9 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from poseflow.cli.common import (
+    add_cache_argument,
     add_device_argument,
     add_model_argument,
-    add_output_arguments,
     add_seed_argument,
     positive_int,
 )
@@ -70,28 +70,29 @@ METHODS = ("funflow6d", "baseline", "hybrid")
 #: How the overlays' legends name them.
 METHOD_LABELS = {"funflow6d": "FunFlow6D", "baseline": "classic baseline", "hybrid": "hybrid"}
 
-__all__ = ["add_parser", "run", "select_targets"]
+__all__ = ["DESCRIPTION", "HELP", "add_arguments", "run", "select_targets"]
 
 
-def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
-    """Register the ``predict`` subcommand on ``subparsers``; its ``run`` is :func:`run`."""
-    parser = subparsers.add_parser(
-        "predict",
-        help="estimate object poses on a BOP split and write a BOP results CSV",
-        description=(
-            "Estimate the pose of every instance of the split's images (ground-truth masks, or "
-            "the masks of a BOP detections file) with FunFlow6D or the classic baseline, and "
-            "write the BOP 2019 results CSV with per-image times. By default only the "
-            "instances named by test_targets_bop19.json are estimated on test splits."
-        ),
-        epilog=(
-            "Several processes: `torchrun --nproc_per_node=K -m poseflow.cli predict ...` (also "
-            "across machines, as torchrun allows) splits the images over K processes, each on its "
-            "own GPU (cuda:LOCAL_RANK) or on the CPU with its share of the cores (torchrun sets "
-            "OMP_NUM_THREADS=1 unless it is set); rank 0 writes the same CSV as one process. A "
-            "failed process stops all of them, and no CSV is written."
-        ),
-    )
+#: ``predict``'s line in ``poseflow --help``.
+HELP = "estimate object poses on a BOP split and write a BOP results CSV"
+
+#: What ``poseflow predict --help`` says.
+DESCRIPTION = """\
+Estimate the pose of every instance of the split's images (ground-truth masks, or the masks of a
+BOP detections file) with FunFlow6D or the classic baseline, and write the BOP 2019 results CSV
+with per-image times. By default only the instances named by test_targets_bop19.json are estimated
+on test splits."""
+
+#: What ``poseflow predict --help`` says after the options.
+EPILOG = """\
+Several processes: `torchrun --nproc_per_node=K -m poseflow.cli predict ...` (also across machines,
+as torchrun allows) splits the images over K processes, each on its own GPU (cuda:LOCAL_RANK) or on
+the CPU with its share of the cores (torchrun sets OMP_NUM_THREADS=1 unless it is set); rank 0
+writes the same CSV as one process. A failed process stops all of them, and no CSV is written."""
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add the options of ``poseflow predict`` (its ``run`` is :func:`run`)."""
     parser.add_argument("dataset", help="BOP dataset folder")
     add_model_argument(parser)
     parser.add_argument("--out", required=True, metavar="CSV", help="results CSV to write")
@@ -114,17 +115,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         "--max-images", type=positive_int, default=None, metavar="N", help="stop after N images"
     )
     _add_report_arguments(parser)
-    parser.add_argument(
-        "--cache",
-        default=None,
-        metavar="DIR",
-        help="folder holding prepared objects (objects/); default the model folder",
-    )
+    add_cache_argument(parser, without="the model folder")
     add_seed_argument(parser, draws="the noise, sampling and RANSAC")
     add_device_argument(parser)
-    add_output_arguments(parser)
-    parser.set_defaults(run=run)
-    return parser
 
 
 def _add_instance_arguments(parser: argparse.ArgumentParser) -> None:

@@ -17,24 +17,24 @@ from __future__ import annotations
 import argparse
 import time
 
-from poseflow.cli.common import add_output_arguments
 from poseflow.cli.options import add_config_arguments
 
-__all__ = ["add_parser", "run"]
+__all__ = ["DESCRIPTION", "HELP", "add_arguments", "run"]
 
 
-def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
-    """Register the ``prepare`` subcommand on ``subparsers``; its ``run`` is :func:`run`."""
-    parser = subparsers.add_parser(
-        "prepare",
-        help="prepare and cache the object models of a BOP dataset for FunFlow6D",
-        description=(
-            "Compute, per object of DATASET/models, FunFlow6D's query cloud, its geometric and "
-            "multi-view appearance features and the fitted reducer, and cache them under "
-            "OUT/objects/. When OUT holds a trained model (config.json + model.safetensors) its "
-            "configuration is used and no configuration option may be given."
-        ),
-    )
+#: ``prepare``'s line in ``poseflow --help``.
+HELP = "prepare and cache the object models of a BOP dataset for FunFlow6D"
+
+#: What ``poseflow prepare --help`` says.
+DESCRIPTION = """\
+Compute, per object of DATASET/models, FunFlow6D's query cloud, its geometric and multi-view
+appearance features and the fitted reducer, and cache them under OUT/objects/. When OUT holds a
+trained model (config.json + model.safetensors) its configuration is used and no configuration
+option may be given."""
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add the options of ``poseflow prepare`` (its ``run`` is :func:`run`)."""
     parser.add_argument("dataset", help="BOP dataset folder (models/ with models_info.json)")
     parser.add_argument(
         "--out",
@@ -46,9 +46,6 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         "--objects", type=int, nargs="+", default=None, metavar="ID", help="only these objects"
     )
     add_config_arguments(parser)
-    add_output_arguments(parser)
-    parser.set_defaults(run=run)
-    return parser
 
 
 def run(args: argparse.Namespace) -> int:

@@ -188,6 +188,7 @@ def _open3d_pipeline(scenes: Scenes, iterations: int, threshold: float, icp_scal
 
 def run(args: argparse.Namespace) -> int:
     """Run the demo with the parsed arguments; prints a table and returns 0."""
+    from poseflow.cli.common import option_values
     from poseflow.geometry.se3 import inverse_transform, rotation_angle_error, translation_error
     from poseflow.registration import multi_scale_icp, ransac_procrustes
 
@@ -198,11 +199,7 @@ def run(args: argparse.Namespace) -> int:
     scenes = make_scenes(
         args.instances,
         args.points,
-        model_points=args.model_points,
-        outliers=args.outliers,
-        noise=args.noise,
-        flow_noise=args.flow_noise,
-        seed=args.seed,
+        **option_values(args, "model_points", "outliers", "noise", "flow_noise", "seed"),
     )
     # Three standard deviations of the pair residual's norm; ICP from 2 cm down to 5 mm.
     threshold = max(3 * math.hypot(args.noise, args.flow_noise) * math.sqrt(3), 1e-4)

@@ -11,49 +11,30 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from poseflow.cli.common import (
-    add_output_arguments,
-    add_seed_argument,
-    nonnegative_int,
-    positive_int,
-)
+from poseflow.cli.common import add_seed_argument, nonnegative_int, positive_int
 
-__all__ = ["add_parser", "check_output_folder", "run"]
+__all__ = ["DESCRIPTION", "HELP", "add_arguments", "check_output_folder", "run"]
 
 
-def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
-    """Register the ``synth`` subcommand on ``subparsers``; its ``run`` is :func:`run`."""
-    parser = subparsers.add_parser(
-        "synth",
-        help="render a synthetic cluttered RGBD dataset in the BOP format",
-        description=(
-            "Render textured objects resting on a plane among distractors, seen from random "
-            "viewpoints with random light and a depth-sensor noise model, and write a BOP "
-            "dataset (models/, train/, test/, test_targets_bop19.json). Without --objects the "
-            "library's demo objects are used."
-        ),
-    )
+#: ``synth``'s line in ``poseflow --help``.
+HELP = "render a synthetic cluttered RGBD dataset in the BOP format"
+
+#: What ``poseflow synth --help`` says.
+DESCRIPTION = """\
+Render textured objects resting on a plane among distractors, seen from random viewpoints with
+random light and a depth-sensor noise model, and write a BOP dataset (models/, train/, test/,
+test_targets_bop19.json). Without --objects the library's demo objects are used."""
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add the options of ``poseflow synth`` (its ``run`` is :func:`run`)."""
     parser.add_argument("out", help="output dataset folder")
     parser.add_argument(
         "--train", type=nonnegative_int, default=200, help="images of the train split"
     )
     parser.add_argument("--test", type=nonnegative_int, default=50, help="images of the test split")
-    parser.add_argument(
-        "--objects-per-image",
-        type=int,
-        nargs="+",
-        default=[3, 6],
-        metavar="N",
-        help="objects per scene: a number or a range LOW HIGH",
-    )
-    parser.add_argument(
-        "--distractors",
-        type=int,
-        nargs="+",
-        default=[1, 4],
-        metavar="N",
-        help="distractor boxes/cylinders per scene: a number or a range LOW HIGH",
-    )
+    _add_count_argument(parser, "--objects-per-image", [3, 6], "objects")
+    _add_count_argument(parser, "--distractors", [1, 4], "distractor boxes/cylinders")
     parser.add_argument(
         "--images-per-scene", type=positive_int, default=10, help="viewpoints per layout"
     )
@@ -77,12 +58,24 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         help="write into OUT even when it is not empty (files of the same names are replaced; "
         "others are left, so prefer an empty folder)",
     )
-    add_output_arguments(parser)
-    parser.set_defaults(run=run)
-    return parser
+
+
+def _add_count_argument(
+    parser: argparse.ArgumentParser, flag: str, default: list[int], what: str
+) -> None:
+    """Add ``flag N [N]``: how many ``what`` per scene, one number or a range LOW HIGH."""
+    parser.add_argument(
+        flag,
+        type=int,
+        nargs="+",
+        default=default,
+        metavar="N",
+        help=f"{what} per scene: a number or a range LOW HIGH",
+    )
 
 
 def _count_range(values: list[int], flag: str) -> int | tuple[int, int]:
+    """The value of a :func:`_add_count_argument` option: ``N`` or ``(LOW, HIGH)``."""
     from poseflow.errors import UsageError
 
     if len(values) == 1:
@@ -116,7 +109,7 @@ def check_output_folder(out: str | Path, *, overwrite: bool) -> Path:
 
 def run(args: argparse.Namespace) -> int:
     """Generate the dataset described by ``args``; prints a summary and returns 0."""
-    from poseflow.cli.common import show_progress
+    from poseflow.cli.common import option_values, show_progress
     from poseflow.data.synthetic import DepthNoise, generate_dataset
 
     objects_per_image = _count_range(args.objects_per_image, "--objects-per-image")
@@ -129,13 +122,9 @@ def run(args: argparse.Namespace) -> int:
         num_test_images=args.test,
         objects_per_image=objects_per_image,
         distractors_per_image=distractors,
-        images_per_scene=args.images_per_scene,
-        width=args.width,
-        height=args.height,
-        seed=args.seed,
+        **option_values(args, "images_per_scene", "width", "height", "seed", "mesh_scale"),
         depth_noise=None if args.clean_depth else DepthNoise(),
         image_ext=".jpg" if args.jpg else ".png",
-        mesh_scale=args.mesh_scale,
         progress=show_progress(args),
         overwrite=args.overwrite,
     )

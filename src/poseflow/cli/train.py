@@ -32,10 +32,15 @@ import time
 from pathlib import Path
 from typing import Any
 
-from poseflow.cli.common import add_device_argument, add_output_arguments, add_seed_argument
+from poseflow.cli.common import (
+    add_cache_argument,
+    add_device_argument,
+    add_seed_argument,
+    option_values,
+)
 from poseflow.cli.options import add_config_arguments
 
-__all__ = ["RESUME_SETTINGS", "add_parser", "run"]
+__all__ = ["DESCRIPTION", "HELP", "RESUME_SETTINGS", "add_arguments", "run"]
 
 
 def _network_fields() -> tuple[str, ...]:
@@ -50,17 +55,18 @@ def _network_fields() -> tuple[str, ...]:
     return network + tuple(f for f in INFERENCE_FIELDS if f != "dense_points")
 
 
-def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
-    """Register the ``train`` subcommand on ``subparsers``; its ``run`` is :func:`run`."""
-    parser = subparsers.add_parser(
-        "train",
-        help="train FunFlow6D on a BOP dataset's training split",
-        description=(
-            "Prepare the objects, precompute the flow inputs of every training instance (cached "
-            "in RUN_DIR/train_set.safetensors), train by conditional flow matching and save the "
-            "model to RUN_DIR/model. Runs under torchrun (DDP) unchanged."
-        ),
-    )
+#: ``train``'s line in ``poseflow --help``.
+HELP = "train FunFlow6D on a BOP dataset's training split"
+
+#: What ``poseflow train --help`` says.
+DESCRIPTION = """\
+Prepare the objects, precompute the flow inputs of every training instance (cached in
+RUN_DIR/train_set.safetensors), train by conditional flow matching and save the model to
+RUN_DIR/model. Runs under torchrun (DDP) unchanged."""
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add the options of ``poseflow train`` (its ``run`` is :func:`run`)."""
     parser.add_argument("dataset", help="BOP dataset folder")
     parser.add_argument("--out", required=True, metavar="RUN_DIR", help="run folder RUN_DIR")
     parser.add_argument("--split", default="train", help="training split (default: train)")
@@ -96,12 +102,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     parser.add_argument(
         "--resume", action="store_true", help="continue from RUN_DIR's latest checkpoint"
     )
-    parser.add_argument(
-        "--cache",
-        default=None,
-        metavar="DIR",
-        help="folder holding the prepared objects (objects/); default RUN_DIR/model",
-    )
+    add_cache_argument(parser, without="RUN_DIR/model")
     parser.add_argument(
         "--data-only", action="store_true", help="stop after caching the training set"
     )
@@ -115,9 +116,6 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     )
     add_device_argument(parser)
     add_config_arguments(parser)
-    add_output_arguments(parser)
-    parser.set_defaults(run=run)
-    return parser
 
 
 def _run_config(args: argparse.Namespace, out: Path) -> Any:
@@ -229,12 +227,9 @@ def _training_set(
     data = build_training_set(
         model,
         root,
-        split=args.split,
-        copies=args.copies,
-        crop_jitter=args.crop_jitter,
-        min_visib_fract=args.min_visib_fract,
-        max_images=args.max_images,
-        seed=args.seed,
+        **option_values(
+            args, "split", "copies", "crop_jitter", "min_visib_fract", "max_images", "seed"
+        ),
         symmetries=symmetries if args.symmetric_targets else None,
         progress=progress,
     )
@@ -351,14 +346,9 @@ def _train_config(args: argparse.Namespace) -> Any:
 
     warmup = min(500, args.steps // 10) if args.warmup_steps is None else args.warmup_steps
     return TrainConfig(
-        steps=args.steps,
-        batch_size=args.batch_size,
-        lr=args.lr,
-        warmup_steps=warmup,
-        ema_decay=args.ema_decay,
-        precision=args.precision,
+        **option_values(args, "steps", "batch_size", "lr", "ema_decay", "precision", "seed"),
         ckpt_every=args.ckpt_every,
-        seed=args.seed,
+        warmup_steps=warmup,
         progress=show_progress(args),
     )
 

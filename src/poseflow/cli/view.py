@@ -20,26 +20,27 @@ import importlib.util
 from pathlib import Path
 from typing import Any
 
-from poseflow.cli.common import add_output_arguments, nonnegative_int, positive_int
+from poseflow.cli.common import nonnegative_int, positive_int
 
-__all__ = ["FORMATS", "add_parser", "run"]
+__all__ = ["DESCRIPTION", "FORMATS", "HELP", "add_arguments", "run"]
 
 #: What ``--format`` may name.
 FORMATS = ("rrd", "glb", "ply")
 
 
-def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
-    """Register the ``view`` subcommand on ``subparsers``; its ``run`` is :func:`run`."""
-    parser = subparsers.add_parser(
-        "view",
-        help="write 3D views (Rerun .rrd, GLB) of the estimates of a results CSV",
-        description=(
-            "Write, per image of a BOP results CSV, a Rerun recording (.rrd: image, camera, "
-            "depth as a coloured cloud, the estimated meshes with score and validity, the "
-            "ground truth) and a GLB scene of the posed meshes and the cloud, for any viewer. "
-            "Open a recording with `rerun FILE.rrd`. Needs pip install 'poseflow[viz]'."
-        ),
-    )
+#: ``view``'s line in ``poseflow --help``.
+HELP = "write 3D views (Rerun .rrd, GLB) of the estimates of a results CSV"
+
+#: What ``poseflow view --help`` says.
+DESCRIPTION = """\
+Write, per image of a BOP results CSV, a Rerun recording (.rrd: image, camera, depth as a coloured
+cloud, the estimated meshes with score and validity, the ground truth) and a GLB scene of the posed
+meshes and the cloud, for any viewer. Open a recording with `rerun FILE.rrd`. Needs pip install
+'poseflow[viz]'."""
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add the options of ``poseflow view`` (its ``run`` is :func:`run`)."""
     parser.add_argument("results", type=Path, help="results CSV (scene_id,im_id,obj_id,...)")
     parser.add_argument(
         "dataset", type=Path, help="BOP dataset folder (models/, the split; either order)"
@@ -69,9 +70,6 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         help="the cloud keeps one depth pixel in STRIDE along each axis (default 2)",
     )
     parser.add_argument("--no-gt", action="store_true", help="leave out the ground truth")
-    add_output_arguments(parser)
-    parser.set_defaults(run=run)
-    return parser
 
 
 def _order(results: Path, dataset: Path) -> tuple[Path, Path]:
