@@ -32,7 +32,7 @@ from torch.nn import functional as F
 
 from poseflow._api import Hyperparameters
 from poseflow.errors import MissingWeightsError, ShapeError, ValueRangeError
-from poseflow.features.geometric import check_geometric_inputs
+from poseflow.features.geometric import CheckedClouds, GeometricEncoder, check_radius_fractions
 from poseflow.geometry.pointcloud import farthest_point_sample
 from poseflow.geometry.se3 import quaternion_to_rotation
 
@@ -253,7 +253,7 @@ class GeDiNet(nn.Module):
         return F.normalize(self.fc_layer(feat.squeeze(-1)), dim=1)
 
 
-class GeDiEncoder(Hyperparameters):
+class GeDiEncoder(Hyperparameters, GeometricEncoder):
     """Multi-scale GeDi descriptors behind the geometric-encoder protocol.
 
     For every valid point and every radius ``r = fraction * diameter``: the valid points within
@@ -289,10 +289,8 @@ class GeDiEncoder(Hyperparameters):
             raise ValueRangeError(
                 f"samples_per_patch must be at least 128, got {samples_per_patch}"
             )
-        if not radius_fractions or any(r <= 0 for r in radius_fractions):
-            raise ValueRangeError(f"radius_fractions must be positive, got {radius_fractions}")
         self.net = net.eval()
-        self.radius_fractions = tuple(float(r) for r in radius_fractions)
+        self.radius_fractions = check_radius_fractions(radius_fractions)
         self.samples_per_patch = int(samples_per_patch)
         self.patch_batch = int(patch_batch)
         self.seed = int(seed)
@@ -340,27 +338,13 @@ class GeDiEncoder(Hyperparameters):
         net.load_state_dict(state)
         return cls(net.to(map_location), **kwargs)  # type: ignore[arg-type]
 
-    @torch.no_grad()
-    def encode(
-        self,
-        points: torch.Tensor,
-        normals: torch.Tensor | None,
-        mask: torch.Tensor | None,
-        diameter: torch.Tensor | float,
-    ) -> torch.Tensor:
-        """Describe every valid point; ``normals`` are not used (the LRF replaces them).
+    def _describe(self, clouds: CheckedClouds) -> torch.Tensor:
+        """Unit-norm descriptors ``(B, P, D)`` (:meth:`~GeometricEncoder.encode`), zero on padding.
 
-        Args:
-            points: clouds ``(B, P, 3)`` in metres.
-            normals: ignored (may be None).
-            mask: valid points ``(B, P)`` bool, or None.
-            diameter: object diameter(s) in metres, float or ``(B,)``.
-
-        Returns:
-            Descriptors ``(B, P, 32 * len(radius_fractions))``, unit norm, zero on padded rows; in
-            the points' dtype, computed on the network's device.
+        In the points' dtype, computed on the network's device; the normals are not used (the LRF
+        replaces them).
         """
-        mask, diameter = check_geometric_inputs(points, normals, mask, diameter)
+        points, mask, diameter = clouds.points, clouds.mask, clouds.diameter
         param = next(self.net.parameters())
         out = torch.zeros(*points.shape[:2], self.dim, dtype=points.dtype, device=points.device)
         for b in range(points.shape[0]):

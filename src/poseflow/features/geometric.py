@@ -20,7 +20,7 @@ from __future__ import annotations
 import functools
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Protocol, runtime_checkable
+from typing import NamedTuple, Protocol, runtime_checkable
 
 import numpy as np
 import torch
@@ -32,10 +32,12 @@ from poseflow.features.fpfh import check_clouds, compute_fpfh, estimate_outward_
 
 __all__ = [
     "CallableEncoder",
+    "CheckedClouds",
     "FPFHEncoder",
     "GeometricEncoder",
     "TorchScriptEncoder",
     "check_geometric_inputs",
+    "check_radius_fractions",
     "compute_fpfh",
     "encode_on_support",
     "estimate_outward_normals",
@@ -43,9 +45,29 @@ __all__ = [
 ]
 
 
+class CheckedClouds(NamedTuple):
+    """A padded batch of clouds after :func:`check_geometric_inputs`, what an encoder describes.
+
+    Attributes:
+        points: clouds ``(B, P, 3)`` in metres, finite.
+        normals: unit normals ``(B, P, 3)``, or None.
+        mask: valid points ``(B, P)`` bool (at least 3 per cloud).
+        diameter: object diameters ``(B,)`` in metres, positive, in the points' dtype.
+    """
+
+    points: torch.Tensor
+    normals: torch.Tensor | None
+    mask: torch.Tensor
+    diameter: torch.Tensor
+
+
 @runtime_checkable
 class GeometricEncoder(Protocol):
-    """What the pipeline needs from a geometric encoder.
+    """What the pipeline needs from a geometric encoder: ``dim`` and :meth:`encode`.
+
+    Any object with both is one. The built-in encoders also subclass it to inherit its
+    :meth:`encode`, which checks the inputs and describes the :class:`CheckedClouds` with the
+    subclass's ``_describe(clouds) -> (B, P, D)``.
 
     Attributes:
         dim: the descriptor size ``D``.
@@ -53,6 +75,7 @@ class GeometricEncoder(Protocol):
 
     dim: int
 
+    @torch.no_grad()
     def encode(
         self,
         points: torch.Tensor,
@@ -60,8 +83,37 @@ class GeometricEncoder(Protocol):
         mask: torch.Tensor | None,
         diameter: torch.Tensor | float,
     ) -> torch.Tensor:
-        """Describe every point: ``(B, P, 3)`` points → ``(B, P, D)`` descriptors."""
-        ...
+        """Describe every point: ``(B, P, 3)`` points → ``(B, P, D)`` descriptors.
+
+        Args:
+            points: clouds ``(B, P, 3)`` in metres.
+            normals: unit normals ``(B, P, 3)`` oriented outward, or None.
+            mask: valid points ``(B, P)`` bool, or None (all valid).
+            diameter: object diameter(s) in metres, float or ``(B,)``.
+
+        Returns:
+            Descriptors ``(B, P, D)``, zero on padded rows.
+
+        Raises:
+            ShapeError: a shape, dtype or device mismatch.
+            ValueRangeError: non-finite points or a diameter that is not positive.
+            DegenerateInputError: a cloud with fewer than 3 valid points.
+        """
+        clouds = CheckedClouds(
+            points, normals, *check_geometric_inputs(points, normals, mask, diameter)
+        )
+        return self._describe(clouds)  # type: ignore[attr-defined]
+
+
+def check_radius_fractions(radius_fractions: Sequence[float]) -> tuple[float, ...]:
+    """Multi-scale radii as fractions of the object diameter, checked: a non-empty positive tuple.
+
+    Raises:
+        ValueRangeError: none given, or one that is not positive.
+    """
+    if not radius_fractions or any(r <= 0 for r in radius_fractions):
+        raise ValueRangeError(f"radius_fractions must be positive, got {radius_fractions}")
+    return tuple(float(r) for r in radius_fractions)
 
 
 def encode_on_support(
@@ -217,7 +269,7 @@ def _open3d_available() -> bool:
     return True
 
 
-class FPFHEncoder(Hyperparameters):
+class FPFHEncoder(Hyperparameters, GeometricEncoder):
     """Multi-scale FPFH descriptors, concatenated and L2-normalised.
 
     Each scale is Open3D's 33-bin FPFH histogram with a hybrid search of radius
@@ -235,7 +287,8 @@ class FPFHEncoder(Hyperparameters):
       torch backend takes 1.2 to 1.9 times as long for 8 clouds of 64 to 256 points and for one
       of 2,000; ``benchmarks/features.py`` prints the ratio).
 
-    The result has the input's device and dtype.
+    The descriptors have the input's device and dtype, unit norm on valid rows (a point with an
+    empty neighbourhood gets a zero histogram) and zero on padded rows.
 
     Args:
         radius_fractions: FPFH radii as fractions of the object diameter (paper: 0.30 and 0.40).
@@ -263,40 +316,19 @@ class FPFHEncoder(Hyperparameters):
         normal_radius_fraction: float = 0.05,
         backend: str = "auto",
     ) -> None:
-        if not radius_fractions or any(r <= 0 for r in radius_fractions):
-            raise ValueRangeError(f"radius_fractions must be positive, got {radius_fractions}")
         if max_nn < 3:
             raise ValueRangeError(f"max_nn must be at least 3, got {max_nn}")
         if backend not in ("auto", "torch", "open3d"):
             raise ValueRangeError(f"backend must be 'auto', 'torch' or 'open3d', got {backend!r}")
-        self.radius_fractions = tuple(float(r) for r in radius_fractions)
+        self.radius_fractions = check_radius_fractions(radius_fractions)
         self.max_nn = int(max_nn)
         self.normal_radius_fraction = float(normal_radius_fraction)
         self.backend = backend
         self.dim = 33 * len(self.radius_fractions)
 
-    @torch.no_grad()
-    def encode(
-        self,
-        points: torch.Tensor,
-        normals: torch.Tensor | None,
-        mask: torch.Tensor | None,
-        diameter: torch.Tensor | float,
-    ) -> torch.Tensor:
-        """Describe every valid point of every cloud.
-
-        Args:
-            points: clouds, shape ``(B, P, 3)`` in metres.
-            normals: unit normals ``(B, P, 3)`` oriented outward, or None to estimate them
-                (hybrid radius search, turned away from each cloud's centroid).
-            mask: valid points ``(B, P)`` bool, or None.
-            diameter: object diameter(s) in metres, float or ``(B,)``.
-
-        Returns:
-            Descriptors of shape ``(B, P, 33 * len(radius_fractions))``, unit norm on valid rows
-            (a point with an empty neighbourhood gets a zero histogram), zero on padded rows.
-        """
-        return self.encode_first(points, normals, mask, diameter, points.shape[1])
+    def _describe(self, clouds: CheckedClouds) -> torch.Tensor:
+        """Unit-norm descriptors ``(B, P, D)`` (:meth:`~GeometricEncoder.encode`)."""
+        return self._describe_first(clouds, clouds.points.shape[1])
 
     @torch.no_grad()
     def encode_first(
@@ -313,30 +345,32 @@ class FPFHEncoder(Hyperparameters):
         of those points and their neighbours only (about half the time of :meth:`encode` on a
         support cloud ten times larger); the torch backend describes every point and slices.
         """
-        mask, diameter = check_geometric_inputs(points, normals, mask, diameter)
+        clouds = CheckedClouds(
+            points, normals, *check_geometric_inputs(points, normals, mask, diameter)
+        )
         if not 0 <= count <= points.shape[1]:
             raise ValueRangeError(f"count must lie in [0, {points.shape[1]}], got {count}")
+        return self._describe_first(clouds, count)
+
+    def _describe_first(self, clouds: CheckedClouds, count: int) -> torch.Tensor:
+        """Unit-norm descriptors of the first ``count`` points, in the points' device and dtype."""
+        points = clouds.points
         backend = self.backend
         if backend == "auto":
             on_cpu = points.device.type == "cpu"
             backend = "open3d" if on_cpu and _open3d_available() else "torch"
         if backend == "torch":
-            out = self._encode_torch(points, normals, mask, diameter)[:, :count]
+            out = self._encode_torch(clouds)[:, :count]
         else:
-            out = self._encode_open3d(points, normals, mask, diameter, count)
+            out = self._encode_open3d(clouds, count)
         out = torch.nn.functional.normalize(out, dim=-1)
         return out.to(device=points.device, dtype=points.dtype)
 
-    def _encode_torch(
-        self,
-        points: torch.Tensor,
-        normals: torch.Tensor | None,
-        mask: torch.Tensor,
-        diameter: torch.Tensor,
-    ) -> torch.Tensor:
+    def _encode_torch(self, clouds: CheckedClouds) -> torch.Tensor:
         """Raw float64 histograms ``(B, P, D)`` by :func:`compute_fpfh`."""
-        pts = points.to(torch.float64)
-        diameter = diameter.to(torch.float64)
+        normals, mask = clouds.normals, clouds.mask
+        pts = clouds.points.to(torch.float64)
+        diameter = clouds.diameter.to(torch.float64)
         if normals is None:
             radius = self.normal_radius_fraction * diameter
             nrm = estimate_outward_normals(pts, mask, radius=radius, max_nn=30)
@@ -347,23 +381,17 @@ class FPFHEncoder(Hyperparameters):
             pts, nrm, mask, radius=diameter[:, None] * fractions, max_nn=self.max_nn
         )
 
-    def _encode_open3d(
-        self,
-        points: torch.Tensor,
-        normals: torch.Tensor | None,
-        mask: torch.Tensor,
-        diameter: torch.Tensor,
-        count: int,
-    ) -> torch.Tensor:
+    def _encode_open3d(self, clouds: CheckedClouds, count: int) -> torch.Tensor:
         """Raw float64 CPU histograms of the first ``count`` points ``(B, count, D)``, by Open3D."""
         from poseflow.render.backend import import_open3d
 
         o3d = import_open3d("Open3D's normals and FPFH")
 
+        points, normals, diameter = clouds.points, clouds.normals, clouds.diameter
         out = torch.zeros(points.shape[0], count, self.dim, dtype=torch.float64)
         pts_np = points.detach().cpu().double().numpy()
         nrm_np = None if normals is None else normals.detach().cpu().double().numpy()
-        mask_np = mask.cpu().numpy()
+        mask_np = clouds.mask.cpu().numpy()
         for b in range(points.shape[0]):
             valid = mask_np[b]
             described = valid[:count]
@@ -389,7 +417,7 @@ class FPFHEncoder(Hyperparameters):
         return out
 
 
-class CallableEncoder:
+class CallableEncoder(GeometricEncoder):
     """Adapt any function ``f(points, normals, mask, diameter) -> (B, P, D)`` to the protocol.
 
     The output is checked (shape, finiteness), padded rows are zeroed, and the result is moved to
@@ -420,22 +448,15 @@ class CallableEncoder:
         self.dim = int(dim)
         self.normalize = normalize
 
-    @torch.no_grad()
-    def encode(
-        self,
-        points: torch.Tensor,
-        normals: torch.Tensor | None,
-        mask: torch.Tensor | None,
-        diameter: torch.Tensor | float,
-    ) -> torch.Tensor:
-        """Run the wrapped encoder; see :class:`GeometricEncoder`.
+    def _describe(self, clouds: CheckedClouds) -> torch.Tensor:
+        """Run the wrapped encoder (:meth:`~GeometricEncoder.encode`).
 
         Raises:
             ShapeError: the wrapped encoder returned the wrong shape.
             ValueRangeError: it returned NaN or inf on a valid point.
         """
-        mask, diameter = check_geometric_inputs(points, normals, mask, diameter)
-        out = self.fn(points, normals, mask, diameter)
+        points, mask = clouds.points, clouds.mask
+        out = self.fn(*clouds)
         if not isinstance(out, torch.Tensor) or tuple(out.shape) != (*points.shape[:2], self.dim):
             got = tuple(out.shape) if isinstance(out, torch.Tensor) else type(out).__name__
             raise ShapeError(f"encoder returned {got}, expected {(*points.shape[:2], self.dim)}")
