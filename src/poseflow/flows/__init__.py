@@ -40,6 +40,7 @@ from poseflow.flows.positional import PointPositionalEncoder, nerf_embedding
 from poseflow.flows.protocols import VelocityModel
 from poseflow.flows.samplers import (
     SAMPLERS,
+    ButcherTableau,
     EulerSampler,
     HeunSampler,
     MidpointSampler,
@@ -64,6 +65,7 @@ __all__ = [
     "PRESETS",
     "SAMPLERS",
     "TIME_SAMPLERS",
+    "ButcherTableau",
     "CFMObjective",
     "CFMTrainer",
     "DiTBlock",

@@ -3,6 +3,7 @@
 Each solver takes ``steps`` uniform steps of size ``dt = 1 / steps`` and calls the model as
 ``model(x=x_t, t=t, **cond)`` with ``t`` of shape ``(B,)`` (see
 :class:`~poseflow.flows.protocols.VelocityModel`); conditioning keywords are passed through.
+Each is an explicit Runge-Kutta method, given by its :class:`ButcherTableau`.
 
 =========================  =====  ======================  ============================
 solver                     order  model calls per step    note
@@ -40,7 +41,10 @@ the model between train and eval mode: call ``model.eval()`` first.
 from __future__ import annotations
 
 import abc
+import functools
+import operator
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import torch
@@ -51,6 +55,7 @@ from poseflow.flows.protocols import VelocityModel
 
 __all__ = [
     "SAMPLERS",
+    "ButcherTableau",
     "EulerSampler",
     "HeunSampler",
     "MidpointSampler",
@@ -93,8 +98,36 @@ def initial_noise(
     return torch.randn(tuple(shape), generator=generator, device=device, dtype=dtype)
 
 
+@dataclass(frozen=True)
+class ButcherTableau:
+    """An explicit Runge-Kutta method: its stages and how they combine into one step.
+
+    Stage ``i`` evaluates the velocity ``k_i = v(x + dt * sum_j coupling[i][j] k_j, t +
+    nodes[i] dt)`` (``j < i``; zero couplings are skipped); the step is ``x + (dt / divisor) *
+    sum_i weights[i] k_i`` (zero weights skipped). The weights are kept as integers over a common
+    ``divisor`` so that each solver computes exactly the arithmetic of its textbook formula.
+
+    Args:
+        order: global order of accuracy.
+        nodes: the stage times as fractions of ``dt``, one per stage (the first 0).
+        coupling: per stage, the factors of the earlier stages' velocities in its state.
+        weights: per stage, the factor of its velocity in the step, times ``divisor``.
+        divisor: the common denominator of ``weights``.
+
+    Example:
+        >>> RK4Sampler.tableau.weights, RK4Sampler.tableau.divisor, RK4Sampler.stages
+        ((1, 2, 2, 1), 6, 4)
+    """
+
+    order: int
+    nodes: tuple[float, ...]
+    coupling: tuple[tuple[float, ...], ...]
+    weights: tuple[int, ...]
+    divisor: int = 1
+
+
 class ODESampler(abc.ABC):
-    """Base class of the fixed-step solvers; subclasses define one step of the integrator.
+    """Base class of the fixed-step solvers; subclasses give their :class:`ButcherTableau`.
 
     Args:
         steps: number of uniform steps K (>= 1); the paper uses K = 50 with Euler.
@@ -102,10 +135,17 @@ class ODESampler(abc.ABC):
 
     #: The solver's name in :data:`SAMPLERS`.
     name: ClassVar[str]
+    #: The solver's explicit Runge-Kutta method.
+    tableau: ClassVar[ButcherTableau]
     #: Global order of accuracy: halving ``dt`` divides the error by ``2**order``.
     order: ClassVar[int]
     #: Model evaluations per step.
     stages: ClassVar[int]
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        if "tableau" in cls.__dict__:
+            cls.order, cls.stages = cls.tableau.order, len(cls.tableau.nodes)
 
     def __init__(self, *, steps: int = 50) -> None:
         if int(steps) != steps or steps < 1:
@@ -198,11 +238,7 @@ class ODESampler(abc.ABC):
         generator: torch.Generator | None = None,
         device: torch.device | str | None = None,
         dtype: torch.dtype | None = None,
-        frozen_mask: torch.Tensor | None = None,
-        x_frozen: torch.Tensor | None = None,
-        return_trajectory: bool = False,
-        enable_grad: bool = False,
-        **cond: Any,
+        **options: Any,
     ) -> torch.Tensor:
         """Draw ``x_0`` with :func:`initial_noise` from ``generator``, then :meth:`sample`.
 
@@ -212,11 +248,8 @@ class ODESampler(abc.ABC):
             generator: optional random generator for the initial noise.
             device: device of the noise (default: the generator's).
             dtype: dtype of the noise.
-            frozen_mask: as in :meth:`sample`.
-            x_frozen: as in :meth:`sample`.
-            return_trajectory: as in :meth:`sample`.
-            enable_grad: as in :meth:`sample`.
-            **cond: conditioning keywords passed to every model call.
+            **options: the keywords of :meth:`sample` (``frozen_mask``, ``x_frozen``,
+                ``return_trajectory``, ``enable_grad``) and the conditioning keywords.
 
         Returns:
             As :meth:`sample`.
@@ -231,19 +264,20 @@ class ODESampler(abc.ABC):
             True
         """
         x_0 = initial_noise(shape, generator=generator, device=device, dtype=dtype)
-        return self.sample(
-            model,
-            x_0,
-            frozen_mask=frozen_mask,
-            x_frozen=x_frozen,
-            return_trajectory=return_trajectory,
-            enable_grad=enable_grad,
-            **cond,
-        )
+        return self.sample(model, x_0, **options)
 
-    @abc.abstractmethod
     def step(self, field: Field, x: torch.Tensor, t: float, dt: float) -> torch.Tensor:
         """Advance the state ``x`` at time ``t`` by ``dt`` using the (anchor-zeroed) ``field``."""
+        method = self.tableau
+        slopes: list[torch.Tensor] = []
+        for node, coupling in zip(method.nodes, method.coupling):
+            x_stage = x
+            for factor, slope in zip(coupling, slopes):
+                if factor:
+                    x_stage = x_stage + (factor * dt) * slope
+            slopes.append(field(x_stage, t + node * dt))
+        terms = [k if w == 1 else w * k for w, k in zip(method.weights, slopes) if w]
+        return x + (dt / method.divisor) * functools.reduce(operator.add, terms)
 
 
 class EulerSampler(ODESampler):
@@ -255,12 +289,7 @@ class EulerSampler(ODESampler):
     """
 
     name = "euler"
-    order = 1
-    stages = 1
-
-    def step(self, field: Field, x: torch.Tensor, t: float, dt: float) -> torch.Tensor:
-        """One Euler step."""
-        return x + dt * field(x, t)
+    tableau = ButcherTableau(order=1, nodes=(0.0,), coupling=((),), weights=(1,))
 
 
 class MidpointSampler(ODESampler):
@@ -272,13 +301,7 @@ class MidpointSampler(ODESampler):
     """
 
     name = "midpoint"
-    order = 2
-    stages = 2
-
-    def step(self, field: Field, x: torch.Tensor, t: float, dt: float) -> torch.Tensor:
-        """One midpoint step."""
-        k1 = field(x, t)
-        return x + dt * field(x + 0.5 * dt * k1, t + 0.5 * dt)
+    tableau = ButcherTableau(order=2, nodes=(0.0, 0.5), coupling=((), (0.5,)), weights=(0, 1))
 
 
 class HeunSampler(ODESampler):
@@ -290,14 +313,9 @@ class HeunSampler(ODESampler):
     """
 
     name = "heun"
-    order = 2
-    stages = 2
-
-    def step(self, field: Field, x: torch.Tensor, t: float, dt: float) -> torch.Tensor:
-        """One Heun step."""
-        k1 = field(x, t)
-        k2 = field(x + dt * k1, t + dt)
-        return x + (0.5 * dt) * (k1 + k2)
+    tableau = ButcherTableau(
+        order=2, nodes=(0.0, 1.0), coupling=((), (1.0,)), weights=(1, 1), divisor=2
+    )
 
 
 class RK4Sampler(ODESampler):
@@ -309,17 +327,13 @@ class RK4Sampler(ODESampler):
     """
 
     name = "rk4"
-    order = 4
-    stages = 4
-
-    def step(self, field: Field, x: torch.Tensor, t: float, dt: float) -> torch.Tensor:
-        """One RK4 step."""
-        h = 0.5 * dt
-        k1 = field(x, t)
-        k2 = field(x + h * k1, t + h)
-        k3 = field(x + h * k2, t + h)
-        k4 = field(x + dt * k3, t + dt)
-        return x + (dt / 6) * (k1 + 2 * k2 + 2 * k3 + k4)
+    tableau = ButcherTableau(
+        order=4,
+        nodes=(0.0, 0.5, 0.5, 1.0),
+        coupling=((), (0.5,), (0.0, 0.5), (0.0, 0.0, 1.0)),
+        weights=(1, 2, 2, 1),
+        divisor=6,
+    )
 
 
 #: The solvers by name.
@@ -346,11 +360,7 @@ def sample(
     *,
     steps: int = 50,
     method: str = "euler",
-    frozen_mask: torch.Tensor | None = None,
-    x_frozen: torch.Tensor | None = None,
-    return_trajectory: bool = False,
-    enable_grad: bool = False,
-    **cond: Any,
+    **options: Any,
 ) -> torch.Tensor:
     """Integrate a velocity model from ``x_0`` to ``t = 1``; see :meth:`ODESampler.sample`.
 
@@ -359,11 +369,10 @@ def sample(
         x_0: the initial state, shape ``(B, L, C)`` (draw it with :func:`initial_noise`).
         steps: number of uniform steps K (the paper: 50).
         method: ``"euler"`` (the paper), ``"midpoint"``, ``"heun"`` or ``"rk4"``.
-        frozen_mask: optional ``(B, L)`` bool, True at points whose velocity is zeroed.
-        x_frozen: optional ``(B, L, C)`` start values of the frozen points.
-        return_trajectory: return the ``(K + 1, B, L, C)`` states.
-        enable_grad: record autograd.
-        **cond: conditioning keywords passed to every model call.
+        **options: the keywords of :meth:`ODESampler.sample`: ``frozen_mask`` (``(B, L)``
+            bool, True at points whose velocity is zeroed), ``x_frozen`` (their ``(B, L, C)``
+            start values), ``return_trajectory`` (return the ``(K + 1, B, L, C)`` states),
+            ``enable_grad`` (record autograd), and the conditioning keywords of every model call.
 
     Returns:
         The state at ``t = 1`` ``(B, L, C)``, or the trajectory ``(K + 1, B, L, C)``.
@@ -378,15 +387,7 @@ def sample(
         >>> bool((x_1[0, 0] - exact).abs().max() < 1e-7)
         True
     """
-    return get_sampler(method, steps=steps).sample(
-        model,
-        x_0,
-        frozen_mask=frozen_mask,
-        x_frozen=x_frozen,
-        return_trajectory=return_trajectory,
-        enable_grad=enable_grad,
-        **cond,
-    )
+    return get_sampler(method, steps=steps).sample(model, x_0, **options)
 
 
 def _field(
