@@ -11,13 +11,14 @@ from __future__ import annotations
 import functools
 import os
 import time
-from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from dataclasses import dataclass, replace
 from math import nan
 from typing import Any
 
 import torch
 
+from poseflow._checks import check_tensor
 from poseflow._units import check_depth_extent, check_intrinsics, in_front_of_camera
 from poseflow.data.bop import BOPDataset, BOPScene, Detection
 from poseflow.errors import BOPFormatError, ShapeError, ValueRangeError
@@ -27,7 +28,9 @@ from poseflow.eval.timing import StageTimer
 
 __all__ = [
     "Estimator",
+    "ImageInstances",
     "PoseEstimate",
+    "SeededEstimator",
     "invalidate_implausible",
     "on_device",
     "predict_dataset",
@@ -120,15 +123,10 @@ def on_device(estimator: Estimator, device: torch.device | str) -> Estimator:
         torch.float64
     """
 
-    def estimate(
-        rgb: torch.Tensor | None,
-        depth: torch.Tensor,
-        K: torch.Tensor,
-        masks: torch.Tensor,
-        obj_ids: Sequence[int] | torch.Tensor,
-    ) -> PoseEstimate:
-        rgb = None if rgb is None else rgb.to(device)
-        return estimator(rgb, depth.to(device), K.to(device), masks.to(device), obj_ids)
+    def estimate(*image: Any) -> PoseEstimate:
+        """The estimate of ``image = (rgb, depth, K, masks, obj_ids)``, tensors on ``device``."""
+        *tensors, obj_ids = image
+        return estimator(*(None if t is None else t.to(device) for t in tensors), obj_ids)
 
     return estimate
 
@@ -155,6 +153,131 @@ def seeded_estimator(
     if generator is None:
         generator = torch.Generator(device=device).manual_seed(seed)
     return on_device(functools.partial(estimate, generator=generator), device)
+
+
+@dataclass(frozen=True)
+class ImageInstances:
+    """The instances of one RGB-D image: the five arguments of every :data:`Estimator`.
+
+    Attributes:
+        rgb: the colour image ``(3, H, W)``, uint8 or float in ``[0, 1]``, or None.
+        depth: depth ``(H, W)`` in metres.
+        K: intrinsics ``(3, 3)`` (as given, or checked by :meth:`with_intrinsics`).
+        masks: instance masks ``(B, H, W)`` bool.
+        obj_ids: object id of each instance ``(B,)``.
+    """
+
+    rgb: torch.Tensor | None
+    depth: torch.Tensor
+    K: Any
+    masks: torch.Tensor
+    obj_ids: torch.Tensor | Sequence[int]
+
+    def __iter__(self) -> Iterator[Any]:
+        """The five arguments in the estimators' order: ``estimate(*image)``."""
+        return iter((self.rgb, self.depth, self.K, self.masks, self.obj_ids))
+
+    def checked(self, dtype: torch.dtype) -> ImageInstances:
+        """This image with ``K`` ``(3, 3)`` in ``dtype`` and ``obj_ids`` an int64 tensor ``(B,)``.
+
+        ``K`` is checked against the depth's size ``(H, W)`` and put on the depth's device
+        (:func:`~poseflow._units.check_intrinsics`).
+
+        Raises:
+            ShapeError: a depth that is not ``(H, W)``, or ``K`` not 9 numbers.
+            ValueRangeError: ``K`` is not a pinhole matrix of this image.
+        """
+        sizes = check_tensor(self.depth, "depth", ("H", "W"), floating=False)
+        K = check_intrinsics(self.K, sizes["W"], sizes["H"], dtype=dtype, device=self.depth.device)
+        return replace(
+            self, K=K, obj_ids=torch.as_tensor(self.obj_ids, dtype=torch.long).reshape(-1)
+        )
+
+    def twice(self) -> ImageInstances:
+        """This image with every instance twice: rows ``B + i`` repeat instance ``i``."""
+        ids = torch.as_tensor(self.obj_ids).reshape(-1)
+        return replace(
+            self, masks=torch.cat((self.masks, self.masks)), obj_ids=torch.cat((ids, ids))
+        )
+
+
+class SeededEstimator:
+    """Base of the estimators that draw from a generator: ``estimate``, ``estimator``, ``predict``.
+
+    A subclass gives :meth:`_estimate` (of an :class:`ImageInstances`), its ``device`` and
+    :meth:`_object_ids`.
+    """
+
+    device: torch.device
+
+    @torch.no_grad()
+    def estimate(
+        self,
+        rgb: torch.Tensor,
+        depth: torch.Tensor,
+        K: torch.Tensor,
+        masks: torch.Tensor,
+        obj_ids: torch.Tensor | Sequence[int],
+        *,
+        generator: torch.Generator | None = None,
+    ) -> PoseEstimate:
+        """Estimate the pose of every masked instance of one RGBD image, in one batch.
+
+        Stages are charged to the active :class:`~poseflow.eval.timing.StageTimer`, if any.
+
+        Args:
+            rgb: the image ``(3, H, W)``, uint8 or float in ``[0, 1]``.
+            depth: depth ``(H, W)`` in metres.
+            K: intrinsics ``(3, 3)``: a tensor, an array, nested lists or 9 numbers.
+            masks: instance masks ``(B, H, W)`` bool (``B`` may be 0).
+            obj_ids: object id of each mask ``(B,)``; every id must be prepared.
+            generator: seeds the noise, the sampling of the clouds and RANSAC; None: a generator
+                seeded 0, so that the same call gives the same poses (pass a generator seeded
+                at random for independent draws).
+
+        Returns:
+            A :class:`PoseEstimate` of the ``B`` instances (float32 on the depth's device); a pose
+            that is not finite or puts the object behind the camera is flagged invalid
+            (:func:`invalidate_implausible`).
+
+        Raises:
+            ShapeError: inconsistent shapes, or ``K`` not 9 numbers.
+            ValueRangeError: an object id that is not prepared (for verification too, when on),
+                or a ``K`` that is not a pinhole matrix of this image.
+            UnitsError: the masked depth spans far more or far less than the objects (a depth
+                in the wrong unit; :func:`~poseflow._units.check_depth_extent`).
+        """
+        return self._estimate(ImageInstances(rgb, depth, K, masks, obj_ids), generator)
+
+    def _estimate(self, image: ImageInstances, generator: torch.Generator | None) -> PoseEstimate:
+        raise NotImplementedError
+
+    def _object_ids(self) -> list[int]:
+        """The objects this estimator knows."""
+        raise NotImplementedError
+
+    def estimator(self, *, seed: int = 0, generator: torch.Generator | None = None) -> Estimator:
+        """This estimator as an :data:`Estimator` of one generator: :func:`seeded_estimator`."""
+        return seeded_estimator(self.estimate, self.device, seed=seed, generator=generator)
+
+    def predict(
+        self, dataset: str | os.PathLike[str] | BOPDataset, *, seed: int = 0, **options: Any
+    ) -> PoseResults:
+        """Estimate every target instance of a BOP split: :func:`predict_seeded`.
+
+        ``seed`` seeds the noise, sampling and RANSAC of each image with its ids, as ``poseflow
+        predict`` does; ``options`` (``split``, ``targets``, ``detections``, ``max_images``,
+        ``timer``, ``progress``) are those of :func:`predict_dataset`. Returns
+        :class:`~poseflow.eval.results.PoseResults`, one row per valid estimate.
+        """
+        return predict_seeded(
+            lambda generator: self.estimator(generator=generator),
+            dataset,
+            device=self.device,
+            object_ids=self._object_ids(),
+            seed=seed,
+            **options,
+        )
 
 
 def predict_dataset(

@@ -17,23 +17,19 @@ from __future__ import annotations
 import contextlib
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
-from typing import Any
 
 import torch
 from torch import nn
 
-from poseflow._checks import check_tensor
-from poseflow._units import check_depth_extent, check_intrinsics
+from poseflow._units import check_depth_extent
 from poseflow.data.objects import ObjectModel
 from poseflow.errors import CheckpointError, ValueRangeError
 from poseflow.eval.predict import (
-    Estimator,
+    ImageInstances,
     PoseEstimate,
+    SeededEstimator,
     invalidate_implausible,
-    predict_seeded,
-    seeded_estimator,
 )
-from poseflow.eval.results import PoseResults
 from poseflow.eval.timing import stage
 from poseflow.features import AppearanceEncoder, GeometricEncoder
 from poseflow.models.checkpoint import read_checkpoint, write_checkpoint
@@ -50,7 +46,7 @@ from poseflow.verify import PoseVerifier
 __all__ = ["FunFlow6D"]
 
 
-class FunFlow6D(nn.Module):
+class FunFlow6D(nn.Module, SeededEstimator):
     """Model-based 6D pose estimation by conditional flow matching on fused frozen features.
 
     Args:
@@ -158,130 +154,63 @@ class FunFlow6D(nn.Module):
 
     velocity = forward
 
-    @torch.no_grad()
-    def estimate(
-        self,
-        rgb: torch.Tensor,
-        depth: torch.Tensor,
-        K: torch.Tensor,
-        masks: torch.Tensor,
-        obj_ids: torch.Tensor | Sequence[int],
-        *,
-        generator: torch.Generator | None = None,
-    ) -> PoseEstimate:
-        """Estimate the pose of every masked instance of one RGBD image, in one batch.
+    def _estimate(self, image: ImageInstances, generator: torch.Generator | None) -> PoseEstimate:
+        """:meth:`propose`, then, with ``config.verifier`` set, :meth:`verify`.
 
-        :meth:`propose`, then, with ``config.verifier`` set, :meth:`verify`: the verifier's
-        ICP registers the observation's cleaned cloud and its scores become the estimate's.
-        Stages are charged to the active :class:`~poseflow.eval.timing.StageTimer`, if any.
-
-        Args:
-            rgb: the image ``(3, H, W)``, uint8 or float in ``[0, 1]``.
-            depth: depth ``(H, W)`` in metres.
-            K: intrinsics ``(3, 3)``: a tensor, an array, nested lists or 9 numbers.
-            masks: instance masks ``(B, H, W)`` bool (``B`` may be 0).
-            obj_ids: object id of each mask ``(B,)``; every id must be prepared.
-            generator: seeds the noise, the sampling of the clouds and RANSAC; None: a generator
-                seeded 0, so that the same call gives the same poses (pass a generator seeded
-                at random for independent draws).
-
-        Returns:
-            A :class:`PoseEstimate` (of ``B`` instances, float32 on the depth's device); a pose
-            that is not finite or puts the object behind the camera is flagged invalid
-            (:func:`~poseflow.eval.predict.invalidate_implausible`).
-
-        Raises:
-            ShapeError: inconsistent shapes, or ``K`` not 9 numbers.
-            ValueRangeError: an object id that is not prepared (for verification too, when on),
-                a verifier prepared for another ``config.verifier``, or a ``K`` that is not a
-                pinhole matrix of this image.
-            UnitsError: the masked depth spans far more or far less than the objects (a depth
-                in the wrong unit; :func:`~poseflow._units.check_depth_extent`).
+        The verifier's ICP registers the observation's cleaned cloud and its scores become the
+        estimate's. Raises, besides :meth:`estimate`'s errors, ValueRangeError for a verifier
+        prepared for another ``config.verifier``.
         """
-        proposals = self.propose(rgb, depth, K, masks, obj_ids, generator=generator)
+        proposals = self.propose(image, generator=generator)
         if self.config.verifier is None or proposals.estimate.poses.shape[0] == 0:
             return proposals.estimate
-        return self.verify(proposals, rgb, depth, K, masks, obj_ids)
+        return self.verify(proposals, image)
 
     @torch.no_grad()
     def propose(
-        self,
-        rgb: torch.Tensor,
-        depth: torch.Tensor,
-        K: torch.Tensor,
-        masks: torch.Tensor,
-        obj_ids: torch.Tensor | Sequence[int],
-        *,
-        generator: torch.Generator | None = None,
+        self, image: ImageInstances, *, generator: torch.Generator | None = None
     ) -> Proposals:
         """The flow's poses of every instance of one image, before verification.
 
         Samples ``config.num_hypotheses`` flows per instance and solves each for a pose; the
         best by the solver's score is the incumbent, and with
         ``config.verifier.rank_hypotheses`` the others are candidates that the verifier ranks
-        (:class:`Proposals` with ``rank`` on). Arguments as :meth:`estimate`.
+        (:class:`Proposals` with ``rank`` on). Arguments as :meth:`estimate`'s, the image's
+        five as one :class:`~poseflow.eval.predict.ImageInstances`.
 
         Returns:
             :class:`~poseflow.models.verification.Proposals` of the ``B`` instances, with the
             observation's cleaned clouds for the verifier's ICP.
         """
-        K = _checked_image(self, depth, K, masks, obj_ids)
+        image = _checked_image(self, image)
         if generator is None:
-            generator = torch.Generator(device=depth.device).manual_seed(0)
+            generator = torch.Generator(device=image.depth.device).manual_seed(0)
         with _evaluating(self):
-            obs = self.observe(rgb, depth, K, masks, obj_ids, generator=generator)
+            obs = self.observe(*image, generator=generator)
             if obs.points.shape[0] == 0:
-                return no_proposals(depth.device)
+                return no_proposals(image.depth.device)
             with stage("flow_inputs"):
                 inputs = self.flow_inputs(obs)
             return flow_proposals(self.net, inputs, obs, self.objects, self.config, generator)
 
-    def verify(
-        self,
-        proposals: Proposals,
-        rgb: torch.Tensor,
-        depth: torch.Tensor,
-        K: torch.Tensor,
-        masks: torch.Tensor,
-        obj_ids: torch.Tensor | Sequence[int],
-    ) -> PoseEstimate:
+    def verify(self, proposals: Proposals, image: ImageInstances) -> PoseEstimate:
         """Choose and verify each instance's pose among ``proposals`` with :attr:`verifier`.
 
-        :func:`~poseflow.models.verification.verify_proposals`; arguments as :meth:`estimate`.
+        :func:`~poseflow.models.verification.verify_proposals`; ``image`` as :meth:`propose`'s.
 
         Raises:
             ValueRangeError: an object the verifier has not prepared.
         """
-        K = _image_intrinsics(depth, K)
-        obj_ids = torch.as_tensor(obj_ids).reshape(-1)
-        verified = verify_proposals(self.verifier, proposals, rgb, depth, K, masks, obj_ids)
+        verified = verify_proposals(self.verifier, proposals, image.checked(torch.float32))
         return invalidate_implausible(verified)
 
-    def estimator(self, *, seed: int = 0, generator: torch.Generator | None = None) -> Estimator:
-        """This model as an estimator of one generator: :func:`~poseflow.eval.seeded_estimator`."""
-        return seeded_estimator(self.estimate, self.device, seed=seed, generator=generator)
+    def _object_ids(self) -> list[int]:
+        return sorted(self.objects)
 
     @property
     def device(self) -> torch.device:
         """The device of the network's weights."""
         return next(self.net.parameters()).device
-
-    def predict(self, dataset: str | Path | Any, *, seed: int = 0, **options: Any) -> PoseResults:
-        """Estimate every target instance of a BOP split: :func:`~poseflow.eval.predict_seeded`.
-
-        ``seed`` seeds the noise, sampling and RANSAC of each image with its ids, as ``poseflow
-        predict`` does; ``options`` (``split``, ``targets``, ``detections``, ``max_images``,
-        ``timer``, ``progress``) are those of :func:`~poseflow.eval.predict_dataset`. Returns
-        :class:`~poseflow.eval.results.PoseResults`, one row per valid estimate.
-        """
-        return predict_seeded(
-            lambda generator: self.estimator(generator=generator),
-            dataset,
-            device=self.device,
-            object_ids=sorted(self.objects),
-            seed=seed,
-            **options,
-        )
 
     def save(self, folder: str | Path) -> Path:
         """Write ``config.json`` and ``model.safetensors`` (trainable weights only)."""
@@ -302,10 +231,10 @@ class FunFlow6D(nn.Module):
         return model.to(device)
 
 
-def _checked_image(
-    model: FunFlow6D, depth: torch.Tensor, K: Any, masks: torch.Tensor, obj_ids: Any
-) -> torch.Tensor:
-    """``K`` checked (:func:`_image_intrinsics`), once the model and the depth are checked.
+def _checked_image(model: FunFlow6D, image: ImageInstances) -> ImageInstances:
+    """``image`` checked in float32 (:meth:`~poseflow.eval.predict.ImageInstances.checked`).
+
+    The model's verifier and the masked depth's extent are checked too.
 
     Raises:
         ValueRangeError: ``config.verifier`` changed since the objects were prepared for it, an
@@ -317,11 +246,11 @@ def _checked_image(
             "config.verifier changed after the objects were prepared for verification; "
             "call prepare_objects again"
         )
-    K = _image_intrinsics(depth, K)
-    diameters = [o.diameter for o in select_objects(model.objects, obj_ids)]
+    image = image.checked(torch.float32)
+    diameters = [o.diameter for o in select_objects(model.objects, image.obj_ids)]
     with stage("lifting"):  # the check back-projects every mask
-        check_depth_extent(depth, K, masks, diameters, where="the depth")
-    return K
+        check_depth_extent(image.depth, image.K, image.masks, diameters, where="the depth")
+    return image
 
 
 @contextlib.contextmanager
@@ -350,12 +279,6 @@ def _build_parts(
         semantic_dim = appearance.dim if config.reducer == "identity" else config.feature_dim
     net_config = config.net_config(getattr(geometric, "dim", None), semantic_dim)
     return geometric, appearance, FunFlow6DNet(net_config)
-
-
-def _image_intrinsics(depth: torch.Tensor, K: Any) -> torch.Tensor:
-    """``K`` as a float32 ``(3, 3)`` on the depth's device, checked against the image ``(H, W)``."""
-    sizes = check_tensor(depth, "depth", ("H", "W"), floating=False)
-    return check_intrinsics(K, sizes["W"], sizes["H"], dtype=torch.float32, device=depth.device)
 
 
 def _load_weights(net: nn.Module, state: dict[str, torch.Tensor], path: Path) -> None:

@@ -22,23 +22,18 @@ Shape letters: ``B`` instances of an image.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from pathlib import Path
-from typing import Any
-
 import torch
 
 from poseflow.baselines import ClassicBaseline
 from poseflow.errors import ValueRangeError
-from poseflow.eval.predict import Estimator, PoseEstimate, predict_seeded, seeded_estimator
-from poseflow.eval.results import PoseResults
+from poseflow.eval.predict import ImageInstances, PoseEstimate, SeededEstimator
 from poseflow.models.funflow6d import FunFlow6D
 from poseflow.models.verification import keep_better
 
 __all__ = ["Hybrid"]
 
 
-class Hybrid:
+class Hybrid(SeededEstimator):
     """FunFlow6D and the classic baseline as one estimator, their poses chosen by one verifier.
 
     Args:
@@ -68,63 +63,26 @@ class Hybrid:
         self.model = model
         self.baseline = baseline
 
-    @torch.no_grad()
-    def estimate(
-        self,
-        rgb: torch.Tensor,
-        depth: torch.Tensor,
-        K: torch.Tensor,
-        masks: torch.Tensor,
-        obj_ids: torch.Tensor | Sequence[int],
-        *,
-        generator: torch.Generator | None = None,
-    ) -> PoseEstimate:
-        """Estimate the pose of every masked instance of one RGBD image.
+    @property
+    def device(self) -> torch.device:
+        """The model's device."""
+        return self.model.device
 
-        Args:
-            rgb: the image ``(3, H, W)``, uint8 or float in ``[0, 1]``.
-            depth: depth ``(H, W)`` in metres.
-            K: intrinsics ``(3, 3)``: a tensor, an array, nested lists or 9 numbers.
-            masks: instance masks ``(B, H, W)`` bool (``B`` may be 0).
-            obj_ids: object id of each mask ``(B,)``.
-            generator: seeds the flow's noise, its sampling of the clouds and RANSAC (the
-                baseline seeds each instance from its own ``seed``).
+    def _object_ids(self) -> list[int]:
+        return sorted(self.model.objects)
 
-        Returns:
-            The verified :class:`~poseflow.eval.predict.PoseEstimate` (float32), the verifier's
-            scores; an instance is valid where either estimator found a pose.
+    def _estimate(self, image: ImageInstances, generator: torch.Generator | None) -> PoseEstimate:
+        """Both estimators' proposals of every instance, verified in one batch; the better kept.
 
-        Raises:
-            UnitsError: the masked depth spans far more or far less than the objects.
+        ``generator`` seeds the flow's noise, its sampling of the clouds and RANSAC (the
+        baseline seeds each instance from its own ``seed``). The verifier's scores become the
+        estimate's; an instance is valid where either estimator found a pose.
         """
-        proposals = self.model.propose(rgb, depth, K, masks, obj_ids, generator=generator)
+        proposals = self.model.propose(image, generator=generator)
         if proposals.estimate.poses.shape[0] == 0:
             return proposals.estimate
-        classic, _ = self.baseline.solve(depth.cpu(), K, masks.cpu(), obj_ids)
-        both = proposals.with_rival(classic)
-        ids = torch.as_tensor(obj_ids).reshape(-1)
-        out = self.model.verify(
-            both, rgb, depth, K, torch.cat((masks, masks)), torch.cat((ids, ids))
+        classic, _ = self.baseline.solve(
+            image.depth.cpu(), image.K, image.masks.cpu(), image.obj_ids
         )
+        out = self.model.verify(proposals.with_rival(classic), image.twice())
         return keep_better(out)
-
-    def estimator(self, *, seed: int = 0, generator: torch.Generator | None = None) -> Estimator:
-        """This estimator as an :data:`~poseflow.eval.predict.Estimator` of one generator.
-
-        See :func:`~poseflow.eval.predict.seeded_estimator`.
-        """
-        return seeded_estimator(self.estimate, self.model.device, seed=seed, generator=generator)
-
-    def predict(self, dataset: str | Path | Any, *, seed: int = 0, **options: Any) -> PoseResults:
-        """Estimate every target instance of a BOP split: :func:`~poseflow.eval.predict_seeded`.
-
-        Arguments as :meth:`FunFlow6D.predict <poseflow.models.FunFlow6D.predict>`.
-        """
-        return predict_seeded(
-            lambda generator: self.estimator(generator=generator),
-            dataset,
-            device=self.model.device,
-            object_ids=sorted(self.model.objects),
-            seed=seed,
-            **options,
-        )

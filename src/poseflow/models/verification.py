@@ -26,7 +26,7 @@ import torch
 
 from poseflow.data.objects import ObjectModel
 from poseflow.errors import ValueRangeError
-from poseflow.eval.predict import PoseEstimate
+from poseflow.eval.predict import ImageInstances, PoseEstimate
 from poseflow.eval.timing import stage
 from poseflow.geometry.se3 import inverse_transform
 from poseflow.verify import PoseVerifier
@@ -293,13 +293,7 @@ def verify_estimate(
 
 
 def verify_proposals(
-    verifier: PoseVerifier,
-    proposals: Proposals,
-    rgb: torch.Tensor,
-    depth: torch.Tensor,
-    K: torch.Tensor,
-    masks: torch.Tensor,
-    obj_ids: torch.Tensor | Sequence[int],
+    verifier: PoseVerifier, proposals: Proposals, image: ImageInstances
 ) -> PoseEstimate:
     """Choose and verify each instance's pose among its proposals, in one verification.
 
@@ -308,13 +302,9 @@ def verify_proposals(
     checks it against its near-symmetric candidates and the other proposals.
 
     Args:
-        verifier: a verifier with every object of ``obj_ids`` prepared.
+        verifier: a verifier with every object of the image prepared.
         proposals: the instances' :class:`Proposals`.
-        rgb: the image ``(3, Hi, Wi)``.
-        depth: depth ``(Hi, Wi)`` in metres.
-        K: intrinsics ``(3, 3)``.
-        masks: instance masks ``(B, Hi, Wi)`` bool.
-        obj_ids: object id of each instance ``(B,)``.
+        image: the image and its ``B`` instances.
 
     Returns:
         The verified :class:`~poseflow.eval.predict.PoseEstimate`.
@@ -324,10 +314,8 @@ def verify_proposals(
         extra = extra_mask = None
     elif proposals.rank:
         with stage("verification"):
-            est, extra, extra_mask = rank_estimate(
-                verifier, est, extra, extra_mask, rgb, depth, K, masks, obj_ids
-            )
+            est, extra, extra_mask = rank_estimate(verifier, est, extra, extra_mask, *image)
     return verify_estimate(
-        verifier, est, rgb, depth, K, masks, obj_ids, proposals.observed,
-        proposals.observed_mask, extra=extra, extra_mask=extra_mask,
+        verifier, est, *image, proposals.observed, proposals.observed_mask,
+        extra=extra, extra_mask=extra_mask,
     )  # fmt: skip
