@@ -474,6 +474,15 @@ class UMAPReducer(Reducer):
             return self.n_epochs
         return 500 if n <= 10_000 else 200
 
+    def _umap_settings(self) -> dict[str, Any]:
+        """The settings that TorchDR's and umap-learn's ``UMAP`` take by the same names."""
+        return {
+            "n_components": self.n_components,
+            "n_neighbors": self.n_neighbors,
+            "min_dist": self.min_dist,
+            "random_state": self.random_state,
+        }
+
     def _fit_torchdr(self, x: torch.Tensor) -> torch.Tensor:
         """Fit with TorchDR's UMAP on ``x``'s device; returns the embedding ``(N, D)``."""
         torchdr = _import_torchdr()
@@ -484,14 +493,11 @@ class UMAPReducer(Reducer):
             metric = "euclidean"
         with _restored_global_state():  # TorchDR seeds every global RNG when given a seed
             model = torchdr.UMAP(
-                n_components=self.n_components,
-                n_neighbors=self.n_neighbors,
-                min_dist=self.min_dist,
+                **self._umap_settings(),
                 a=self.a_,
                 b=self.b_,
                 metric=metric,
                 max_iter=self._epochs(x.shape[0]),
-                random_state=self.random_state,
                 backend=None,  # TorchDR's default, faiss, is not a dependency
                 distributed=False,  # never join a torchrun process group from here
                 verbose=False,
@@ -504,14 +510,7 @@ class UMAPReducer(Reducer):
             import umap
         except ImportError as err:
             raise MissingDependencyError("umap-learn", "umap", "UMAPReducer.fit") from err
-        model = umap.UMAP(
-            n_components=self.n_components,
-            n_neighbors=self.n_neighbors,
-            min_dist=self.min_dist,
-            metric=self.metric,
-            random_state=self.random_state,
-            n_epochs=self.n_epochs,
-        )
+        model = umap.UMAP(**self._umap_settings(), metric=self.metric, n_epochs=self.n_epochs)
         data = x.cpu().numpy().astype(np.float32)
         threads = torch.get_num_threads()
         emb = model.fit_transform(data)

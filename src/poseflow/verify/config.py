@@ -15,6 +15,17 @@ from poseflow.errors import ValueRangeError
 __all__ = ["VerifierConfig"]
 
 
+#: The int fields of :class:`VerifierConfig` by their least value.
+_INT_MINIMA: dict[int, tuple[str, ...]] = {
+    0: ("max_candidates", "rank_top_k", "refine_top_k"),
+    1: ("block_size", "search_top_k", "icp_iterations"),
+    2: ("turn_steps",),
+    3: ("appearance_window", "max_observed_points"),
+    8: ("crop_size", "coarse_crop_size"),
+    16: ("num_points",),
+}
+
+
 @dataclass(frozen=True)
 class VerifierConfig:
     """Hyper-parameters of :class:`~poseflow.verify.PoseVerifier`.
@@ -124,23 +135,11 @@ class VerifierConfig:
 
     def __post_init__(self) -> None:
         check_field_types(self)
-        ints = {
-            "num_points": (self.num_points, 16),
-            "crop_size": (self.crop_size, 8),
-            "coarse_crop_size": (self.coarse_crop_size, 8),
-            "appearance_window": (self.appearance_window, 3),
-            "block_size": (self.block_size, 1),
-            "max_candidates": (self.max_candidates, 0),
-            "turn_steps": (self.turn_steps, 2),
-            "rank_top_k": (self.rank_top_k, 0),
-            "refine_top_k": (self.refine_top_k, 0),
-            "search_top_k": (self.search_top_k, 1),
-            "icp_iterations": (self.icp_iterations, 1),
-            "max_observed_points": (self.max_observed_points, 3),
-        }
-        for name, (value, low) in ints.items():
-            if isinstance(value, bool) or not isinstance(value, int) or value < low:
-                raise ValueRangeError(f"{name} must be an int >= {low}, got {value!r}")
+        for low, names in _INT_MINIMA.items():
+            for name in names:
+                value = getattr(self, name)
+                if isinstance(value, bool) or not isinstance(value, int) or value < low:
+                    raise ValueRangeError(f"{name} must be an int >= {low}, got {value!r}")
         if self.appearance_window % 2 == 0:
             raise ValueRangeError(f"appearance_window must be odd, got {self.appearance_window}")
         if self.crop_size % self.block_size or self.coarse_crop_size % self.block_size:
