@@ -24,7 +24,6 @@ Everything is vectorised per object (MSSD, MSPD) or cropped to the pixels the ob
 
 from __future__ import annotations
 
-import math
 import os
 import warnings
 from collections import defaultdict
@@ -51,7 +50,7 @@ from poseflow.eval.recall import Assignment, Recall, Target, assign, match, targ
 from poseflow.eval.results import PoseResults, read_results
 from poseflow.eval.symmetry import MAX_SYM_DISC_STEP, symmetry_transforms
 from poseflow.render.mesh import TexturedMesh
-from poseflow.render.raycast import Renderer
+from poseflow.render.raycast import Renderer, box_window
 
 __all__ = ["METRICS", "EvalModel", "evaluate_bop", "gt_results", "load_eval_models"]
 
@@ -125,23 +124,6 @@ def _image_size(scene: Any, im_id: int) -> tuple[int, int]:
         path = scene.rgb_path(im_id)
     with Image.open(path) as im:
         return int(im.size[0]), int(im.size[1])
-
-
-def _window(
-    corners: np.ndarray, T: np.ndarray, K: np.ndarray, width: int, height: int
-) -> tuple[int, int, int, int] | None:
-    """Half-open pixel window ``(u0, u1, v0, v1)`` that can see the object, None if none."""
-    c = corners @ T[:3, :3].T + T[:3, 3]
-    z = c[:, 2]
-    if (z <= 0).all():
-        return None
-    if (z <= 1e-6).any():
-        return 0, width, 0, height
-    p = c @ K.T
-    u, v = p[:, 0] / z, p[:, 1] / z
-    u0, u1 = max(math.floor(u.min()) - 1, 0), min(math.ceil(u.max()) + 2, width)
-    v0, v1 = max(math.floor(v.min()) - 1, 0), min(math.ceil(v.max()) + 2, height)
-    return None if u0 >= u1 or v0 >= v1 else (u0, u1, v0, v1)
 
 
 def _sphere_projections_overlap(radius: float, t1: np.ndarray, t2: np.ndarray) -> bool:
@@ -450,7 +432,7 @@ def _vsd_errors(
             views = []
             for ck, T in ((("est", pairs.est[p]), T_e), (("gt", pairs.gt_id[p]), T_g)):
                 if ck not in cache:
-                    w = _window(m.corners, T, K, width, height)
+                    w = box_window(m.corners, T, K, width, height)
                     d = _render_depth(renderer, mesh_index[o], T, K, w) if w is not None else None
                     cache[ck] = (w, torch.zeros(0, 0) if d is None else d)
                 views.append(cache[ck])

@@ -17,6 +17,7 @@ the per-pixel nearest of them.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -28,7 +29,41 @@ from poseflow._threads import get_num_threads
 from poseflow.errors import ShapeError, ValueRangeError
 from poseflow.render.mesh import TexturedMesh, as_textured_mesh
 
-__all__ = ["Light", "RenderOutput", "Renderer", "render"]
+__all__ = ["Light", "RenderOutput", "Renderer", "box_window", "render"]
+
+
+def box_window(
+    corners: np.ndarray, T: np.ndarray, K: np.ndarray, width: int, height: int
+) -> tuple[int, int, int, int] | None:
+    """The pixels that can see a posed box: a half-open window ``(u0, u1, v0, v1)``, or None.
+
+    The projection of the box's corners, widened by a pixel (two at the far ends); the whole
+    image when a corner lies at or behind the camera plane, None when the box is wholly behind
+    the camera or projects outside the ``width x height`` image.
+
+    Args:
+        corners: the box's corners ``(8, 3)`` in its model frame (any ``(N, 3)`` points).
+        T: the pose ``(4, 4)``, model to camera.
+        K: the intrinsics ``(3, 3)``.
+        width: the image width.
+        height: the image height.
+
+    Example:
+        >>> box = np.array([[x, y, 1.0] for x in (-0.1, 0.1) for y in (-0.1, 0.1)])
+        >>> box_window(box, np.eye(4), np.diag([100.0, 100.0, 1.0]), 64, 48)
+        (0, 12, 0, 12)
+    """
+    c = corners @ T[:3, :3].T + T[:3, 3]
+    z = c[:, 2]
+    if (z <= 0).all():
+        return None
+    if (z <= 1e-6).any():
+        return 0, width, 0, height
+    p = c @ K.T
+    u, v = p[:, 0] / z, p[:, 1] / z
+    u0, u1 = max(math.floor(u.min()) - 1, 0), min(math.ceil(u.max()) + 2, width)
+    v0, v1 = max(math.floor(v.min()) - 1, 0), min(math.ceil(v.max()) + 2, height)
+    return None if u0 >= u1 or v0 >= v1 else (u0, u1, v0, v1)
 
 
 @dataclass(frozen=True)
@@ -207,7 +242,7 @@ class Renderer:
         full = np.zeros((n, height, width), dtype=bool)
         windows: dict[int, tuple[int, int, int, int]] = {}
         for i in range(n):
-            window = self._window(ids[i], T[i], Km, width, height)
+            window = box_window(self._corners[ids[i]], T[i], Km, width, height)
             if window is None:
                 continue
             u0, u1, v0, v1 = window
@@ -255,26 +290,6 @@ class Renderer:
             rgb=torch.from_numpy(image),
             normals=torch.from_numpy(normals),
         )
-
-    def _window(
-        self, mesh_id: int, T: np.ndarray, K: np.ndarray, width: int, height: int
-    ) -> tuple[int, int, int, int] | None:
-        """Pixel window ``(u0, u1, v0, v1)`` (half-open) that can see the object, None if none."""
-        c = self._corners[mesh_id] @ T[:3, :3].T + T[:3, 3]
-        z = c[:, 2]
-        if (z <= 0).all():
-            return None
-        if (z <= 1e-6).any():
-            return 0, width, 0, height
-        p = c @ K.T
-        u, v = p[:, 0] / z, p[:, 1] / z
-        u0 = max(int(np.floor(u.min())) - 1, 0)
-        u1 = min(int(np.ceil(u.max())) + 2, width)
-        v0 = max(int(np.floor(v.min())) - 1, 0)
-        v1 = min(int(np.ceil(v.max())) + 2, height)
-        if u0 >= u1 or v0 >= v1:
-            return None
-        return u0, u1, v0, v1
 
     def _cast(
         self, mesh_id: int, T: np.ndarray, Kinv: np.ndarray, u0: int, u1: int, v0: int, v1: int
