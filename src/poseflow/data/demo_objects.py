@@ -289,6 +289,19 @@ def _can_texture() -> np.ndarray:
 # Geometry
 
 
+def _textured_mesh(
+    verts: list[Any], tris: list[Any], normals: list[Any], uvs: list[Any], texture: np.ndarray
+) -> TexturedMesh:
+    """The mesh of what a builder collects: vertices, triangles, normals and UVs ``(T, 3, 2)``."""
+    return TexturedMesh(
+        np.asarray(verts),
+        np.asarray(tris),
+        vertex_normals=np.asarray(normals),
+        triangle_uvs=np.asarray(uvs),
+        texture=texture,
+    )
+
+
 def _labelled_box() -> TexturedMesh:
     a, b, c = (s / 2 for s in _BOX_SIZE)
     ex, ey, ez = np.eye(3)
@@ -321,13 +334,7 @@ def _labelled_box() -> TexturedMesh:
         for t in ((0, 1, 2), (0, 2, 3)):
             tris.append([base + t[0], base + t[1], base + t[2]])
             uvs.append([corner_uv[t[0]], corner_uv[t[1]], corner_uv[t[2]]])
-    return TexturedMesh(
-        np.asarray(verts),
-        np.asarray(tris),
-        vertex_normals=np.asarray(normals),
-        triangle_uvs=np.asarray(uvs),
-        texture=_box_texture(),
-    )
+    return _textured_mesh(verts, tris, normals, uvs, _box_texture())
 
 
 def _labelled_can() -> TexturedMesh:
@@ -367,13 +374,7 @@ def _labelled_can() -> TexturedMesh:
             else:
                 tris.append([centre, b, a])
                 uvs.append([cuv, ub, ua])
-    return TexturedMesh(
-        np.asarray(verts),
-        np.asarray(tris),
-        vertex_normals=np.asarray(normals),
-        triangle_uvs=np.asarray(uvs),
-        texture=_can_texture(),
-    )
+    return _textured_mesh(verts, tris, normals, uvs, _can_texture())
 
 
 def _bracket_occupancy() -> np.ndarray:

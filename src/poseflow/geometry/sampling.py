@@ -32,6 +32,23 @@ def _lexicographic_codes(keys: torch.Tensor) -> torch.Tensor:
     return code
 
 
+def _valid_mask(
+    points: torch.Tensor, mask: torch.Tensor | None, sizes: dict[str, int]
+) -> torch.Tensor:
+    """The checked mask ``(B, N)`` of ``points`` ``(B, N, 3)`` (all True when None).
+
+    Raises:
+        ShapeError: ``mask`` is not a ``(B, N)`` bool tensor.
+        ValueRangeError: a point under the mask is NaN or inf.
+    """
+    if mask is None:
+        mask = torch.ones(sizes["B"], sizes["N"], dtype=torch.bool, device=points.device)
+    check_mask(mask, "mask", ("B", "N"), sizes)
+    if not bool(torch.isfinite(points[mask]).all()):
+        raise ValueRangeError("valid points contain NaN or inf")
+    return mask
+
+
 def voxel_downsample(
     points: torch.Tensor, voxel_size: float, mask: torch.Tensor | None = None
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -60,11 +77,7 @@ def voxel_downsample(
     device = points.device
     if not voxel_size > 0:
         raise ValueRangeError(f"voxel_size must be positive, got {voxel_size}")
-    if mask is None:
-        mask = torch.ones(B, N, dtype=torch.bool, device=device)
-    check_mask(mask, "mask", ("B", "N"), sizes)
-    if not bool(torch.isfinite(points[mask]).all()):
-        raise ValueRangeError("valid points contain NaN or inf")
+    mask = _valid_mask(points, mask, sizes)
     b_idx, n_idx = mask.nonzero(as_tuple=True)
     if b_idx.numel() == 0:
         empty = torch.zeros(B, 0, dtype=torch.long, device=device)
@@ -135,11 +148,7 @@ def farthest_point_sample(
     device = points.device
     if isinstance(M, bool) or not isinstance(M, int) or M < 1:
         raise ValueRangeError(f"M must be a positive integer, got {M!r}")
-    if mask is None:
-        mask = torch.ones(B, N, dtype=torch.bool, device=device)
-    check_mask(mask, "mask", ("B", "N"), sizes)
-    if not bool(torch.isfinite(points[mask]).all()):
-        raise ValueRangeError("valid points contain NaN or inf")
+    mask = _valid_mask(points, mask, sizes)
     count = mask.sum(1)
     if N == 0:
         empty = torch.zeros(B, M, dtype=torch.long, device=device)
