@@ -33,6 +33,7 @@ __all__ = [
     "flatten_optimizer_state",
     "latest_checkpoint",
     "load_checkpoint",
+    "load_safetensors",
     "prune_checkpoints",
     "save_checkpoint",
     "unflatten_optimizer_state",
@@ -131,15 +132,42 @@ def check_safetensors(path: str | os.PathLike[str]) -> Path:
             default=0,
         )
     except (ValueError, KeyError, TypeError, IndexError) as exc:
-        raise CheckpointError(
-            f"{path.name} is truncated or corrupt ({exc}): {path}; restore it or write it again"
-        ) from None
+        raise _corrupt(path, exc) from None
     if 8 + n + end != size:
-        raise CheckpointError(
-            f"{path.name} is truncated or corrupt (the header describes {8 + n + end} bytes, the "
-            f"file has {size}): {path}; restore it or write it again"
-        )
+        raise _corrupt(path, f"the header describes {8 + n + end} bytes, the file has {size}")
     return path
+
+
+def load_safetensors(
+    path: str | os.PathLike[str], *, device: torch.device | str = "cpu"
+) -> dict[str, torch.Tensor]:
+    """The tensors of a safetensors file, checked whole first (:func:`check_safetensors`).
+
+    Raises:
+        MissingWeightsError: the file does not exist.
+        CheckpointError: the file is truncated, corrupt or not a safetensors file.
+
+    Example:
+        >>> import tempfile, pathlib
+        >>> p = pathlib.Path(tempfile.mkdtemp()) / "w.safetensors"
+        >>> save_file({"w": torch.ones(2)}, str(p))
+        >>> load_safetensors(p)
+        {'w': tensor([1., 1.])}
+    """
+    from safetensors import SafetensorError
+
+    path = check_safetensors(path)
+    try:
+        return load_file(str(path), device=str(device))
+    except (SafetensorError, ValueError, OSError) as exc:
+        raise _corrupt(path, exc) from None
+
+
+def _corrupt(path: Path, why: object) -> CheckpointError:
+    """The error of a safetensors file that cannot be read whole, saying ``why``."""
+    return CheckpointError(
+        f"{path.name} is truncated or corrupt ({why}): {path}; restore it or write it again"
+    )
 
 
 def load_checkpoint(

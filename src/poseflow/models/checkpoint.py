@@ -16,8 +16,8 @@ from typing import Any
 import torch
 
 from poseflow._cache import atomic_write
-from poseflow.errors import CheckpointError, MissingWeightsError, PoseflowError
-from poseflow.models.config import FunFlow6DConfig
+from poseflow.errors import CheckpointError, MissingWeightsError, PoseflowError, ValueRangeError
+from poseflow.models.config import FunFlow6DConfig, read_config_fields
 
 __all__ = [
     "CHECKPOINT_FIELDS_ADDED",
@@ -73,25 +73,16 @@ def read_checkpoint(folder: str | Path) -> tuple[FunFlow6DConfig, dict[str, torc
     Raises:
         MissingWeightsError: ``folder`` holds no checkpoint.
         CheckpointError: ``config.json`` is not valid JSON, not a JSON object, or holds a field
-            of the wrong type or value; ``model.safetensors`` is truncated or corrupt.
+            of the wrong type or value; ``model.safetensors`` is truncated or corrupt
+            (:func:`~poseflow.flows.checkpoint.load_safetensors`).
 
     Example:
         >>> import tempfile
         >>> folder = write_checkpoint(tempfile.mkdtemp(), FunFlow6DConfig(), {"w": torch.ones(3)})
         >>> read_checkpoint(folder)[1]["w"].tolist()
         [1.0, 1.0, 1.0]
-        >>> path = folder / "model.safetensors"
-        >>> _ = path.write_bytes(path.read_bytes()[:-4])  # a copy cut short
-        >>> try:
-        ...     read_checkpoint(folder)
-        ... except CheckpointError as e:
-        ...     print(str(e).split(" (")[0])
-        model.safetensors is truncated or corrupt
     """
-    from safetensors import SafetensorError
-    from safetensors.torch import load_file
-
-    from poseflow.flows.checkpoint import check_safetensors
+    from poseflow.flows.checkpoint import load_safetensors
 
     folder = Path(folder)
     if not is_checkpoint(folder):
@@ -100,25 +91,15 @@ def read_checkpoint(folder: str | Path) -> tuple[FunFlow6DConfig, dict[str, torc
             "train one with `poseflow train`"
         )
     config = _read_config(folder / "config.json")
-    weights = check_safetensors(folder / "model.safetensors")
-    try:
-        state = load_file(str(weights))
-    except (SafetensorError, ValueError, OSError) as exc:
-        raise CheckpointError(
-            f"{weights.name} is truncated or corrupt ({exc}): {weights}; restore it or write it "
-            "again"
-        ) from None
-    return config, state
+    return config, load_safetensors(folder / "model.safetensors")
 
 
 def _read_config(path: Path) -> FunFlow6DConfig:
     """The configuration of a checkpoint's ``config.json``, every problem a CheckpointError."""
     try:
-        data = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise CheckpointError(f"{path} is not valid JSON ({exc}); restore it") from None
-    if not isinstance(data, dict):
-        raise CheckpointError(f"{path} must hold a JSON object of config fields; restore it")
+        data = read_config_fields(path)
+    except ValueRangeError as exc:
+        raise CheckpointError(f"{exc}; restore it") from None
     try:
         return FunFlow6DConfig.from_dict({**CHECKPOINT_FIELDS_ADDED, **data})
     except PoseflowError as exc:

@@ -64,6 +64,7 @@ __all__ = [
     "NetConfig",
     "NetOptions",
     "apply_overrides",
+    "read_config_fields",
     "write_recipes",
 ]
 
@@ -369,13 +370,7 @@ class FunFlow6DConfig:
             raise MissingFileError(
                 f"{path}: no such file, nor a recipe name ({', '.join(sorted(RECIPES))})"
             )
-        try:
-            data = json.loads(path.read_text())
-        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-            raise ValueRangeError(f"{path} is not valid JSON: {exc}") from None
-        if not isinstance(data, dict):
-            raise ValueRangeError(f"{path} must hold a JSON object of config fields")
-        return cls.from_dict(data)
+        return cls.from_dict(read_config_fields(path))
 
     def replace(self, **changes: Any) -> FunFlow6DConfig:
         """A copy with whole fields replaced (validated again); :func:`apply_overrides` merges."""
@@ -463,6 +458,21 @@ RENAMED_FIELDS: dict[str, str] = {
     "ransac_threshold": "ransac_distance",
     "icp_thresholds": "icp_distances",
 }
+
+
+def read_config_fields(path: Path) -> dict[str, Any]:
+    """The configuration fields of a JSON file, not yet checked (:meth:`FunFlow6DConfig.from_dict`).
+
+    Raises:
+        ValueRangeError: the file is not valid JSON, or not a JSON object.
+    """
+    try:
+        data = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ValueRangeError(f"{path} is not valid JSON: {exc}") from None
+    if not isinstance(data, dict):
+        raise ValueRangeError(f"{path} must hold a JSON object of config fields")
+    return data
 
 
 def _upgrade(data: Mapping[str, Any]) -> dict[str, Any]:
