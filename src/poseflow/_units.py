@@ -84,6 +84,28 @@ def _implausible(what: str, value: float, bounds: tuple[float, float], advice: s
     return UnitsError(f"{what} of {value:g} m, outside the plausible {low:g}-{high:g} m: {advice}")
 
 
+def _check_range(
+    value: float,
+    bounds: tuple[float, float],
+    typical: float,
+    what: str,
+    guesses: tuple[str, str],
+    scale_name: str,
+    scale: float,
+    api_name: str | None,
+) -> None:
+    """Raise the UnitsError of a ``value`` (metres) that is not finite or outside ``bounds``.
+
+    Its message says ``what`` had the value, the likely mix-up (``guesses``: below, above the
+    bounds) and the scale that brings the value nearest ``typical`` (:func:`_suggest`).
+    """
+    low, high = bounds
+    if math.isfinite(value) and low <= value <= high:
+        return
+    fix = _fix(scale_name, scale, _suggest(value, low, high, scale, typical), api_name)
+    raise _implausible(what, value, bounds, guesses[value > high] + fix)
+
+
 def check_depth_units(
     depth: torch.Tensor,
     *,
@@ -123,11 +145,9 @@ def check_depth_units(
     if valid.numel() == 0:
         raise DegenerateInputError(f"{where} holds no valid (finite, positive) depth")
     median = float(valid.float().median())
-    low, high = DEPTH_RANGE
-    if not low <= median <= high:
-        guess = "millimetres read as metres? " if median > high else "metres read as millimetres? "
-        fix = _fix(scale_name, scale, _suggest(median, low, high, scale, 1.0), api_name)
-        raise _implausible(f"{where} has a median depth", median, DEPTH_RANGE, guess + fix)
+    guesses = ("metres read as millimetres? ", "millimetres read as metres? ")
+    what = f"{where} has a median depth"
+    _check_range(median, DEPTH_RANGE, 1.0, what, guesses, scale_name, scale, api_name)
     return median
 
 
@@ -164,11 +184,9 @@ def check_diameter_units(
         ...     print(str(e).split("? ")[-1])
         set --mesh-scale 0.001
     """
-    low, high = DIAMETER_RANGE
-    if not (math.isfinite(diameter) and low <= diameter <= high):
-        guess = "is the mesh in millimetres? " if diameter > high else ""
-        fix = _fix(scale_name, scale, _suggest(diameter, low, high, scale, 0.1), api_name)
-        raise _implausible(f"{where} has a diameter", diameter, DIAMETER_RANGE, guess + fix)
+    guesses = ("", "is the mesh in millimetres? ")
+    what = f"{where} has a diameter"
+    _check_range(diameter, DIAMETER_RANGE, 0.1, what, guesses, scale_name, scale, api_name)
     return diameter
 
 
