@@ -40,6 +40,7 @@ from poseflow.models import FunFlow6D, FunFlow6DConfig
 
 DEVBENCH = Path("/work/shared/devbench")
 THRESHOLDS = (0.10, 0.05)
+ENCODERS = ("dsift", "learned/mean", "learned/select")
 
 
 def _encoders(learned: Path | None) -> list[tuple[str, str, str | None]]:
@@ -146,6 +147,13 @@ def main() -> None:
     parser.add_argument("--query-views", type=int, default=12)
     parser.add_argument("--max-images", type=int, default=None)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--encoders",
+        nargs="+",
+        choices=ENCODERS,
+        default=list(ENCODERS),
+        help="the encoders to score (the learned ones need a descriptor folder)",
+    )
     parser.add_argument("--quick", action="store_true", help="two images, N = 64, 4 query views")
     args = parser.parse_args()
     if args.quick:
@@ -158,7 +166,7 @@ def main() -> None:
     ds = BOPDataset(root, "test")
     images = _images(ds, args.max_images)
     obj_set = sorted({o for v in images.values() for o in v})
-    encoders = _encoders(learned)
+    encoders = [e for e in _encoders(learned) if e[0] in args.encoders]
     report: dict = {
         "benchmark": "descriptor_inliers",
         "dataset": root.name,

@@ -38,7 +38,7 @@ LAYERS: dict[str, tuple[str, ...]] = {
     "registration": ("geometry",),
     "render": ("geometry",),
     "data": ("geometry", "render"),
-    "features": ("geometry", "render"),
+    "features": ("geometry", "render", "data"),
     "fusion": (),
     "flows": ("geometry",),
     "eval": ("geometry", "render", "data"),

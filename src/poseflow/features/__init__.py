@@ -43,6 +43,7 @@ from poseflow.features.learned import (
     SHIPPED_DESCRIPTOR_DIR,
     DescriptorNet,
     LearnedAppearanceEncoder,
+    depth_layers,
     load_descriptor,
     save_descriptor,
 )
@@ -82,6 +83,7 @@ __all__ = [
     "UMAPReducer",
     "cached_query_features",
     "compute_fpfh",
+    "depth_layers",
     "encode_on_support",
     "estimate_outward_normals",
     "features_at",

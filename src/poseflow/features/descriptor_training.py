@@ -55,7 +55,7 @@ from torch.nn import functional as F
 
 from poseflow.errors import ValueRangeError
 from poseflow.features.appearance import sample_features
-from poseflow.features.learned import DescriptorNet, save_descriptor
+from poseflow.features.learned import DEPTH_CHANNELS, DescriptorNet, save_descriptor
 
 __all__ = [
     "DescriptorTrainingConfig",
@@ -92,6 +92,8 @@ class DescriptorTrainingConfig:
         max_view_angle: largest out-of-plane angle between the two views, degrees (the in-plane
             roll is uniform over 360°).
         clutter: probability of a second object in a view (occluding or behind).
+        depth: a depth-aware network (RGB and the depth layers in; see
+            :func:`~poseflow.features.learned.depth_layers`).
         seed: seeds the data and the network.
     """
 
@@ -111,6 +113,7 @@ class DescriptorTrainingConfig:
     pool_size: int = 64
     max_view_angle: float = 80.0
     clutter: float = 0.5
+    depth: bool = False
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -263,7 +266,12 @@ def train_descriptor(
     cfg = config or DescriptorTrainingConfig()
     cfg = DescriptorTrainingConfig(**{**asdict(cfg), **changes, "steps": int(steps)})
     torch.manual_seed(cfg.seed)
-    net = DescriptorNet(widths=cfg.widths, dim=cfg.dim, out_stride=cfg.out_stride)
+    net = DescriptorNet(
+        widths=cfg.widths,
+        dim=cfg.dim,
+        out_stride=cfg.out_stride,
+        in_channels=3 + DEPTH_CHANNELS * cfg.depth,
+    )
     gen = PairGenerator(
         cfg.seed,
         input_size=cfg.input_size,
@@ -271,6 +279,7 @@ def train_descriptor(
         max_view_angle=cfg.max_view_angle,
         clutter=cfg.clutter,
         pool_size=cfg.pool_size,
+        depth=cfg.depth,
     )
     opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, _warmup_cosine(cfg.steps))
@@ -394,6 +403,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         choices=("mean", "select"),
         default="select",
         help="how the query's multi-view features are pooled at use (written to config.json)",
+    )
+    parser.add_argument(
+        "--depth",
+        action="store_true",
+        help="a depth-aware descriptor: RGB and the object's depth relief in",
     )
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
     parser.add_argument("--no-progress", action="store_true")

@@ -24,6 +24,7 @@ Shape letters: B images, G descriptor channels, H × W image, h × w feature gri
 
 from __future__ import annotations
 
+import hashlib
 import json
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -38,10 +39,12 @@ from poseflow._checks import check_tensor
 from poseflow.errors import CheckpointError, MissingWeightsError, ValueRangeError
 
 __all__ = [
+    "DEPTH_CHANNELS",
     "DESCRIPTOR_FORMAT",
     "SHIPPED_DESCRIPTOR_DIR",
     "DescriptorNet",
     "LearnedAppearanceEncoder",
+    "depth_layers",
     "load_descriptor",
     "save_descriptor",
 ]
@@ -57,6 +60,41 @@ _HOW_TO_MAKE = (
     "make them with `python -m poseflow.features.descriptor_training --out DIR --steps N` "
     "and pass appearance_encoder='learned:DIR'"
 )
+
+
+#: Input channels that :func:`depth_layers` adds to the RGB of a depth-aware descriptor.
+DEPTH_CHANNELS = 2
+
+
+def depth_layers(depth: torch.Tensor, mask: torch.Tensor, diameter: torch.Tensor) -> torch.Tensor:
+    """The depth input of a depth-aware descriptor: the object's relief, scale-free.
+
+    Channel 0 is the depth relative to the mean depth of the object's valid pixels, in quarter
+    diameters, clamped to ``[-4, 4]`` (0 off the object or where depth is missing); channel 1
+    marks those valid pixels. Neither depends on the object's distance or size, and both are
+    invariant to in-plane rotation, like the crops they are appended to.
+
+    Args:
+        depth: depth ``(B, H, W)`` in metres, 0 where missing.
+        mask: the object's pixels ``(B, H, W)`` bool (its visible mask).
+        diameter: the object's diameter ``(B,)`` in metres.
+
+    Returns:
+        ``(B, 2, H, W)`` in the depth's dtype.
+
+    Example:
+        >>> d = torch.tensor([[[1.0, 1.1], [0.0, 0.9]]])
+        >>> depth_layers(d, torch.ones(1, 2, 2, dtype=torch.bool), torch.tensor([0.4]))[0, 0]
+        tensor([[ 0.0000,  1.0000],
+                [ 0.0000, -1.0000]])
+    """
+    check_tensor(depth, "depth", ("B", "H", "W"))
+    valid = mask.bool() & (depth > 0)
+    weight = valid.to(depth.dtype)
+    centre = (depth * weight).sum(dim=(1, 2)) / weight.sum(dim=(1, 2)).clamp_min(1)
+    scale = 4.0 / diameter.to(depth).reshape(-1, 1, 1)
+    relief = ((depth - centre[:, None, None]) * scale).clamp(-4.0, 4.0) * weight
+    return torch.stack([relief, weight], dim=1)
 
 
 def _block(c_in: int, c_out: int, *, stride: int = 1) -> nn.Sequential:
@@ -91,6 +129,7 @@ class DescriptorNet(nn.Module):
         dim: descriptor channels ``G``.
         out_stride: output stride, a power of two between 2 and ``2 ** len(widths)`` exclusive of
             the deepest level (2 or 4 in practice).
+        in_channels: 3 (RGB) or ``3 + DEPTH_CHANNELS`` (RGB and :func:`depth_layers`).
 
     Raises:
         ValueRangeError: bad sizes.
@@ -103,7 +142,12 @@ class DescriptorNet(nn.Module):
     """
 
     def __init__(
-        self, *, widths: Sequence[int] = (32, 48, 96, 128), dim: int = 64, out_stride: int = 4
+        self,
+        *,
+        widths: Sequence[int] = (32, 48, 96, 128),
+        dim: int = 64,
+        out_stride: int = 4,
+        in_channels: int = 3,
     ) -> None:
         super().__init__()
         widths = tuple(int(w) for w in widths)
@@ -117,8 +161,13 @@ class DescriptorNet(nn.Module):
                 f"out_stride must be a power of two in [2, {2 ** (len(widths) - 1)}], "
                 f"got {out_stride}"
             )
+        if in_channels not in (3, 3 + DEPTH_CHANNELS):
+            raise ValueRangeError(
+                f"in_channels must be 3 or {3 + DEPTH_CHANNELS}, got {in_channels}"
+            )
         self.widths, self.dim, self.out_stride = widths, int(dim), int(out_stride)
-        self.stem = _block(3, widths[0], stride=2)
+        self.in_channels = int(in_channels)
+        self.stem = _block(self.in_channels, widths[0], stride=2)
         self.down = nn.ModuleList(
             _block(widths[k - 1], widths[k], stride=2) for k in range(1, len(widths))
         )
@@ -132,14 +181,16 @@ class DescriptorNet(nn.Module):
 
     def config(self) -> dict[str, Any]:
         """The constructor's arguments, as JSON-ready values."""
-        return {"widths": list(self.widths), "dim": self.dim, "out_stride": self.out_stride}
+        cfg = {"widths": list(self.widths), "dim": self.dim, "out_stride": self.out_stride}
+        return cfg if self.in_channels == 3 else {**cfg, "in_channels": self.in_channels}
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         """Dense unit descriptors.
 
         Args:
-            images: RGB ``(B, 3, H, W)`` in ``[0, 1]``; ``H`` and ``W`` multiples of
-                ``2 ** len(widths)`` give an exact grid (others are handled by padding).
+            images: RGB ``(B, 3, H, W)`` in ``[0, 1]``, followed by the :func:`depth_layers`
+                when ``in_channels`` is 5; ``H`` and ``W`` multiples of ``2 ** len(widths)``
+                give an exact grid (others are handled by padding).
 
         Returns:
             Descriptors ``(B, G, ceil(H / out_stride), ceil(W / out_stride))``, unit norm per
@@ -148,7 +199,7 @@ class DescriptorNet(nn.Module):
         H, W = images.shape[-2:]
         unit = 2 ** len(self.widths)
         pad_h, pad_w = (-H) % unit, (-W) % unit
-        x = (images - 0.5) / 0.25
+        x = torch.cat([(images[:, :3] - 0.5) / 0.25, images[:, 3:]], dim=1)
         if pad_h or pad_w:
             x = F.pad(x, (0, pad_w, 0, pad_h), mode="replicate")
         skips = [self.stem(x)]
@@ -219,12 +270,16 @@ class LearnedAppearanceEncoder:
         self.input_size = size
         self.query_pooling = str(pooling)
         self.dim = int(net.dim)
+        self.in_channels = int(net.in_channels)
         self.config = dict(cfg)
+        self.weights_key = _weights_key(self.net)
 
     def __repr__(self) -> str:
+        # the weights' key makes the repr (which keys cached query features) follow retraining
         return (
-            f"LearnedAppearanceEncoder({self.source!r}, dim={self.dim}, "
-            f"input_size={self.input_size}, query_pooling={self.query_pooling!r})"
+            f"LearnedAppearanceEncoder({self.source!r}, weights={self.weights_key}, "
+            f"dim={self.dim}, input_size={self.input_size}, "
+            f"query_pooling={self.query_pooling!r})"
         )
 
     @torch.no_grad()
@@ -232,13 +287,14 @@ class LearnedAppearanceEncoder:
         """Dense learned descriptors.
 
         Args:
-            images: RGB images ``(B, 3, H, W)`` with values in ``[0, 1]``.
+            images: RGB images ``(B, 3, H, W)`` with values in ``[0, 1]``, followed by their
+                :func:`depth_layers` (``(B, 5, H, W)``) when ``in_channels`` is 5.
 
         Returns:
             Features ``(B, G, s, s)`` with ``s = ceil(input_size / out_stride)``, unit norm per
             cell, on the images' device and in their dtype.
         """
-        check_tensor(images, "images", ("B", 3, None, None), finite=True)
+        check_tensor(images, "images", ("B", self.in_channels, None, None), finite=True)
         param = next(self.net.parameters())
         x = images.to(device=param.device, dtype=param.dtype)
         if x.shape[-2:] != (self.input_size, self.input_size):
@@ -246,6 +302,16 @@ class LearnedAppearanceEncoder:
                 x, size=(self.input_size,) * 2, mode="bilinear", align_corners=False, antialias=True
             )
         return self.net(x).to(device=images.device, dtype=images.dtype)
+
+
+def _weights_key(net: nn.Module) -> str:
+    """A short hash of a network's parameters and buffers (their names, shapes and bytes)."""
+    h = hashlib.sha1()
+    for name, value in sorted(net.state_dict().items()):
+        data = value.detach().to("cpu", torch.float32).contiguous()
+        h.update(f"{name}{tuple(data.shape)}".encode())
+        h.update(data.numpy().tobytes())
+    return h.hexdigest()[:12]
 
 
 def save_descriptor(net: DescriptorNet, out: str | Path, **config: Any) -> Path:
@@ -326,7 +392,10 @@ def load_descriptor(folder: str | Path) -> tuple[DescriptorNet, dict[str, Any]]:
         )
     try:
         net = DescriptorNet(
-            widths=cfg["widths"], dim=int(cfg["dim"]), out_stride=int(cfg["out_stride"])
+            widths=cfg["widths"],
+            dim=int(cfg["dim"]),
+            out_stride=int(cfg["out_stride"]),
+            in_channels=int(cfg.get("in_channels", 3)),
         )
     except (KeyError, TypeError, ValueError) as err:
         raise CheckpointError(f"{folder / _CONFIG} has bad network sizes: {err!r}") from err

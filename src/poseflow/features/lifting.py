@@ -37,6 +37,7 @@ from torch.nn import functional as F
 from poseflow._checks import check_mask, check_tensor
 from poseflow.errors import DegenerateInputError, ShapeError, ValueRangeError
 from poseflow.features.appearance import AppearanceEncoder, features_at
+from poseflow.features.learned import depth_layers
 from poseflow.geometry.crops import crop_box_around, crop_resize, pixels_to_crop
 from poseflow.geometry.neighbors import nearest_neighbors
 from poseflow.geometry.projection import project_points
@@ -68,7 +69,9 @@ def lift_target_features(
     Args:
         encoder: the appearance encoder (its ``input_size`` is the crop side).
         images: RGB images ``(B, 3, H, W)`` in ``[0, 1]``; one per target instance (repeat the
-            image for several instances of one image, the crops are batched).
+            image for several instances of one image, the crops are batched). A depth-aware
+            encoder (``in_channels`` 5) takes each instance's
+            :func:`~poseflow.features.learned.depth_layers` appended, ``(B, 5, H, W)``.
         points: target clouds in the camera frame ``(B, M, 3)``, metres.
         K: intrinsics ``(B, 3, 3)`` or ``(3, 3)``.
         mask: valid points ``(B, M)`` bool, or None.
@@ -92,7 +95,8 @@ def lift_target_features(
         >>> lift_target_features(enc, torch.rand(1, 3, 64, 64), pts, K).shape
         torch.Size([1, 50, 128])
     """
-    sizes = check_tensor(images, "images", ("B", 3, "H", "W"), finite=True)
+    channels = getattr(encoder, "in_channels", 3)
+    sizes = check_tensor(images, "images", ("B", channels, "H", "W"), finite=True)
     check_tensor(points, "points", ("B", "M", 3), sizes=sizes)
     if mask is None:
         mask = torch.ones(points.shape[:2], dtype=torch.bool, device=points.device)
@@ -424,9 +428,13 @@ def lift_query_features(
     visible = torch.zeros(len(pts), n_views, dtype=torch.bool)
     features: torch.Tensor | None = None
     tolerance = visibility_tolerance * diameter
+    depth_diameter = diameter if getattr(encoder, "in_channels", 3) > 3 else None
     for start in range(0, n_views, batch_size):
         chunk = range(start, min(n_views, start + batch_size))
-        views = [_render_view(renderer, poses[k], K, size, pts, tolerance, margin) for k in chunk]
+        views = [
+            _render_view(renderer, poses[k], K, size, pts, tolerance, margin, depth_diameter)
+            for k in chunk
+        ]
         crop_uv = torch.cat([pixels_to_crop(uv[None], box, size) for _, box, uv, _ in views])
         feats = features_at(encoder, torch.cat([v[0] for v in views]), crop_uv.float()).float()
         for j, k in enumerate(chunk):
@@ -450,16 +458,18 @@ def _render_view(
     points: torch.Tensor,
     tolerance: float,
     margin: float,
+    depth_diameter: float | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Render the model from ``pose`` ``(4, 4)`` at ``size`` pixels square and crop it as a target.
 
     A model point ``(N, 3)`` is seen when it projects inside the image and its depth is within
     ``tolerance`` of the rendered depth; with fewer than 3 seen, none is and the crop is the
-    whole image.
+    whole image. With ``depth_diameter`` (the model's diameter, metres) the rendering's
+    :func:`~poseflow.features.learned.depth_layers` are appended to the colour.
 
     Returns:
-        The crop ``(1, 3, size, size)`` in ``[0, 1]``, its box ``(1, 4)``, the points' pixels
-        ``(N, 2)`` and which are seen ``(N,)``.
+        The crop ``(1, C, size, size)`` (C = 3, or 5 with the depth layers) in ``[0, 1]``, its
+        box ``(1, 4)``, the points' pixels ``(N, 2)`` and which are seen ``(N,)``.
     """
     out = renderer.render(pose[None], K, size, size)
     cam = points @ pose[:3, :3].T + pose[:3, 3]
@@ -475,4 +485,8 @@ def _render_view(
     else:
         box = crop_box_around(cam[None], K, seen[None], margin=margin)
     rgb = out.rgb.permute(2, 0, 1)[None].float() / 255.0
+    if depth_diameter is not None:
+        d = out.depth[None].float()
+        layers = depth_layers(d, d > 0, torch.tensor([depth_diameter]))
+        rgb = torch.cat([rgb, layers], dim=1)
     return crop_resize(rgb, box.float(), size), box, uv, seen

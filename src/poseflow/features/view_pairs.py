@@ -8,6 +8,9 @@ FunFlow6D crops a target; in half of the pairs view A is rendered the way the qu
 (black background, headlight, the lifting's crop). Its ground-truth correspondences come from the
 depth: every object pixel of crop A is lifted to the model frame, projected into view B and kept
 where B's depth agrees. :class:`PairGenerator` streams seeded batches (:class:`PairBatch`) of them.
+For a depth-aware descriptor each view also carries its
+:func:`~poseflow.features.learned.depth_layers`, from depth corrupted by the sensor model
+(:class:`~poseflow.data.DepthNoise`) unless the view is rendered in the query's style.
 """
 
 from __future__ import annotations
@@ -20,7 +23,9 @@ import numpy as np
 import torch
 from torch.nn import functional as F
 
+from poseflow.data.depth_noise import DepthNoise
 from poseflow.errors import DegenerateInputError
+from poseflow.features.learned import depth_layers
 from poseflow.features.lifting import jitter_boxes
 from poseflow.geometry.pointcloud import crop_box_around, crop_resize, pixels_to_crop
 
@@ -51,7 +56,8 @@ class ViewPair:
     """Two crops of one procedural object and their ground-truth correspondences.
 
     Attributes:
-        images: the crops ``(2, 3, S, S)`` in ``[0, 1]``, float32.
+        images: the crops ``(2, C, S, S)`` in ``[0, 1]``, float32: RGB, and with ``depth``
+            the depth layers (``C = 5``).
         coords: each crop pixel's model point ``(2, S, S, 3)`` in diameters (0 off the object).
         mask: crop pixels showing the object ``(2, S, S)`` bool.
         uv_a: object pixels of crop A ``(P, 2)`` (crop coordinates, pixel centres).
@@ -171,6 +177,7 @@ def render_pair(
     min_matches: int = 32,
     visibility_tolerance: float = 0.02,
     query_style: float = 0.5,
+    depth: bool = False,
 ) -> ViewPair | None:
     """Render one object from two viewpoints, crop both views and match their pixels.
 
@@ -191,6 +198,8 @@ def render_pair(
             background, the default headlight, no clutter, blur or noise, the object filling
             the crop with the lifting's margin): FunFlow6D matches such renderings against
             observed crops.
+        depth: append each view's depth layers to its colour (sensor noise on views not in
+            the query's style).
 
     Returns:
         The :class:`ViewPair`, or None when the views share too few visible pixels.
@@ -214,7 +223,8 @@ def render_pair(
     styled = bool(rng.random() < query_style)
     views = [
         _render_view(rng, renderer, R, diam, [texture, other_tex], images,
-                     query=styled and k == 0, span=span, input_size=input_size, clutter=clutter)
+                     query=styled and k == 0, span=span, input_size=input_size, clutter=clutter,
+                     depth=depth)
         for k, R in enumerate((R_a, R_b))
     ]  # fmt: skip
     crops = []
@@ -284,8 +294,12 @@ def _render_view(
     span: tuple[float, float],
     input_size: int,
     clutter: float,
+    depth: bool = False,
 ) -> _View:
-    """Render the object turned by ``R``, shaded and degraded (a query view as the lifting)."""
+    """Render the object turned by ``R``, shaded and degraded (a query view as the lifting).
+
+    With ``depth`` the image gets the depth layers of the object's visible pixels.
+    """
     s = math.exp(rng.uniform(math.log(span[0]), math.log(span[1])))
     z = diam * rng.uniform(2.5, 8.0)
     if query:  # lift_query_features: 3 diameters away, the diameter spans the crop / 1.1
@@ -316,7 +330,14 @@ def _render_view(
             x = _blur(x, float(rng.uniform(0.3, 1.5)))
         noise = torch.from_numpy(rng.normal(size=x.shape).astype(np.float32))
         x = (x + noise * rng.uniform(0.0, 0.03)).clamp(0, 1)
+    if depth:
+        z = out.depth if query else _SENSOR.apply(out.depth, out.normals, K, rng=rng)
+        layers = depth_layers(z[None].float(), (out.instance == 0)[None], torch.tensor([diam]))
+        x = torch.cat([x, layers[0]])
     return _View(x, coords, out, K, T)
+
+
+_SENSOR = DepthNoise()
 
 
 def _crop_view(
@@ -434,6 +455,7 @@ class PairGenerator:
         pairs_per_object: pairs rendered per procedural object.
         texture_count: generated print-like texture images.
         photos: add matplotlib's sample photographs to the texture images.
+        depth: give each view its depth layers (for a depth-aware descriptor).
 
     Example:
         >>> gen = PairGenerator(0, input_size=32, anchors=8, texture_count=2, photos=False)
@@ -454,6 +476,7 @@ class PairGenerator:
         pairs_per_object: int = 2,
         texture_count: int = 24,
         photos: bool = True,
+        depth: bool = False,
     ) -> None:
         self.rng = np.random.default_rng(seed)
         self.input_size = int(input_size)
@@ -462,6 +485,7 @@ class PairGenerator:
         self.clutter = float(clutter)
         self.pool_size = int(pool_size)
         self.pairs_per_object = int(pairs_per_object)
+        self.depth = bool(depth)
         self.images = texture_images(self.rng, count=texture_count, photos=photos)
         self.pool: list[ViewPair] = []
         self._object: tuple[TexturedMesh, SolidTexture] | None = None
@@ -482,6 +506,7 @@ class PairGenerator:
                 max_view_angle=self.max_view_angle,
                 clutter=self.clutter,
                 min_matches=min(32, self.anchors),
+                depth=self.depth,
             )
             if pair is not None:
                 return pair
@@ -525,9 +550,11 @@ class PairGenerator:
         )
 
     def _jitter(self, pair: ViewPair, view: int) -> torch.Tensor:
-        """A view's crop, colour-jittered unless rendered in the query's style."""
+        """A view's crop, its colour jittered unless rendered in the query's style."""
         image = pair.images[view]
-        return image if pair.styled[view] else _color_jitter(self.rng, image)
+        if pair.styled[view]:
+            return image
+        return torch.cat([_color_jitter(self.rng, image[:3]), image[3:]])
 
 
 def _swap(p: ViewPair) -> ViewPair:

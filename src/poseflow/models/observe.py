@@ -24,6 +24,7 @@ from poseflow.eval.timing import stage
 from poseflow.features import (
     AppearanceEncoder,
     GeometricEncoder,
+    depth_layers,
     encode_on_support,
     lift_target_features,
 )
@@ -143,6 +144,9 @@ def observe(
             )
     if appearance_encoder is not None:
         with stage("appearance_encoder"):
+            if getattr(appearance_encoder, "in_channels", 3) > 3:
+                layers = depth_layers(depth.expand(len(masks), *depth.shape), masks, diameter)
+                image = torch.cat([image.expand(len(masks), *image.shape), layers], dim=1)
             obs.appearance = _appearance_features(
                 obs, pixels, appearance_encoder, image, K, crop_jitter, generator
             )
@@ -222,7 +226,10 @@ def _appearance_features(
     crop_jitter: float,
     generator: torch.Generator | None,
 ) -> torch.Tensor:
-    """Raw appearance features ``(B, N, G)`` lifted from the image ``(3, H, W)`` to the points.
+    """Raw appearance features ``(B, N, G)`` lifted from the image to the points.
+
+    ``image`` is the colour ``(3, H, W)``, or per instance ``(B, C, H, W)`` (the colour and the
+    instance's depth layers for a depth-aware encoder).
 
     Only the instances with enough points are described; the others stay zero.
     """
@@ -232,7 +239,7 @@ def _appearance_features(
     if bool(v.any()):
         appearance[v] = lift_target_features(
             encoder,
-            image.expand(int(v.sum()), *image.shape),
+            image[v] if image.dim() == 4 else image.expand(int(v.sum()), *image.shape),
             obs.points[v],
             K,
             obs.mask[v],
