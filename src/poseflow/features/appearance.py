@@ -119,6 +119,28 @@ def upsample_features(features: torch.Tensor, image_size: tuple[int, int]) -> to
     return F.interpolate(features, size=image_size, mode="bilinear", align_corners=False)
 
 
+def network_input(
+    images: torch.Tensor, network: nn.Module, size: int, channels: int = 3
+) -> torch.Tensor:
+    """Images ``(B, C, H, W)`` checked and made ready for a network encoder.
+
+    Returns them on the network's device and in its dtype, resized to ``size × size``
+    (bilinear, antialiased) unless already that size.
+
+    Raises:
+        ShapeError: not ``(B, channels, H, W)``.
+        ValueRangeError: a value that is not finite.
+    """
+    check_tensor(images, "images", ("B", channels, None, None), finite=True)
+    param = next(network.parameters())
+    x = images.to(device=param.device, dtype=param.dtype)
+    if x.shape[-2:] != (size, size):
+        x = F.interpolate(
+            x, size=(size, size), mode="bilinear", align_corners=False, antialias=True
+        )
+    return x
+
+
 def _check_images(images: torch.Tensor) -> None:
     check_tensor(images, "images", ("B", 3, None, None), finite=True)
 
@@ -213,13 +235,7 @@ class DINOv2Encoder:
             Features ``(B, G, s, s)`` with ``s = input_size / 14``, on the images' device and
             in their dtype.
         """
-        _check_images(images)
-        param = next(self.model.parameters())
-        x = images.to(device=param.device, dtype=param.dtype)
-        if x.shape[-2:] != (self.input_size, self.input_size):
-            x = F.interpolate(
-                x, size=(self.input_size,) * 2, mode="bilinear", align_corners=False, antialias=True
-            )
+        x = network_input(images, self.model, self.input_size)
         mean = torch.tensor(_IMAGENET_MEAN, dtype=x.dtype, device=x.device)[:, None, None]
         std = torch.tensor(_IMAGENET_STD, dtype=x.dtype, device=x.device)[:, None, None]
         out = self.model(pixel_values=(x - mean) / std, output_hidden_states=True)

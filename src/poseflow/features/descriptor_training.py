@@ -132,6 +132,17 @@ class DescriptorTrainingConfig:
             raise ValueRangeError("max_view_angle must be in [0, 180] and clutter in [0, 1]")
         object.__setattr__(self, "widths", tuple(int(w) for w in self.widths))
 
+    def network(self) -> DescriptorNet:
+        """The untrained network of these settings (seeded by the caller)."""
+        channels = 3 + DEPTH_CHANNELS * self.depth
+        sizes = {"widths": self.widths, "dim": self.dim, "out_stride": self.out_stride}
+        return DescriptorNet(**sizes, in_channels=channels)
+
+    def pair_generator(self) -> PairGenerator:
+        """The seeded stream of training pairs of these settings."""
+        names = ("input_size", "anchors", "max_view_angle", "clutter", "pool_size", "depth")
+        return PairGenerator(self.seed, **{name: getattr(self, name) for name in names})
+
 
 def _cell_coords(coords: torch.Tensor, mask: torch.Tensor, h: int, w: int):
     """Model points ``(B, h·w, 3)`` and object flags ``(B, h·w)`` at the feature cell centres."""
@@ -266,21 +277,7 @@ def train_descriptor(
     cfg = config or DescriptorTrainingConfig()
     cfg = DescriptorTrainingConfig(**{**asdict(cfg), **changes, "steps": int(steps)})
     torch.manual_seed(cfg.seed)
-    net = DescriptorNet(
-        widths=cfg.widths,
-        dim=cfg.dim,
-        out_stride=cfg.out_stride,
-        in_channels=3 + DEPTH_CHANNELS * cfg.depth,
-    )
-    gen = PairGenerator(
-        cfg.seed,
-        input_size=cfg.input_size,
-        anchors=cfg.anchors,
-        max_view_angle=cfg.max_view_angle,
-        clutter=cfg.clutter,
-        pool_size=cfg.pool_size,
-        depth=cfg.depth,
-    )
+    net, gen = cfg.network(), cfg.pair_generator()
     opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, _warmup_cosine(cfg.steps))
     record = _Record(cfg, time.monotonic())

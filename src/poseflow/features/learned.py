@@ -37,6 +37,7 @@ from torch.nn import functional as F
 from poseflow._cache import atomic_write
 from poseflow._checks import check_tensor
 from poseflow.errors import CheckpointError, MissingWeightsError, ValueRangeError
+from poseflow.features.appearance import network_input
 
 __all__ = [
     "DEPTH_CHANNELS",
@@ -93,7 +94,8 @@ def depth_layers(depth: torch.Tensor, mask: torch.Tensor, diameter: torch.Tensor
     weight = valid.to(depth.dtype)
     centre = (depth * weight).sum(dim=(1, 2)) / weight.sum(dim=(1, 2)).clamp_min(1)
     scale = 4.0 / diameter.to(depth).reshape(-1, 1, 1)
-    relief = ((depth - centre[:, None, None]) * scale).clamp(-4.0, 4.0) * weight
+    relief = ((depth - centre[:, None, None]) * scale).clamp(-4.0, 4.0)
+    relief = torch.where(valid, relief, torch.zeros((), dtype=depth.dtype, device=depth.device))
     return torch.stack([relief, weight], dim=1)
 
 
@@ -294,13 +296,7 @@ class LearnedAppearanceEncoder:
             Features ``(B, G, s, s)`` with ``s = ceil(input_size / out_stride)``, unit norm per
             cell, on the images' device and in their dtype.
         """
-        check_tensor(images, "images", ("B", self.in_channels, None, None), finite=True)
-        param = next(self.net.parameters())
-        x = images.to(device=param.device, dtype=param.dtype)
-        if x.shape[-2:] != (self.input_size, self.input_size):
-            x = F.interpolate(
-                x, size=(self.input_size,) * 2, mode="bilinear", align_corners=False, antialias=True
-            )
+        x = network_input(images, self.net, self.input_size, self.in_channels)
         return self.net(x).to(device=images.device, dtype=images.dtype)
 
 
