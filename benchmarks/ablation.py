@@ -50,6 +50,7 @@ from typing import Any
 import torch
 from _common import clocked, command
 
+from poseflow.data import ImageInstances
 from poseflow.eval import PoseEstimate, PoseResults, predict_dataset, read_results, write_results
 from poseflow.flows import PRESETS, TrainConfig
 from poseflow.models import (
@@ -172,7 +173,8 @@ def record_observations(model: FunFlow6D, test_root: Path, path: Path) -> int:
     cameras: list[tuple[torch.Tensor, tuple[int, int]]] = []  # K and (H, W) of each image
 
     def record(rgb, depth, K, masks, obj_ids) -> PoseEstimate:
-        recorded.append(model.observe(rgb, depth, K, masks, obj_ids, generator=g))
+        image = ImageInstances(rgb, depth, K, masks, obj_ids)
+        recorded.append(model.observe(image, generator=g))
         cameras.append((torch.as_tensor(K, dtype=torch.float32), tuple(depth.shape)))
         B = len(obj_ids)
         # every instance "valid" (a pose in front of the camera), so that the results list each

@@ -32,6 +32,7 @@ import _common
 import torch
 from _common import clocked, target_instances
 
+from poseflow.data import ImageInstances
 from poseflow.data.bop import BOPDataset
 from poseflow.data.object_folder import load_object_models
 from poseflow.eval.inliers import correspondence_inliers
@@ -96,7 +97,8 @@ def measure(
     for (s, i), wanted in sorted(images.items()):
         obj_ids, masks, gt, *image = target_instances(ds.scene(s), i, wanted)
         with torch.no_grad():
-            observe = functools.partial(model.observe, *image, masks, obj_ids, generator=g)
+            instances = ImageInstances(*image, masks, obj_ids)
+            observe = functools.partial(model.observe, instances, generator=g)
             seconds, obs = clocked(observe)
             observe_s += seconds
             inputs = model.flow_inputs(obs, poses=gt)

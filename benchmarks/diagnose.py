@@ -47,6 +47,7 @@ from _common import report, target_instances
 from poseflow.assets import DEMO_CHECKPOINT
 from poseflow.cli.common import load_model
 from poseflow.cli.options import add_set_argument, inference_changes
+from poseflow.data import ImageInstances
 from poseflow.data.bop import BOPDataset
 from poseflow.data.object_folder import load_object_models, object_cache_dir
 from poseflow.eval import evaluate_bop
@@ -238,10 +239,10 @@ def _flow_variants(
         ``{variant: PoseEstimate}`` of ``model``, ``oracle_choice``, ``oracle_flow`` and
         ``no_icp``, the observation, and the solved hypotheses ``(B·H, ...)``.
     """
-    rgb, depth, K, masks, obj_ids = image
+    obj_ids = image[4]
     cfg = model.config
     H = cfg.num_hypotheses
-    obs = model.observe(rgb, depth, K, masks, obj_ids, generator=g)
+    obs = model.observe(ImageInstances(*image), generator=g)
     inputs = model.flow_inputs(obs, poses=gt)
     n = inputs.points.shape[1] // 2
     x = model.net.sample(inputs, get_sampler(cfg.solver, steps=cfg.steps),
@@ -283,17 +284,18 @@ def _verified_variants(
     solved: tuple,
 ) -> dict[str, PoseEstimate]:
     """The model's estimates verified as the estimators ship them, and the verifier's oracles."""
-    rgb, depth, K, masks, obj_ids = image
+    obj_ids = image[4]
+    instances = ImageInstances(*image)
     H = model.config.num_hypotheses
     shipped = invalidate_implausible(estimate)
     extra = extra_mask = None
     if model.config.verifier.rank_hypotheses:  # as FunFlow6D.estimate
         extra, extra_mask = other_hypotheses(*solved, H)
         shipped, extra, extra_mask = rank_estimate(
-            model.verifier, shipped, extra, extra_mask, rgb, depth, K, masks, obj_ids
+            model.verifier, shipped, extra, extra_mask, instances
         )
     ver = model.verifier.verify(
-        rgb, depth, K, masks, obj_ids, shipped.poses, obs.cloud, obs.cloud_mask,
+        instances, shipped.poses, (obs.cloud, obs.cloud_mask),
         extra=extra, extra_mask=extra_mask, estimated=shipped.valid,
     )  # fmt: skip
     est = {"verified": PoseEstimate(ver.poses, ver.scores, shipped.valid)}

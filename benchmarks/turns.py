@@ -25,6 +25,7 @@ from pathlib import Path
 import _common
 import torch
 
+from poseflow.data import ImageInstances
 from poseflow.data.bop import BOPDataset
 from poseflow.data.object_folder import load_object_models
 from poseflow.eval.results import read_results
@@ -104,7 +105,8 @@ def main() -> None:
             observed, observed_mask = verifier.observed_cloud(depth, K, mask)
             poses = verifier.refine((gt @ turns)[None], [args.obj], observed, observed_mask)
             boxes = verifier.crop_boxes(gt[None], [args.obj], K, mask)
-            total = verifier.score(rgb, depth, K, mask, [args.obj], poses, boxes=boxes).total[0]
+            image = ImageInstances(rgb, depth, K, mask, [args.obj])
+            total = verifier.score(image, poses, boxes=boxes).total[0]
             best_at_truth += int(total.argmax()) == 0
             unique += bool((total[1:] < total[0] - args.margin).all())
         report["scan"] = {

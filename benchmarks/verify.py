@@ -35,6 +35,7 @@ import torch
 from _common import clocked, report
 
 from poseflow.cli.options import parse_set
+from poseflow.data import ImageInstances
 from poseflow.data.bop import BOPDataset
 from poseflow.data.object_folder import load_object_models
 from poseflow.eval.results import PoseResults, read_results, write_results
@@ -379,7 +380,9 @@ def _verify_image(
         cpu_start = time.process_time()
         wall, out = clocked(
             lambda: verifier.verify(
-                rgb, depth, K, masks, ids, poses.float(), observed.float(), observed_mask
+                ImageInstances(rgb, depth, K, masks, ids),
+                poses.float(),
+                (observed.float(), observed_mask),
             )
         )
         walls.append(wall)

@@ -23,6 +23,7 @@ from pathlib import Path
 
 import torch
 
+from poseflow.data import ImageInstances
 from poseflow.data.demo_objects import demo_mesh
 from poseflow.data.objects import ObjectModel, write_bop_model
 from poseflow.geometry.se3 import rotation_angle_error
@@ -64,14 +65,14 @@ def main(argv: Sequence[str] | None = None) -> dict:
         poses, K, 320, 240, object_ids=[0, 0], light=Light(direction=(0.3, -0.4, -1.0))
     )
     rgb, depth, masks = out.rgb.permute(2, 0, 1) / 255.0, out.depth, out.masks_visible
-    obj_ids = [1] * len(masks)
+    image = ImageInstances(rgb, depth, K, masks, [1] * len(masks))  # the B = 2 boxes
 
     # your hypotheses (B, H', 4, 4): the truth, the box turned end for end, the truth 2 cm off
     flipped = poses @ turn([1.0, 0, 0], 180)
     shifted = poses.clone()
     shifted[:, 0, 3] += 0.02
     hypotheses = torch.stack((poses, flipped, shifted), dim=1)
-    score = verifier.score(rgb, depth, K, masks, obj_ids, hypotheses)
+    score = verifier.score(image, hypotheses)
     best = score.total.argmax(-1)
     print("hypothesis     depth  silhouette  appearance  total")
     for b in range(len(masks)):
@@ -80,7 +81,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
             print(f"box {b} {name:<11}" + "".join(f" {t[b, h]:>10.3f}" for t in terms))
 
     # the whole stage for one estimate per box: candidates, ICP, scores, the choice
-    result = verifier.verify(rgb, depth, K, masks, obj_ids, flipped)
+    result = verifier.verify(image, flipped)
     before = rotation_angle_error(flipped[:, :3, :3], poses[:, :3, :3])
     after = rotation_angle_error(result.poses[:, :3, :3], poses[:, :3, :3])
     for b in range(len(masks)):

@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import torch
@@ -44,6 +44,7 @@ from poseflow._checks import check_field_types, check_mask, check_tensor
 from poseflow._config import apply_overrides, config_from_dict, config_to_dict
 from poseflow._units import check_depth_extent, check_intrinsics
 from poseflow.data.bop import BOPDataset
+from poseflow.data.frame import ImageInstances
 from poseflow.data.objects import ObjectModel, sample_surface
 from poseflow.errors import DegenerateInputError, ValueRangeError
 from poseflow.eval.inliers import mutual_nearest_neighbors
@@ -265,26 +266,21 @@ class ClassicBaseline:
             ValueRangeError: an object id without a model, or a ``K`` that is not a pinhole
                 matrix of this image.
         """
-        Kd, ids = self._checked(depth, K, masks, obj_ids)
-        d = _metres(depth)
-        estimate, clouds = self._solve(d, Kd, masks, ids)
+        image = self._checked(ImageInstances(rgb, depth, K, masks, obj_ids))
+        estimate, clouds = self._solve(image)
         if self.config.verifier is None or not bool(estimate.valid.any()):
             return estimate
-        for obj_id in sorted(set(ids)):
+        for obj_id in sorted(set(image.obj_ids)):
             self.verifier.prepare(obj_id, self.models[obj_id])
-        verified = verify_estimates(self.verifier, rgb, d, Kd, masks, ids, estimate, clouds)
+        verified = verify_estimates(self.verifier, image, estimate, clouds)
         return invalidate_implausible(verified)
 
-    def solve(
-        self,
-        depth: torch.Tensor,
-        K: torch.Tensor,
-        masks: torch.Tensor,
-        obj_ids: Sequence[int] | torch.Tensor,
-    ) -> tuple[PoseEstimate, list[torch.Tensor]]:
+    def solve(self, image: ImageInstances) -> tuple[PoseEstimate, list[torch.Tensor]]:
         """The pose of every masked instance of one image, before verification (steps 1-6).
 
-        Args: as :meth:`estimate`, which has the colour image first.
+        Args:
+            image: the depth, intrinsics, masks and object ids as :meth:`estimate` takes them
+                (the colour image is not used), on the CPU.
 
         Returns:
             The :class:`PoseEstimate` (float64; implausible poses flagged invalid) and each
@@ -298,21 +294,21 @@ class ClassicBaseline:
             UnitsError: the masked depth spans far more or far less than the objects (a depth
                 in the wrong unit).
         """
-        Kd, ids = self._checked(depth, K, masks, obj_ids)
-        return self._solve(_metres(depth), Kd, masks, ids)
+        return self._solve(self._checked(image))
 
-    def _checked(
-        self,
-        depth: torch.Tensor,
-        K: torch.Tensor,
-        masks: torch.Tensor,
-        obj_ids: Sequence[int] | torch.Tensor,
-    ) -> tuple[torch.Tensor, list[int]]:
-        """Check the inputs of :meth:`solve`; the float64 ``K`` and the ids as ints."""
+    def _checked(self, image: ImageInstances) -> ImageInstances:
+        """``image`` checked, ready for :meth:`_solve`.
+
+        Its depth in metres as :func:`_metres` gives it (float64, 0 where missing), ``K``
+        ``(3, 3)`` float64 and the object ids a list of ints.
+        """
+        depth, masks = image.depth, image.masks
         sizes = check_tensor(depth, "depth", ("H", "W"))
         check_mask(masks, "masks", ("n", "H", "W"), sizes)
-        Kd = check_intrinsics(K, sizes["W"], sizes["H"], dtype=torch.float64, device=depth.device)
-        ids = [int(o) for o in torch.as_tensor(obj_ids).reshape(-1).tolist()]
+        Kd = check_intrinsics(
+            image.K, sizes["W"], sizes["H"], dtype=torch.float64, device=depth.device
+        )
+        ids = [int(o) for o in torch.as_tensor(image.obj_ids).reshape(-1).tolist()]
         n = masks.shape[0]
         if len(ids) != n:
             raise ValueRangeError(f"got {n} masks but {len(ids)} object ids")
@@ -321,12 +317,11 @@ class ClassicBaseline:
             raise ValueRangeError(f"no model for object ids {missing}")
         with stage("lifting"):  # the check back-projects every mask
             check_depth_extent(depth, Kd, masks, [self.models[o].diameter for o in ids])
-        return Kd, ids
+        return replace(image, depth=_metres(depth), K=Kd, obj_ids=ids)
 
-    def _solve(
-        self, depth: torch.Tensor, K: torch.Tensor, masks: torch.Tensor, ids: list[int]
-    ) -> tuple[PoseEstimate, list[torch.Tensor]]:
-        """:meth:`solve` of checked inputs: depth in metres, float64, 0 where missing."""
+    def _solve(self, image: ImageInstances) -> tuple[PoseEstimate, list[torch.Tensor]]:
+        """:meth:`solve` of a :meth:`_checked` image."""
+        depth, K, masks, ids = image.depth, image.K, image.masks, image.obj_ids
         n = len(ids)
         poses = torch.eye(4, dtype=torch.float64).repeat(n, 1, 1)
         scores = torch.zeros(n, dtype=torch.float64)
@@ -535,11 +530,7 @@ def register_target(
 
 def verify_estimates(
     verifier: PoseVerifier,
-    rgb: torch.Tensor | None,
-    depth: torch.Tensor,
-    K: torch.Tensor,
-    masks: torch.Tensor,
-    ids: list[int],
+    image: ImageInstances,
     estimate: PoseEstimate,
     clouds: list[torch.Tensor],
 ) -> PoseEstimate:
@@ -547,11 +538,8 @@ def verify_estimates(
 
     Args:
         verifier: the verifier, its objects prepared.
-        rgb: the colour image ``(3, H, W)``, or None.
-        depth: depth ``(H, W)`` in metres, float64.
-        K: intrinsics ``(3, 3)``, float64.
-        masks: the instances' masks ``(n, H, W)``.
-        ids: their object ids.
+        image: the colour image ``(3, H, W)`` or None, depth ``(H, W)`` in metres, ``K``
+            ``(3, 3)``, and the ``n`` instances' masks ``(n, H, W)`` and object ids.
         estimate: the estimates (float64).
         clouds: each instance's lifted target cloud ``(M_i, 3)``.
 
@@ -567,8 +555,8 @@ def verify_estimates(
     # the verifier runs in the poses' dtype: float32 is twice as fast as float64
     with stage("verification"):
         out = verifier.verify(
-            rgb, depth.float(), K.float(), masks, ids, estimate.poses.float(), observed,
-            observed_mask, estimated=estimate.valid,
+            replace(image, depth=image.depth.float(), K=image.K.float()),
+            estimate.poses.float(), (observed, observed_mask), estimated=estimate.valid,
         )  # fmt: skip
     # an estimate kept as it was: at its full precision
     kept = (out.chosen == 0) & (not verifier.config.refine_estimate)

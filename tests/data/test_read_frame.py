@@ -11,7 +11,7 @@ import torch
 from PIL import Image
 
 from poseflow.data.bop import Detection, write_detections
-from poseflow.data.frame import read_frame, read_intrinsics, read_metric_depth
+from poseflow.data.frame import ImageInstances, read_frame, read_intrinsics, read_metric_depth
 from poseflow.data.rle import rle_encode
 from poseflow.errors import (
     BOPFormatError,
@@ -47,6 +47,18 @@ def test_reads_a_frame_with_a_millimetre_png(files):
     assert float(f.depth[0, 0]) == 0.0 and f.depth_scale == 0.001
     assert f.masks.shape == (1, H, W) and int(f.masks.sum()) == 400
     assert f.obj_ids.tolist() == [1] and f.scores.tolist() == [1.0] and len(f) == 1
+
+
+def test_a_frame_gives_its_instances_as_the_estimators_take_them(files):
+    f = read_frame(files / "rgb.png", files / "depth.png", K, masks=[files / "mask.png"] * 2)
+    image = f.instances
+    assert isinstance(image, ImageInstances)
+    for got, want in zip(image, (f.rgb, f.depth, f.K, f.masks, f.obj_ids), strict=True):
+        assert got is want  # estimate(*frame.instances), in the estimators' order
+    checked = image.checked(torch.float32)
+    assert checked.K.dtype == torch.float32 and checked.obj_ids.tolist() == [1, 1]
+    twice = image.twice()
+    assert twice.masks.shape == (4, H, W) and twice.obj_ids.tolist() == [1, 1, 1, 1]
 
 
 def test_depth_scale_mistakes_name_the_flag(files):

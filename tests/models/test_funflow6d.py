@@ -5,6 +5,7 @@ import pytest
 import torch
 
 from poseflow.assets import DEMO_CHECKPOINT
+from poseflow.data import ImageInstances
 from poseflow.data.objects import ObjectModel, sample_surface
 from poseflow.errors import CheckpointError, MissingWeightsError, ShapeError, ValueRangeError
 from poseflow.eval.predict import PoseEstimate
@@ -15,8 +16,13 @@ from poseflow.models.verification import rank_estimate
 from poseflow.verify import PoseVerifier, VerifierConfig
 
 
+def two_boxes(scene) -> ImageInstances:
+    """The scene's image and its two instances, both of object 1."""
+    return ImageInstances(scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 1])
+
+
 def test_observe_lifts_valid_clouds_with_features(tiny_model, scene):
-    obs = tiny_model.observe(scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 1])
+    obs = tiny_model.observe(two_boxes(scene))
     n = tiny_model.config.num_points
     assert obs.points.shape == (2, n, 3) and obs.valid.all()
     assert obs.geometric.shape == (2, n, tiny_model.geometric_encoder.dim)
@@ -31,7 +37,7 @@ def test_observe_lifts_valid_clouds_with_features(tiny_model, scene):
 
 
 def test_flow_target_is_the_observed_cloud_in_the_canonical_frame(tiny_model, scene, box):
-    obs = tiny_model.observe(scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 1])
+    obs = tiny_model.observe(two_boxes(scene))
     inputs = tiny_model.flow_inputs(obs, scene["poses"])
     n = tiny_model.config.num_points
     s = inputs.scale[:, None, None]
@@ -61,7 +67,7 @@ class _Oracle(torch.nn.Module):
 def test_perfect_flow_gives_the_ground_truth_pose(tiny_model, scene, solver):
     model = FunFlow6D(tiny_model.config.replace(pose_solver=solver))
     model.objects, model.verifier = tiny_model.objects, tiny_model.verifier
-    obs = model.observe(scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 1])
+    obs = model.observe(two_boxes(scene))
     model.net.dit = _Oracle(model.flow_inputs(obs, scene["poses"]).x_1)
     est = model.estimate(scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 1])
     assert est.valid.all() and (est.scores > 0.5).all()
@@ -84,9 +90,13 @@ def test_untrained_model_returns_finite_flagged_poses(tiny_model, scene):
 
 def test_bad_input(tiny_model, scene):
     with pytest.raises(ValueRangeError, match="not prepared"):
-        tiny_model.observe(scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 7])
+        tiny_model.observe(
+            ImageInstances(scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 7])
+        )
     with pytest.raises(ShapeError):
-        tiny_model.observe(scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1])
+        tiny_model.observe(
+            ImageInstances(scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1])
+        )
     empty = torch.zeros_like(scene["masks"])
     est = tiny_model.estimate(scene["rgb"], scene["depth"], scene["K"], empty, [1, 1])
     assert not est.valid.any() and torch.isfinite(est.poses).all()
@@ -103,13 +113,13 @@ def test_intrinsics_as_lists_or_arrays_and_their_shape(tiny_model, scene):
     for K in (scene["K"].tolist(), scene["K"].double().numpy(), scene["K"].reshape(9).tolist()):
         est = estimate(K)
         assert torch.equal(est.poses, ref.poses) and torch.equal(est.valid, ref.valid)
-        obs = tiny_model.observe(*args, K, masks, ids)
+        obs = tiny_model.observe(ImageInstances(*args, K, masks, ids))
         assert obs.points.shape == (2, tiny_model.config.num_points, 3)
     for bad in (torch.eye(2), [[300.0, 0], [0, 300.0]], "K", [[1, 2, 3]] * 3 + [[4, 5, 6]]):
         with pytest.raises(ShapeError, match="K must be 9 numbers"):
             tiny_model.estimate(*args, bad, masks, ids)
         with pytest.raises(ShapeError, match="K must be 9 numbers"):
-            tiny_model.observe(*args, bad, masks, ids)
+            tiny_model.observe(ImageInstances(*args, bad, masks, ids))
     with pytest.raises(ValueRangeError, match="transposed"):
         tiny_model.estimate(*args, scene["K"].T, masks, ids)
 
@@ -120,7 +130,9 @@ def test_no_masks_give_an_empty_estimate(tiny_model, scene):
         est = tiny_model.estimate(scene["rgb"], scene["depth"], K, none, [])
         assert est.poses.shape == (0, 4, 4) and est.scores.shape == (0,)
         assert est.valid.shape == (0,) and est.valid.dtype == torch.bool
-    obs = tiny_model.observe(scene["rgb"], scene["depth"], scene["K"], none, torch.tensor([]))
+    obs = tiny_model.observe(
+        ImageInstances(scene["rgb"], scene["depth"], scene["K"], none, torch.tensor([]))
+    )
     n = tiny_model.config.num_points
     assert obs.points.shape == (0, n, 3) and obs.mask.shape == (0, n) and obs.valid.shape == (0,)
     assert obs.geometric.shape == (0, n, tiny_model.geometric_encoder.dim)
@@ -216,7 +228,7 @@ def test_preparing_another_mesh_under_the_same_id_replaces_it_everywhere(tiny_mo
 
 
 def test_noise_conditioning_can_be_switched_off(tiny_model, scene):
-    obs = tiny_model.observe(scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 1])
+    obs = tiny_model.observe(two_boxes(scene))
     inputs = tiny_model.flow_inputs(obs, scene["poses"])
     x = torch.randn_like(inputs.x_1)
     net_inputs = inputs.net_kwargs()
@@ -249,7 +261,7 @@ def test_estimate_reports_stages_to_the_active_timer_only(tiny_model, scene):
 
 def _perfect_flow_to(model, scene, poses):
     """Make ``model``'s velocity net carry the observed clouds to where ``poses`` put them."""
-    obs = model.observe(scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 1])
+    obs = model.observe(two_boxes(scene))
     model.net.dit = _Oracle(model.flow_inputs(obs, poses).x_1)
 
 
@@ -312,8 +324,8 @@ def test_the_verifier_ranks_the_hypotheses_before_expanding_the_best(tiny_model,
     extra = torch.stack((turned, truth), dim=1)  # (2, 2, 4, 4): the truth second
     extra_mask = torch.tensor([[True, True], [True, False]])  # instance 1: the truth is padding
     estimate = PoseEstimate(off, torch.tensor([0.9, 0.8]), torch.tensor([True, True]))
-    args = (scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 1])
-    ranked, rest, rest_mask = rank_estimate(verifier, estimate, extra, extra_mask, *args)
+    image = two_boxes(scene)
+    ranked, rest, rest_mask = rank_estimate(verifier, estimate, extra, extra_mask, image)
     assert torch.equal(ranked.poses[0], truth[0])  # swapped in
     assert torch.equal(rest[0, 1], off[0]) and rest_mask[0].all()  # the pick is a candidate
     assert not torch.equal(ranked.poses[1], truth[1])  # padding never wins
@@ -323,7 +335,7 @@ def test_the_verifier_ranks_the_hypotheses_before_expanding_the_best(tiny_model,
     after = torch.cat((ranked.poses[:, None], rest), 1).flatten(-2).sort(1).values
     assert torch.equal(before, after)
     invalid = PoseEstimate(off, estimate.scores, torch.tensor([False, True]))
-    kept, _, _ = rank_estimate(verifier, invalid, extra, extra_mask, *args)
+    kept, _, _ = rank_estimate(verifier, invalid, extra, extra_mask, image)
     assert torch.equal(kept.poses[0], off[0])  # an instance without an estimate is left alone
 
 
@@ -337,13 +349,13 @@ def test_the_ranking_rescores_its_coarse_best_on_the_full_grid(tiny_model, scene
     poses = truth[:, None].repeat(1, len(shifts), 1, 1)
     poses[..., 0, 3] += shifts
     mask = torch.ones(2, len(shifts), dtype=torch.bool)
-    images = (scene["rgb"], scene["depth"], scene["K"], scene["masks"])
+    image = two_boxes(scene)
     estimate = PoseEstimate(poses[:, 0], torch.ones(2), torch.ones(2, dtype=torch.bool))
-    ranked, _, _ = rank_estimate(verifier, estimate, poses[:, 1:], mask[:, 1:], *images, [1, 1])
+    ranked, _, _ = rank_estimate(verifier, estimate, poses[:, 1:], mask[:, 1:], image)
     boxes = verifier.crop_boxes(poses[:, 0], [1, 1], scene["K"], scene["masks"])
-    coarse = verifier.score(*images, [1, 1], poses, mask, boxes=boxes,
+    coarse = verifier.score(image, poses, mask, boxes=boxes,
                             crop_size=verifier.config.coarse_crop_size).total  # fmt: skip
-    full = verifier.score(*images, [1, 1], poses, mask, boxes=boxes).total
+    full = verifier.score(image, poses, mask, boxes=boxes).total
     if top == 0:
         expected = coarse.argmax(1)
     else:
@@ -401,14 +413,14 @@ def test_checkpoints_from_before_the_descriptor_support_describe_the_sampled_poi
 
 
 def test_the_descriptor_support_changes_the_geometric_features_only(tiny_model, scene):
-    args = (scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 1])
+    image = two_boxes(scene)
     config = tiny_model.config
     try:
         tiny_model.config = config.replace(geometric_support_voxel=0.0)
-        sparse = tiny_model.observe(*args, generator=torch.Generator().manual_seed(4))
+        sparse = tiny_model.observe(image, generator=torch.Generator().manual_seed(4))
     finally:
         tiny_model.config = config
-    dense = tiny_model.observe(*args, generator=torch.Generator().manual_seed(4))
+    dense = tiny_model.observe(image, generator=torch.Generator().manual_seed(4))
     assert torch.equal(sparse.points, dense.points) and torch.equal(sparse.normals, dense.normals)
     rows = dense.mask
     assert torch.isfinite(dense.geometric).all()

@@ -8,6 +8,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from poseflow.baselines import ClassicBaseline
+from poseflow.data import ImageInstances
 from poseflow.errors import UnitsError, ValueRangeError
 from poseflow.eval.predict import PoseEstimate
 from poseflow.eval.timing import StageTimer
@@ -35,7 +36,7 @@ def test_the_verifier_keeps_the_baseline_pose_where_the_flow_is_lost(hybrid, bas
     """The untrained flow's poses are noise, the baseline's the box up to its geometric flip; the
     verifier finds the baseline's pose in the pool and turns it by the print."""
     flow = hybrid.model.estimate(*_args(scene))
-    classic, _ = baseline.solve(scene["depth"], scene["K"], scene["masks"], [1, 1])
+    classic, _ = baseline.solve(ImageInstances(*_args(scene)))
     timer = StageTimer(synchronize=False)
     with timer.active():
         out = hybrid.estimate(*_args(scene))

@@ -5,16 +5,15 @@ import dataclasses
 import pytest
 import torch
 
+from poseflow.data import ImageInstances
 from poseflow.errors import ValueRangeError
 from poseflow.models import TRAINING_FIELDS, FlowInputs, FlowTrainingSet, FunFlow6D, NetInputs
 
 
 @pytest.fixture(scope="module")
 def inputs(tiny_model, scene):
-    obs = tiny_model.observe(
-        scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 1],
-        generator=torch.Generator().manual_seed(0),
-    )  # fmt: skip
+    image = ImageInstances(scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 1])
+    obs = tiny_model.observe(image, generator=torch.Generator().manual_seed(0))
     return tiny_model.flow_inputs(obs, scene["poses"])
 
 
@@ -81,7 +80,9 @@ def test_net_inputs_from_keyword_tensors(inputs):
 def test_a_stream_without_an_encoder_is_fed_the_other(tiny_model, box, scene, missing):
     model = FunFlow6D(tiny_model.config.replace(**{missing: "none"}))
     model.prepare_objects({1: box}, progress=False)
-    obs = model.observe(scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 1])
+    obs = model.observe(
+        ImageInstances(scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 1])
+    )
     inputs = model.flow_inputs(obs)
     assert torch.equal(inputs.geometric, inputs.semantic) and inputs.x_1 is None
     est = model.estimate(scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 1])
@@ -92,10 +93,8 @@ def test_a_symmetric_pose_gives_an_end_state_among_the_equivalents(tiny_model, s
     from poseflow.flows import apply_equivalents
     from poseflow.models.inputs import equivalent_maps
 
-    obs = tiny_model.observe(
-        scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 1],
-        generator=torch.Generator().manual_seed(0),
-    )  # fmt: skip
+    image = ImageInstances(scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 1])
+    obs = tiny_model.observe(image, generator=torch.Generator().manual_seed(0))
     half_turn = torch.diag(torch.tensor([-1.0, -1.0, 1.0, 1.0]))
     half_turn[:2, 3] = torch.tensor([0.01, -0.02])  # about an axis off the origin
     symmetries = torch.stack([torch.eye(4), half_turn])

@@ -7,6 +7,7 @@ import torch
 from hypothesis import given
 from hypothesis import strategies as st
 
+from poseflow.data import ImageInstances
 from poseflow.errors import ValueRangeError
 from poseflow.features.lifting import jitter_boxes
 from poseflow.geometry.pointcloud import backproject_depth
@@ -51,10 +52,10 @@ def test_zero_jitter_is_the_identity_and_bad_amounts_fail():
 
 
 def test_crop_jitter_changes_appearance_not_geometry(tiny_model, scene):
-    args = (scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 1])
-    plain = tiny_model.observe(*args, generator=torch.Generator().manual_seed(0))
+    image = ImageInstances(scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 1])
+    plain = tiny_model.observe(image, generator=torch.Generator().manual_seed(0))
     jittered = tiny_model.observe(
-        *args, generator=torch.Generator().manual_seed(0), crop_jitter=0.2
+        image, generator=torch.Generator().manual_seed(0), crop_jitter=0.2
     )
     assert torch.equal(plain.points, jittered.points)
     assert torch.equal(plain.geometric, jittered.geometric)
@@ -64,10 +65,10 @@ def test_crop_jitter_changes_appearance_not_geometry(tiny_model, scene):
 def test_dense_cap_keeps_valid_observed_points(tiny_model, scene):
     cap = tiny_model.config.num_points
     config = tiny_model.config
-    args = (scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 1])
+    image = ImageInstances(scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 1])
     try:
         tiny_model.config = config.replace(dense_points=cap)
-        obs = tiny_model.observe(*args, generator=torch.Generator().manual_seed(1))
+        obs = tiny_model.observe(image, generator=torch.Generator().manual_seed(1))
     finally:
         tiny_model.config = config
     assert obs.valid.all() and obs.mask.sum(1).min() >= 0.8 * cap

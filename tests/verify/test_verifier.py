@@ -7,6 +7,7 @@ import math
 import pytest
 import torch
 
+from poseflow.data import ImageInstances
 from poseflow.data.demo_objects import demo_mesh
 from poseflow.data.objects import ObjectModel
 from poseflow.errors import ShapeError, ValueRangeError
@@ -60,6 +61,11 @@ def scene(box: ObjectModel) -> dict[str, torch.Tensor]:
     return {"rgb": rgb, "depth": out.depth, "masks": out.masks_visible}
 
 
+def one_box(scene: dict[str, torch.Tensor]) -> ImageInstances:
+    """The scene's image and its one instance, the box (object 1)."""
+    return ImageInstances(scene["rgb"], scene["depth"], K, scene["masks"], [1])
+
+
 def test_prepare_finds_the_box_flips(verifier: PoseVerifier) -> None:
     cand = verifier.objects[1].candidates
     angles = rotation_angle_error(torch.eye(3), cand[:, :3, :3])
@@ -73,7 +79,7 @@ def test_exact_flip_is_told_apart_by_appearance_not_depth(
     true = box_pose()
     flips = torch.stack([true @ half_turn(a) for a in ([0, 0, 1.0], [1.0, 0, 0], [0, 1.0, 0])])
     hyps = torch.cat((true[None], flips))[None]  # (1, 4, 4, 4)
-    s = verifier.score(scene["rgb"], scene["depth"], K, scene["masks"], [1], hyps)
+    s = verifier.score(one_box(scene), hyps)
     assert s.valid.all()
     # geometry cannot tell: each flip fits depth and silhouette as well as the truth
     assert (s.depth[0, 1:] - s.depth[0, 0]).abs().max() < 0.03
@@ -85,20 +91,20 @@ def test_exact_flip_is_told_apart_by_appearance_not_depth(
 
     # a flipped estimate is corrected, by appearance only
     flipped = flips[:1]
-    out = verifier.verify(scene["rgb"], scene["depth"], K, scene["masks"], [1], flipped)
+    out = verifier.verify(one_box(scene), flipped)
     assert int(out.chosen[0]) != 0
     assert float(rotation_angle_error(out.poses[0, :3, :3], true[:3, :3])) < 3.0
     assert float((out.poses[0, :3, 3] - true[:3, 3]).norm()) < 0.003
     depth_only = PoseVerifier(VerifierConfig(**{**CONFIG.to_dict(), "appearance_weight": 0.0}))
     depth_only.objects = verifier.objects
-    kept = depth_only.verify(scene["rgb"], scene["depth"], K, scene["masks"], [1], flipped)
+    kept = depth_only.verify(one_box(scene), flipped)
     assert int(kept.chosen[0]) == 0  # the flip stays (refined by ICP, so not bit-equal)
     assert float(rotation_angle_error(kept.poses[0, :3, :3], flipped[0, :3, :3])) < 1.0
 
 
 def test_right_estimate_is_kept(verifier: PoseVerifier, scene: dict[str, torch.Tensor]) -> None:
     true = box_pose()[None]
-    args = (scene["rgb"], scene["depth"], K, scene["masks"], [1], true)
+    args = (one_box(scene), true)
     out = verifier.verify(*args)
     assert int(out.chosen[0]) == 0 and bool(out.valid[0])
     # refined with the candidates by the same ICP: it stays where it was, within the sampling
@@ -117,7 +123,7 @@ def test_an_estimate_off_by_millimetres_is_refined(
     true = box_pose()
     nudged = true.clone()
     nudged[:3, 3] += torch.tensor([0.004, -0.003, 0.005])
-    out = verifier.verify(scene["rgb"], scene["depth"], K, scene["masks"], [1], nudged[None])
+    out = verifier.verify(one_box(scene), nudged[None])
     assert int(out.chosen[0]) == 0
     assert float((out.poses[0, :3, 3] - true[:3, 3]).norm()) < 0.0035
     torch.testing.assert_close(out.hypotheses[0, 0], out.poses[0])
@@ -127,10 +133,10 @@ def test_global_brightness_and_colour_change_changes_nothing(
     verifier: PoseVerifier, scene: dict[str, torch.Tensor]
 ) -> None:
     hyps = torch.stack((box_pose(), box_pose() @ half_turn([0, 0, 1.0])))[None]
-    ref = verifier.score(scene["rgb"], scene["depth"], K, scene["masks"], [1], hyps)
+    ref = verifier.score(one_box(scene), hyps)
     for gain in ([0.5, 0.5, 0.5], [1.3, 0.9, 0.6], [0.2, 0.35, 0.3]):
         rgb = scene["rgb"] * torch.tensor(gain).reshape(3, 1, 1)
-        got = verifier.score(rgb, scene["depth"], K, scene["masks"], [1], hyps)
+        got = verifier.score(ImageInstances(rgb, scene["depth"], K, scene["masks"], [1]), hyps)
         torch.testing.assert_close(got.appearance, ref.appearance, atol=1e-4, rtol=0)
         torch.testing.assert_close(got.total, ref.total, atol=1e-4, rtol=0)
 
@@ -141,14 +147,14 @@ def test_empty_mask_and_missing_depth_give_flagged_finite_scores(
     hyps = box_pose()[None, None].repeat(2, 2, 1, 1)
     masks = scene["masks"].repeat(2, 1, 1)
     masks[1] = False
-    s = verifier.score(scene["rgb"], scene["depth"], K, masks, [1, 1], hyps)
+    s = verifier.score(ImageInstances(scene["rgb"], scene["depth"], K, masks, [1, 1]), hyps)
     assert s.valid[0].all() and not s.valid[1].any()
     nan_depth = torch.full_like(scene["depth"], float("nan"))
     for depth in (torch.zeros_like(scene["depth"]), nan_depth):
-        s = verifier.score(scene["rgb"], depth, K, masks, [1, 1], hyps)
+        s = verifier.score(ImageInstances(scene["rgb"], depth, K, masks, [1, 1]), hyps)
         assert not s.valid.any()
         assert all(torch.isfinite(getattr(s, f)).all() for f in ("total", "depth", "appearance"))
-        out = verifier.verify(scene["rgb"], depth, K, masks, [1, 1], hyps[:, 0])
+        out = verifier.verify(ImageInstances(scene["rgb"], depth, K, masks, [1, 1]), hyps[:, 0])
         assert not out.valid.any() and (out.scores == 0).all()
         assert torch.equal(out.poses, hyps[:, 0])
 
@@ -158,7 +164,7 @@ def test_behind_the_camera_is_flagged(
 ) -> None:
     behind = box_pose()
     behind[2, 3] = -0.5
-    s = verifier.score(scene["rgb"], scene["depth"], K, scene["masks"], [1], behind[None, None])
+    s = verifier.score(one_box(scene), behind[None, None])
     assert not s.valid.any() and torch.isfinite(s.total).all()
 
 
@@ -168,9 +174,11 @@ def test_batched_equals_per_instance(box: ObjectModel, verifier: PoseVerifier) -
     rgb = out.rgb.permute(2, 0, 1).float() / 255.0
     masks = out.masks_visible
     hyps = torch.stack((poses, poses @ half_turn([0, 0, 1.0])), dim=1)  # (2, 2, 4, 4)
-    both = verifier.score(rgb, out.depth, K, masks, [1, 1], hyps)
+    both = verifier.score(ImageInstances(rgb, out.depth, K, masks, [1, 1]), hyps)
     for b in range(2):
-        one = verifier.score(rgb, out.depth, K, masks[b : b + 1], [1], hyps[b : b + 1])
+        one = verifier.score(
+            ImageInstances(rgb, out.depth, K, masks[b : b + 1], [1]), hyps[b : b + 1]
+        )
         torch.testing.assert_close(one.total[0], both.total[b])
         torch.testing.assert_close(one.evidence[0], both.evidence[b])
     assert (both.total[:, 0] > both.total[:, 1]).all()
@@ -197,10 +205,9 @@ def test_expand_pads_and_refine_snaps_back(
 def test_cpu_and_cuda_agree(verifier: PoseVerifier, scene: dict[str, torch.Tensor]) -> None:
     hyps = torch.stack((box_pose(), box_pose() @ half_turn([1.0, 0, 0])))[None].double()
     args = (scene["rgb"].double(), scene["depth"].double(), K.double(), scene["masks"], [1])
-    cpu = verifier.score(*args, hyps)
-    gpu = verifier.score(
-        *(a.cuda() if isinstance(a, torch.Tensor) else a for a in args), hyps.cuda()
-    )
+    cpu = verifier.score(ImageInstances(*args), hyps)
+    on_gpu = ImageInstances(*(a.cuda() if isinstance(a, torch.Tensor) else a for a in args))
+    gpu = verifier.score(on_gpu, hyps.cuda())
     for f in ("depth", "silhouette", "appearance", "total"):
         torch.testing.assert_close(getattr(gpu, f).cpu(), getattr(cpu, f), atol=1e-6, rtol=0)
     torch.testing.assert_close(gpu.valid.cpu(), cpu.valid)
@@ -209,13 +216,17 @@ def test_cpu_and_cuda_agree(verifier: PoseVerifier, scene: dict[str, torch.Tenso
 def test_errors(verifier: PoseVerifier, scene: dict[str, torch.Tensor]) -> None:
     hyps = box_pose()[None, None]
     with pytest.raises(ValueRangeError):
-        verifier.score(scene["rgb"], scene["depth"], K, scene["masks"], [7], hyps)
+        verifier.score(ImageInstances(scene["rgb"], scene["depth"], K, scene["masks"], [7]), hyps)
     with pytest.raises(ShapeError):
-        verifier.score(scene["rgb"], scene["depth"], K, scene["masks"], [1, 1], hyps)
+        verifier.score(
+            ImageInstances(scene["rgb"], scene["depth"], K, scene["masks"], [1, 1]), hyps
+        )
     with pytest.raises(ShapeError):
-        verifier.score(scene["rgb"], scene["depth"][:-1], K, scene["masks"], [1], hyps)
+        verifier.score(
+            ImageInstances(scene["rgb"], scene["depth"][:-1], K, scene["masks"], [1]), hyps
+        )
     with pytest.raises(ValueRangeError):
-        verifier.score(scene["rgb"], scene["depth"], K, scene["masks"], [1], hyps, crop_size=20)
+        verifier.score(one_box(scene), hyps, crop_size=20)
     with pytest.raises(ValueRangeError):
         PoseVerifier(config={"crop_size": 64})  # type: ignore[arg-type]
 
@@ -260,7 +271,7 @@ def test_object_without_near_symmetries_is_scored_alone() -> None:
     assert len(v.prepare(2, part).candidates) == 0
     out = Renderer([part.mesh]).render(box_pose()[None], K, W, H)
     rgb = out.rgb.permute(2, 0, 1).float() / 255.0
-    result = v.verify(rgb, out.depth, K, out.masks_visible, [2], box_pose()[None])
+    result = v.verify(ImageInstances(rgb, out.depth, K, out.masks_visible, [2]), box_pose()[None])
     assert result.hypotheses.shape == (1, 1, 4, 4)
     assert int(result.chosen[0]) == 0 and bool(result.valid[0])
     # not 1: the splats also cover the edge pixels whose centre lies just outside the object
@@ -273,7 +284,7 @@ def test_extra_hypotheses_compete_with_the_near_symmetric_candidates(
     true = box_pose()
     off = true.clone()
     off[:3, 3] += torch.tensor([0.03, 0.0, 0.0])  # 3 cm off: no near-symmetry turns it right
-    args = (scene["rgb"], scene["depth"], K, scene["masks"], [1], off[None])
+    args = (one_box(scene), off[None])
 
     def is_true(pose: torch.Tensor) -> bool:
         angle = float(rotation_angle_error(pose[:3, :3], true[:3, :3]))
@@ -298,9 +309,9 @@ def test_ranking_makes_the_best_hypothesis_the_estimate(
     masks = scene["masks"].repeat(2, 1, 1)
     poses = torch.stack((flipped, flipped))
     extra = torch.stack((off, true))[None].repeat(2, 1, 1, 1)  # (2, 2, 4, 4): the truth second
-    images = (scene["rgb"], scene["depth"], K, masks, [1, 1])
+    image = ImageInstances(scene["rgb"], scene["depth"], K, masks, [1, 1])
     ranked = verifier.rank_hypotheses(
-        *images, poses, extra=extra, estimated=torch.tensor([True, False])
+        image, poses, extra=extra, estimated=torch.tensor([True, False])
     )
     assert ranked.poses.shape == (2, 3, 4, 4) and ranked.mask.tolist() == [
         [True] * 3,
@@ -309,9 +320,9 @@ def test_ranking_makes_the_best_hypothesis_the_estimate(
     assert torch.equal(ranked.poses[0, 0], true) and torch.equal(ranked.poses[0, 2], flipped)
     assert torch.equal(ranked.poses[1], torch.cat((poses[1:], extra[1])))  # no estimate: left
     # the incumbent a ranking keeps is the estimate verify then holds its contest around
-    out = verifier.verify(*images, ranked.poses[:, 0], extra=ranked.poses[:, 1:])
+    out = verifier.verify(image, ranked.poses[:, 0], extra=ranked.poses[:, 1:])
     assert float(rotation_angle_error(out.poses[0, :3, :3], true[:3, :3])) < 1.0
-    no_extra = verifier.rank_hypotheses(*images, poses, extra=extra[:, :0])
+    no_extra = verifier.rank_hypotheses(image, poses, extra=extra[:, :0])
     assert torch.equal(no_extra.poses, poses[:, None]) and no_extra.mask.all()
 
 
@@ -321,9 +332,11 @@ def test_instances_without_an_estimate_come_back_unverified(
     flipped = box_pose() @ half_turn([1.0, 0, 0])
     poses = torch.stack((flipped, flipped))
     masks = scene["masks"].repeat(2, 1, 1)
-    args = (scene["rgb"], scene["depth"], K, masks, [1, 1], poses)
+    args = (ImageInstances(scene["rgb"], scene["depth"], K, masks, [1, 1]), poses)
     out = verifier.verify(*args, estimated=torch.tensor([False, True]))
-    alone = verifier.verify(scene["rgb"], scene["depth"], K, masks[1:], [1], poses[1:])
+    alone = verifier.verify(
+        ImageInstances(scene["rgb"], scene["depth"], K, masks[1:], [1]), poses[1:]
+    )
     assert out.valid.tolist() == [False, True] and float(out.scores[0]) == 0.0
     assert int(out.chosen[0]) == 0 and int(out.chosen[1]) == int(alone.chosen[0]) != 0
     assert torch.equal(out.poses[0], poses[0])
@@ -342,7 +355,7 @@ def test_search_finds_a_pose_turned_far_from_every_candidate(
     turn = torch.eye(4)
     turn[:3, :3] = axis_angle_matrix(torch.tensor([0.3, 1.0, 0.2]), torch.tensor(2.0))
     wrong = (true @ turn)[None]
-    args = (scene["rgb"], scene["depth"], K, scene["masks"], [1], wrong)
+    args = (one_box(scene), wrong)
     plain = verifier.verify(*args)
     assert float(rotation_angle_error(plain.poses[0, :3, :3], true[:3, :3])) > 30
     searching = PoseVerifier(VerifierConfig(**{**CONFIG.to_dict(), "search_below": 1.0}))
@@ -356,7 +369,7 @@ def test_search_finds_a_pose_turned_far_from_every_candidate(
     assert float(rotation_angle_error(out.poses[0, :3, :3], true[:3, :3])) < 20.0
     assert float(out.scores[0]) > float(plain.scores[0]) + 0.1
     # a right pose survives its own search
-    kept = searching.verify(scene["rgb"], scene["depth"], K, scene["masks"], [1], true[None])
+    kept = searching.verify(one_box(scene), true[None])
     assert int(kept.chosen[0]) < H
     assert float(rotation_angle_error(kept.poses[0, :3, :3], true[:3, :3])) < 1.0
 
@@ -367,7 +380,7 @@ def test_search_pads_the_instances_it_does_not_search(
     config = VerifierConfig(**{**CONFIG.to_dict(), "search_below": 1e-3})  # searches nothing
     quiet = PoseVerifier(config)
     quiet.objects = verifier.objects
-    args = (scene["rgb"], scene["depth"], K, scene["masks"], [1], box_pose()[None])
+    args = (one_box(scene), box_pose()[None])
     out, plain = quiet.verify(*args), verifier.verify(*args)
     H = plain.hypotheses.shape[1]
     assert out.hypotheses.shape[1] == H + config.search_top_k
@@ -391,9 +404,9 @@ def test_search_of_objects_with_different_turn_counts_keeps_the_invariants(
     v.objects = {1: box, 2: turned}
     wrong = box_pose() @ half_turn([0.0, 1.0, 0.0])
     masks = scene["masks"].repeat(2, 1, 1)
-    args = (scene["rgb"], scene["depth"], K, masks, [1, 2], torch.stack((wrong, wrong)))
-    out = v.verify(*args)
-    plain = verifier.verify(*args[:4], [1, 1], args[5])
+    image = ImageInstances(scene["rgb"], scene["depth"], K, masks, [1, 2])
+    out = v.verify(image, torch.stack((wrong, wrong)))
+    plain = verifier.verify(dataclasses.replace(image, obj_ids=[1, 1]), torch.stack((wrong, wrong)))
     H = plain.hypotheses.shape[1]
     assert out.hypotheses.shape == (2, H + 30, 4, 4)
     rows = torch.arange(2)
@@ -402,7 +415,9 @@ def test_search_of_objects_with_different_turn_counts_keeps_the_invariants(
     torch.testing.assert_close(out.scores, torch.where(out.valid, chosen_total, 0.0))
     # the box has 23 turns: the rest of its 30 columns are padding
     assert not out.score.valid[0, H + 23 :].any()
-    empty = v.search(scene["rgb"], scene["depth"], K, masks[:0], [], torch.zeros(0, 4, 4))
+    empty = v.search(
+        ImageInstances(scene["rgb"], scene["depth"], K, masks[:0], []), torch.zeros(0, 4, 4)
+    )
     assert empty.hypotheses.shape == (0, 31, 4, 4) and empty.poses.shape == (0, 4, 4)
 
 
@@ -410,24 +425,28 @@ def test_no_instances_give_empty_results_of_the_right_shapes(
     verifier: PoseVerifier, scene: dict[str, torch.Tensor]
 ) -> None:
     none = scene["masks"][:0]
-    s = verifier.score(scene["rgb"], scene["depth"], K, none, [], torch.zeros(0, 3, 4, 4))
+    s = verifier.score(
+        ImageInstances(scene["rgb"], scene["depth"], K, none, []), torch.zeros(0, 3, 4, 4)
+    )
     g = (CONFIG.crop_size // CONFIG.block_size) ** 2
     assert s.total.shape == s.valid.shape == (0, 3) and s.evidence.shape == (0, 3, g)
     assert s.valid.dtype == torch.bool and len(s) == 0
     for estimated in (None, torch.zeros(0, dtype=torch.bool)):
         out = verifier.verify(
-            scene["rgb"], scene["depth"], K, none, [], torch.zeros(0, 4, 4), estimated=estimated
+            ImageInstances(scene["rgb"], scene["depth"], K, none, []),
+            torch.zeros(0, 4, 4),
+            estimated=estimated,
         )
         assert out.poses.shape == (0, 4, 4) and out.scores.shape == out.valid.shape == (0,)
         assert out.chosen.dtype == torch.long and out.hypotheses.shape == (0, 1, 4, 4)
     with pytest.raises(ShapeError):  # still one id per instance
-        verifier.verify(scene["rgb"], scene["depth"], K, none, [1], torch.zeros(0, 4, 4))
+        verifier.verify(
+            ImageInstances(scene["rgb"], scene["depth"], K, none, [1]), torch.zeros(0, 4, 4)
+        )
 
 
 def test_zero_hypotheses_per_instance_is_a_shape_error(
     verifier: PoseVerifier, scene: dict[str, torch.Tensor]
 ) -> None:
     with pytest.raises(ShapeError, match=r"\(1, 0, 4, 4\).*at least one hypothesis"):
-        verifier.score(
-            scene["rgb"], scene["depth"], K, scene["masks"], [1], torch.zeros(1, 0, 4, 4)
-        )
+        verifier.score(one_box(scene), torch.zeros(1, 0, 4, 4))

@@ -32,6 +32,7 @@ from poseflow.data.demo_objects import (
 from poseflow.data.depth_noise import DepthNoise
 from poseflow.data.frame import (
     Frame,
+    ImageInstances,
     read_color,
     read_frame,
     read_intrinsics,
@@ -75,6 +76,7 @@ __all__ = [
     "Frame",
     "GTInfo",
     "GTPose",
+    "ImageInstances",
     "ModelInfo",
     "ObjectModel",
     "SyntheticObject",

@@ -13,6 +13,9 @@ dataset tree:
   (one image's entry, whose ``depth_scale`` is used when none is given); the principal point must
   lie inside the image;
 - instances: mask images (non-zero = object) or a BOP detections file (COCO-RLE masks).
+
+:class:`ImageInstances` is what every estimator and the verifier take of such a frame: the colour
+image, the depth, the intrinsics and the instances' masks and object ids (:attr:`Frame.instances`).
 """
 
 from __future__ import annotations
@@ -20,8 +23,8 @@ from __future__ import annotations
 import json
 import math
 import warnings
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -29,11 +32,13 @@ import numpy as np
 import torch
 from PIL import Image
 
+from poseflow._checks import check_tensor
 from poseflow._units import check_depth_units, check_intrinsics
 from poseflow.errors import BOPFormatError, MissingFileError, ShapeError, ValueRangeError
 
 __all__ = [
     "Frame",
+    "ImageInstances",
     "read_color",
     "read_frame",
     "read_intrinsics",
@@ -43,6 +48,62 @@ __all__ = [
 
 #: Metres per unit of an integer depth image when no scale is given (millimetres).
 DEFAULT_INTEGER_DEPTH_SCALE = 0.001
+
+
+@dataclass(frozen=True)
+class ImageInstances:
+    """The instances of one RGB-D image: the five arguments of every estimator.
+
+    What the estimators' ``estimate(rgb, depth, K, masks, obj_ids)`` take one by one, and their
+    steps and the verifier (:class:`~poseflow.verify.PoseVerifier`) take as one.
+
+    Attributes:
+        rgb: the colour image ``(3, H, W)``, uint8 or float in ``[0, 1]``, or None.
+        depth: depth ``(H, W)`` in metres.
+        K: intrinsics ``(3, 3)`` (as given, or checked by :meth:`checked`).
+        masks: instance masks ``(B, H, W)`` bool.
+        obj_ids: object id of each instance ``(B,)``.
+
+    Example:
+        >>> image = ImageInstances(None, torch.ones(4, 6), [[5, 0, 3], [0, 5, 2], [0, 0, 1]],
+        ...                        torch.ones(1, 4, 6, dtype=torch.bool), [7])
+        >>> checked = image.checked(torch.float32)
+        >>> checked.K.dtype, checked.obj_ids.tolist()
+        (torch.float32, [7])
+    """
+
+    rgb: torch.Tensor | None
+    depth: torch.Tensor
+    K: Any
+    masks: torch.Tensor
+    obj_ids: torch.Tensor | Sequence[int]
+
+    def __iter__(self) -> Iterator[Any]:
+        """The five arguments in the estimators' order: ``estimate(*image)``."""
+        return iter((self.rgb, self.depth, self.K, self.masks, self.obj_ids))
+
+    def checked(self, dtype: torch.dtype) -> ImageInstances:
+        """This image with ``K`` ``(3, 3)`` in ``dtype`` and ``obj_ids`` an int64 tensor ``(B,)``.
+
+        ``K`` is checked against the depth's size ``(H, W)`` and put on the depth's device
+        (:func:`~poseflow._units.check_intrinsics`).
+
+        Raises:
+            ShapeError: a depth that is not ``(H, W)``, or ``K`` not 9 numbers.
+            ValueRangeError: ``K`` is not a pinhole matrix of this image.
+        """
+        sizes = check_tensor(self.depth, "depth", ("H", "W"), floating=False)
+        K = check_intrinsics(self.K, sizes["W"], sizes["H"], dtype=dtype, device=self.depth.device)
+        return replace(
+            self, K=K, obj_ids=torch.as_tensor(self.obj_ids, dtype=torch.long).reshape(-1)
+        )
+
+    def twice(self) -> ImageInstances:
+        """This image with every instance twice: rows ``B + i`` repeat instance ``i``."""
+        ids = torch.as_tensor(self.obj_ids).reshape(-1)
+        return replace(
+            self, masks=torch.cat((self.masks, self.masks)), obj_ids=torch.cat((ids, ids))
+        )
 
 
 @dataclass
@@ -68,6 +129,14 @@ class Frame:
     scores: torch.Tensor
     sources: list[str] = field(default_factory=list)
     depth_scale: float = 1.0
+
+    @property
+    def instances(self) -> ImageInstances:
+        """The colour image, depth, intrinsics, masks and object ids, as the estimators take them.
+
+        ``estimator(*frame.instances)`` estimates the frame's poses.
+        """
+        return ImageInstances(self.rgb, self.depth, self.K, self.masks, self.obj_ids)
 
     @property
     def size(self) -> tuple[int, int]:

@@ -11,16 +11,16 @@ from __future__ import annotations
 import functools
 import os
 import time
-from collections.abc import Callable, Iterator, Mapping, Sequence
-from dataclasses import dataclass, replace
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
 from math import nan
 from typing import Any
 
 import torch
 
-from poseflow._checks import check_tensor
 from poseflow._units import check_depth_extent, check_intrinsics, in_front_of_camera
 from poseflow.data.bop import BOPDataset, BOPScene, Detection
+from poseflow.data.frame import ImageInstances
 from poseflow.errors import BOPFormatError, ShapeError, ValueRangeError
 from poseflow.eval.recall import Target
 from poseflow.eval.results import PoseResults
@@ -28,7 +28,6 @@ from poseflow.eval.timing import StageTimer
 
 __all__ = [
     "Estimator",
-    "ImageInstances",
     "PoseEstimate",
     "SeededEstimator",
     "invalidate_implausible",
@@ -155,57 +154,11 @@ def seeded_estimator(
     return on_device(functools.partial(estimate, generator=generator), device)
 
 
-@dataclass(frozen=True)
-class ImageInstances:
-    """The instances of one RGB-D image: the five arguments of every :data:`Estimator`.
-
-    Attributes:
-        rgb: the colour image ``(3, H, W)``, uint8 or float in ``[0, 1]``, or None.
-        depth: depth ``(H, W)`` in metres.
-        K: intrinsics ``(3, 3)`` (as given, or checked by :meth:`with_intrinsics`).
-        masks: instance masks ``(B, H, W)`` bool.
-        obj_ids: object id of each instance ``(B,)``.
-    """
-
-    rgb: torch.Tensor | None
-    depth: torch.Tensor
-    K: Any
-    masks: torch.Tensor
-    obj_ids: torch.Tensor | Sequence[int]
-
-    def __iter__(self) -> Iterator[Any]:
-        """The five arguments in the estimators' order: ``estimate(*image)``."""
-        return iter((self.rgb, self.depth, self.K, self.masks, self.obj_ids))
-
-    def checked(self, dtype: torch.dtype) -> ImageInstances:
-        """This image with ``K`` ``(3, 3)`` in ``dtype`` and ``obj_ids`` an int64 tensor ``(B,)``.
-
-        ``K`` is checked against the depth's size ``(H, W)`` and put on the depth's device
-        (:func:`~poseflow._units.check_intrinsics`).
-
-        Raises:
-            ShapeError: a depth that is not ``(H, W)``, or ``K`` not 9 numbers.
-            ValueRangeError: ``K`` is not a pinhole matrix of this image.
-        """
-        sizes = check_tensor(self.depth, "depth", ("H", "W"), floating=False)
-        K = check_intrinsics(self.K, sizes["W"], sizes["H"], dtype=dtype, device=self.depth.device)
-        return replace(
-            self, K=K, obj_ids=torch.as_tensor(self.obj_ids, dtype=torch.long).reshape(-1)
-        )
-
-    def twice(self) -> ImageInstances:
-        """This image with every instance twice: rows ``B + i`` repeat instance ``i``."""
-        ids = torch.as_tensor(self.obj_ids).reshape(-1)
-        return replace(
-            self, masks=torch.cat((self.masks, self.masks)), obj_ids=torch.cat((ids, ids))
-        )
-
-
 class SeededEstimator:
     """Base of the estimators that draw from a generator: ``estimate``, ``estimator``, ``predict``.
 
-    A subclass gives :meth:`_estimate` (of an :class:`ImageInstances`), its ``device`` and
-    :meth:`_object_ids`.
+    A subclass gives :meth:`_estimate` (of an :class:`~poseflow.data.ImageInstances`), its
+    ``device`` and :meth:`_object_ids`.
     """
 
     device: torch.device

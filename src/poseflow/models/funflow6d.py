@@ -15,21 +15,17 @@ Shape letters: ``B`` instances, ``N`` points per cloud, ``H`` hypotheses per ins
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 
 import torch
 from torch import nn
 
 from poseflow._units import check_depth_extent
+from poseflow.data.frame import ImageInstances
 from poseflow.data.objects import ObjectModel
 from poseflow.errors import CheckpointError, ValueRangeError
-from poseflow.eval.predict import (
-    ImageInstances,
-    PoseEstimate,
-    SeededEstimator,
-    invalidate_implausible,
-)
+from poseflow.eval.predict import PoseEstimate, SeededEstimator, invalidate_implausible
 from poseflow.eval.timing import stage
 from poseflow.features import AppearanceEncoder, GeometricEncoder
 from poseflow.models.checkpoint import read_checkpoint, write_checkpoint
@@ -105,29 +101,30 @@ class FunFlow6D(nn.Module, SeededEstimator):
     @torch.no_grad()
     def observe(
         self,
-        rgb: torch.Tensor,
-        depth: torch.Tensor,
-        K: torch.Tensor,
-        masks: torch.Tensor,
-        obj_ids: torch.Tensor | Sequence[int],
+        image: ImageInstances,
         *,
         generator: torch.Generator | None = None,
         crop_jitter: float = 0.0,
     ) -> Observation:
         """The target clouds of an image: :func:`~poseflow.models.observe.observe`.
 
-        Arguments as :meth:`estimate`; without masks (``B = 0``) the observation is empty.
+        Args:
+            image: the image and its ``B`` instances, as :meth:`estimate` takes them one by one;
+                without masks (``B = 0``) the observation is empty.
+            generator: seeds the dense-cloud cap and the farthest-point sampling; None: a
+                generator seeded 0.
+            crop_jitter: training augmentation of the appearance crop; 0 at inference.
 
         Raises:
             ShapeError: inconsistent shapes, or ``K`` not 9 numbers.
             ValueRangeError: an object id that is not prepared, or a ``K`` that is not a pinhole
                 matrix of this image.
         """
-        diameters = [o.diameter for o in select_objects(self.objects, obj_ids)]
+        diameters = [o.diameter for o in select_objects(self.objects, image.obj_ids)]
         if generator is None:
-            generator = torch.Generator(device=depth.device).manual_seed(0)
+            generator = torch.Generator(device=image.depth.device).manual_seed(0)
         return observe(
-            rgb, depth, K, masks, obj_ids, diameters,
+            *image, diameters,
             num_points=self.config.num_points, dense_points=self.config.dense_points,
             geometric_encoder=self.geometric_encoder, appearance_encoder=self.appearance_encoder,
             geometric_support_voxel=self.config.geometric_support_voxel,
@@ -176,7 +173,7 @@ class FunFlow6D(nn.Module, SeededEstimator):
         best by the solver's score is the incumbent, and with
         ``config.verifier.rank_hypotheses`` the others are candidates that the verifier ranks
         (:class:`Proposals` with ``rank`` on). Arguments as :meth:`estimate`'s, the image's
-        five as one :class:`~poseflow.eval.predict.ImageInstances`.
+        five as one :class:`~poseflow.data.ImageInstances`.
 
         Returns:
             :class:`~poseflow.models.verification.Proposals` of the ``B`` instances, with the
@@ -186,7 +183,7 @@ class FunFlow6D(nn.Module, SeededEstimator):
         if generator is None:
             generator = torch.Generator(device=image.depth.device).manual_seed(0)
         with _evaluating(self):
-            obs = self.observe(*image, generator=generator)
+            obs = self.observe(image, generator=generator)
             if obs.points.shape[0] == 0:
                 return no_proposals(image.depth.device)
             with stage("flow_inputs"):
@@ -232,7 +229,7 @@ class FunFlow6D(nn.Module, SeededEstimator):
 
 
 def _checked_image(model: FunFlow6D, image: ImageInstances) -> ImageInstances:
-    """``image`` checked in float32 (:meth:`~poseflow.eval.predict.ImageInstances.checked`).
+    """``image`` checked in float32 (:meth:`~poseflow.data.ImageInstances.checked`).
 
     The model's verifier and the masked depth's extent are checked too.
 

@@ -22,11 +22,14 @@ Shape letters: ``B`` instances of an image.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import torch
 
 from poseflow.baselines import ClassicBaseline
+from poseflow.data.frame import ImageInstances
 from poseflow.errors import ValueRangeError
-from poseflow.eval.predict import ImageInstances, PoseEstimate, SeededEstimator
+from poseflow.eval.predict import PoseEstimate, SeededEstimator
 from poseflow.models.funflow6d import FunFlow6D
 from poseflow.models.verification import keep_better
 
@@ -81,8 +84,7 @@ class Hybrid(SeededEstimator):
         proposals = self.model.propose(image, generator=generator)
         if proposals.estimate.poses.shape[0] == 0:
             return proposals.estimate
-        classic, _ = self.baseline.solve(
-            image.depth.cpu(), image.K, image.masks.cpu(), image.obj_ids
-        )
+        on_cpu = replace(image, rgb=None, depth=image.depth.cpu(), masks=image.masks.cpu())
+        classic, _ = self.baseline.solve(on_cpu)
         out = self.model.verify(proposals.with_rival(classic), image.twice())
         return keep_better(out)

@@ -17,6 +17,7 @@ import torch.nn.functional as F
 
 from poseflow._cache import atomic_write
 from poseflow.data.bop import BOPImageDataset
+from poseflow.data.frame import ImageInstances
 from poseflow.errors import DegenerateInputError, ValueRangeError
 from poseflow.flows import CFMObjective, CFMTrainer, TrainConfig, identity_maps
 from poseflow.models.funflow6d import FunFlow6D
@@ -174,10 +175,8 @@ def build_training_set(
             depth, masks = s["depth"], s["masks_visib"][keep]
             if copy:
                 depth, masks = augment(depth, masks, generator=g)
-            obs = model.observe(
-                s["rgb"], depth, s["K"], masks, s["obj_ids"][keep], generator=g,
-                crop_jitter=crop_jitter if copy else 0.0,
-            )  # fmt: skip
+            image = ImageInstances(s["rgb"], depth, s["K"], masks, s["obj_ids"][keep])
+            obs = model.observe(image, generator=g, crop_jitter=crop_jitter if copy else 0.0)
             inputs = model.flow_inputs(obs, s["poses"][keep])
             for k in TRAINING_FIELDS:
                 parts[k].append(getattr(inputs, k)[obs.valid])

@@ -18,15 +18,16 @@ Shape letters: ``B`` instances, ``H`` hypotheses per instance, ``N`` observed po
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import torch
 
+from poseflow.data.frame import ImageInstances
 from poseflow.data.objects import ObjectModel
 from poseflow.errors import ValueRangeError
-from poseflow.eval.predict import ImageInstances, PoseEstimate
+from poseflow.eval.predict import PoseEstimate
 from poseflow.eval.timing import stage
 from poseflow.geometry.se3 import inverse_transform
 from poseflow.verify import PoseVerifier
@@ -204,11 +205,7 @@ def rank_estimate(
     estimate: PoseEstimate,
     extra: torch.Tensor,
     extra_mask: torch.Tensor,
-    rgb: torch.Tensor,
-    depth: torch.Tensor,
-    K: torch.Tensor,
-    masks: torch.Tensor,
-    obj_ids: torch.Tensor | Sequence[int],
+    image: ImageInstances,
 ) -> tuple[PoseEstimate, torch.Tensor, torch.Tensor]:
     """Make each instance's best hypothesis by the verifier's score its estimate.
 
@@ -216,15 +213,12 @@ def rank_estimate(
     estimate's poses and validity.
 
     Args:
-        verifier: a verifier with every object of ``obj_ids`` prepared.
+        verifier: a verifier with every object of the image prepared.
         estimate: the estimator's choice ``(B, 4, 4)`` with its validity.
         extra: the other hypotheses ``(B, E, 4, 4)`` (:func:`other_hypotheses`).
         extra_mask: ``(B, E)`` bool.
-        rgb: the image ``(3, Hi, Wi)``.
-        depth: depth ``(Hi, Wi)`` in metres.
-        K: intrinsics ``(3, 3)``.
-        masks: instance masks ``(B, Hi, Wi)`` bool.
-        obj_ids: object id of each instance ``(B,)``.
+        image: the image ``(3, Hi, Wi)``, depth ``(Hi, Wi)``, ``K`` ``(3, 3)``, and the ``B``
+            instances' masks ``(B, Hi, Wi)`` and object ids ``(B,)``.
 
     Returns:
         ``(estimate, extra, extra_mask)`` with each instance's best hypothesis swapped into
@@ -232,9 +226,8 @@ def rank_estimate(
         scores and validity are kept.
     """
     ranked = verifier.rank_hypotheses(
-        rgb, depth, K, masks, obj_ids, estimate.poses,
-        extra=extra, extra_mask=extra_mask, estimated=estimate.valid,
-    )  # fmt: skip
+        image, estimate.poses, extra=extra, extra_mask=extra_mask, estimated=estimate.valid
+    )
     chosen = PoseEstimate(ranked.poses[:, 0], estimate.scores, estimate.valid)
     return chosen, ranked.poses[:, 1:], ranked.mask[:, 1:]
 
@@ -242,11 +235,7 @@ def rank_estimate(
 def verify_estimate(
     verifier: PoseVerifier,
     estimate: PoseEstimate,
-    rgb: torch.Tensor,
-    depth: torch.Tensor,
-    K: torch.Tensor,
-    masks: torch.Tensor,
-    obj_ids: torch.Tensor | Sequence[int],
+    image: ImageInstances,
     observed: torch.Tensor | None,
     observed_mask: torch.Tensor | None,
     *,
@@ -256,15 +245,13 @@ def verify_estimate(
     """Verify the poses of one image's instances; the verifier's score becomes their score.
 
     Args:
-        verifier: a verifier with every object of ``obj_ids`` prepared.
+        verifier: a verifier with every object of the image prepared.
         estimate: the selected poses ``(B, 4, 4)``, scores and validity of the instances.
-        rgb: the image ``(3, Hi, Wi)``, uint8 or float in ``[0, 1]``.
-        depth: depth ``(Hi, Wi)`` in metres.
-        K: intrinsics ``(3, 3)``.
-        masks: instance masks ``(B, Hi, Wi)`` bool.
-        obj_ids: object id of each instance ``(B,)``.
+        image: the image ``(3, Hi, Wi)`` (uint8 or float in ``[0, 1]``), depth ``(Hi, Wi)`` in
+            metres, ``K`` ``(3, 3)``, and the ``B`` instances' masks ``(B, Hi, Wi)`` bool and
+            object ids ``(B,)``.
         observed: the observed clouds ``(B, N, 3)``, camera frame, metres (ICP's source; the
-            verifier thins them to ``max_observed_points``); None lifts them from ``depth``.
+            verifier thins them to ``max_observed_points``); None lifts them from the depth.
         observed_mask: ``(B, N)`` bool, their valid points.
         extra: more candidates per instance ``(B, E, 4, 4)`` (e.g. :func:`other_hypotheses`).
         extra_mask: ``(B, E)`` bool for ``extra``.
@@ -277,7 +264,7 @@ def verify_estimate(
     Raises:
         ValueRangeError: an object the verifier has not prepared.
     """
-    ids = [int(o) for o in torch.as_tensor(obj_ids).reshape(-1).tolist()]
+    ids = [int(o) for o in torch.as_tensor(image.obj_ids).reshape(-1).tolist()]
     missing = sorted(set(ids) - set(verifier.objects))
     if missing:
         raise ValueRangeError(
@@ -286,7 +273,7 @@ def verify_estimate(
         )
     with stage("verification"):
         out = verifier.verify(
-            rgb, depth, K, masks, ids, estimate.poses, observed, observed_mask,
+            replace(image, obj_ids=ids), estimate.poses, (observed, observed_mask),
             extra=extra, extra_mask=extra_mask, estimated=estimate.valid,
         )  # fmt: skip
     return PoseEstimate(out.poses, out.scores.to(estimate.scores.dtype), estimate.valid)
@@ -314,8 +301,8 @@ def verify_proposals(
         extra = extra_mask = None
     elif proposals.rank:
         with stage("verification"):
-            est, extra, extra_mask = rank_estimate(verifier, est, extra, extra_mask, *image)
+            est, extra, extra_mask = rank_estimate(verifier, est, extra, extra_mask, image)
     return verify_estimate(
-        verifier, est, *image, proposals.observed, proposals.observed_mask,
+        verifier, est, image, proposals.observed, proposals.observed_mask,
         extra=extra, extra_mask=extra_mask,
     )  # fmt: skip

@@ -22,7 +22,7 @@ the renderer, :func:`near_symmetries` the search for near-symmetries.
 Used on its own, with a user's hypotheses::
 
     import torch
-    from poseflow.data import ObjectModel
+    from poseflow.data import ImageInstances, ObjectModel
     from poseflow.verify import PoseVerifier, VerifierConfig
 
     model = ObjectModel.from_file("obj_000001.ply", scale=0.001)  # BOP mesh in mm
@@ -31,11 +31,12 @@ Used on its own, with a user's hypotheses::
 
     # rgb (3, H, W) in [0, 1], depth (H, W) in metres, K (3, 3), masks (B, H, W) bool,
     # hypotheses (B, H', 4, 4) model-to-camera poses of the B instances
-    score = verifier.score(rgb, depth, K, masks, [1] * len(masks), hypotheses)
+    image = ImageInstances(rgb, depth, K, masks, [1] * len(masks))
+    score = verifier.score(image, hypotheses)
     best = score.total.argmax(-1)  # per-term scores: score.depth, .silhouette, .appearance
 
     # or the whole stage for one estimate per instance: candidates, ICP, scores, the choice
-    result = verifier.verify(rgb, depth, K, masks, [1] * len(masks), poses)
+    result = verifier.verify(image, poses)
     result.poses, result.scores, result.chosen  # (B, 4, 4), (B,), (B,) 0 = estimate kept
 
 ``examples/verify_your_poses.py`` runs this on a rendered scene. ``FunFlow6D`` and

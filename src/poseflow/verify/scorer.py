@@ -20,6 +20,7 @@ from typing import Any
 import torch
 
 from poseflow._checks import check_mask, check_same, check_tensor
+from poseflow.data.frame import ImageInstances
 from poseflow.data.objects import ObjectModel
 from poseflow.errors import ShapeError, ValueRangeError
 from poseflow.geometry.pointcloud import backproject_depth, remove_statistical_outliers
@@ -43,8 +44,9 @@ class PoseScorer:
     """Expands, refines and scores pose hypotheses of prepared objects against one image.
 
     Built once; :meth:`prepare` caches what each object needs (surface points with normals and
-    albedo, its near-symmetries). Every step takes the instances of one image: their masks and
-    object ids, and hypotheses ``(B, H, 4, 4)``, model to camera.
+    albedo, its near-symmetries). Every step takes the instances of one image (:meth:`score` as
+    an :class:`~poseflow.data.ImageInstances`, the others their masks and object ids), and
+    hypotheses ``(B, H, 4, 4)``, model to camera.
 
     Args:
         config: the hyper-parameters; default :class:`VerifierConfig()`.
@@ -52,7 +54,7 @@ class PoseScorer:
 
     Example:
         >>> import open3d as o3d
-        >>> from poseflow.data.objects import ObjectModel
+        >>> from poseflow.data import ImageInstances, ObjectModel
         >>> from poseflow.render import Renderer
         >>> box = o3d.geometry.TriangleMesh.create_box(0.1, 0.06, 0.03)
         >>> model = ObjectModel.from_mesh(box.translate((-0.05, -0.03, -0.015)), num_points=64)
@@ -62,8 +64,8 @@ class PoseScorer:
         >>> out = Renderer([model.mesh]).render(pose[None], K, 160, 120)
         >>> wrong = pose.clone(); wrong[0, 3] = 0.02  # 2 cm off
         >>> _ = scorer.prepare(1, model)
-        >>> score = scorer.score(None, out.depth, K, out.masks_full, [1],
-        ...                      torch.stack((pose, wrong))[None])
+        >>> image = ImageInstances(None, out.depth, K, out.masks_full, [1])
+        >>> score = scorer.score(image, torch.stack((pose, wrong))[None])
         >>> score.total[0, 0] > score.total[0, 1]
         tensor(True)
     """
@@ -239,34 +241,28 @@ class PoseScorer:
 
     def score(
         self,
-        rgb: torch.Tensor | None,
-        depth: torch.Tensor,
-        K: torch.Tensor,
-        masks: torch.Tensor,
-        obj_ids: Sequence[int] | torch.Tensor,
+        image: ImageInstances,
         hypotheses: torch.Tensor,
         hypothesis_mask: torch.Tensor | None = None,
         *,
-        boxes: torch.Tensor | None = None,
         crop_size: int | None = None,
+        boxes: torch.Tensor | None = None,
     ) -> VerifierScore:
         """Render every hypothesis and compare it with the observation.
 
         Args:
-            rgb: colour image ``(3, Hi, Wi)`` (float in ``[0, 1]`` or uint8), or None to score
-                depth and silhouette only.
-            depth: depth in metres ``(Hi, Wi)``, 0 or NaN where missing.
-            K: intrinsics ``(3, 3)``.
-            masks: instance masks ``(B, Hi, Wi)`` bool.
-            obj_ids: object id per instance ``(B,)``.
+            image: the colour image ``(3, Hi, Wi)`` (float in ``[0, 1]`` or uint8, or None to
+                score depth and silhouette only), depth in metres ``(Hi, Wi)`` (0 or NaN where
+                missing), intrinsics ``(3, 3)`` tensor, and the ``B`` instances' masks
+                ``(B, Hi, Wi)`` bool and object ids ``(B,)``.
             hypotheses: model-to-camera poses ``(B, H, 4, 4)``.
             hypothesis_mask: ``(B, H)`` bool, False for padding.
-            boxes: the crops ``(B, 4)`` (see :meth:`crop_boxes`); by default those of
-                hypothesis 0, so that all hypotheses of an instance share one crop.
             crop_size: side of the compared grid; default ``config.crop_size``. A coarser grid
                 draws a proportional prefix of the surface points (the points are in
                 farthest-point order, so every prefix is spread evenly), keeping the points per
                 pixel, and costs proportionally less.
+            boxes: the crops ``(B, 4)`` (see :meth:`crop_boxes`); by default those of
+                hypothesis 0, so that all hypotheses of an instance share one crop.
 
         Returns:
             A :class:`~poseflow.verify.VerifierScore` in the hypotheses' dtype; without
@@ -277,6 +273,7 @@ class PoseScorer:
                 (``H = 0`` with ``B > 0``: hypothesis 0 places each instance's crop).
             ValueRangeError: an object that was not prepared, NaN in the hypotheses.
         """
+        rgb, depth, K, masks, obj_ids = image
         sizes = check_tensor(hypotheses, "hypotheses", ("B", "H", 4, 4), finite=True)
         d_sizes = check_tensor(depth, "depth", ("Hi", "Wi"))
         check_mask(masks, "masks", ("B", "Hi", "Wi"), {**d_sizes, "B": sizes["B"]})

@@ -6,18 +6,20 @@ kept, refined by ICP and scored on the full grid. :meth:`~PoseVerifier.verify` a
 :meth:`~PoseVerifier.search` then keep the first unless another beats it significantly,
 :meth:`~PoseVerifier.rank_hypotheses` takes the best.
 
+Every method takes the instances of one image as an :class:`~poseflow.data.ImageInstances`.
+
 Shape letters: B instances of one image, H hypotheses per instance, E more hypotheses, M observed
 points, Hi x Wi the image.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
 import torch
 
 from poseflow._checks import check_mask, check_same, check_tensor
+from poseflow.data.frame import ImageInstances
 from poseflow.verify.results import Hypotheses, Verification
 from poseflow.verify.score import VerifierScore
 from poseflow.verify.scorer import PoseScorer
@@ -25,29 +27,31 @@ from poseflow.verify.symmetry import box_turns
 
 __all__ = ["PoseVerifier"]
 
+#: Observed clouds ``(B, M, 3)`` and their valid points ``(B, M)`` bool (None: all valid).
+ObservedClouds = tuple[torch.Tensor, torch.Tensor | None]
+
 
 @dataclass(frozen=True)
-class _Image:
-    """The inputs of one image's contest, one row per instance.
+class _Image(ImageInstances):
+    """The inputs of one image's contest: its instances and their observed clouds.
 
     Attributes:
-        rgb: colour image ``(3, Hi, Wi)`` or None.
-        depth: depth in metres ``(Hi, Wi)``.
         K: intrinsics ``(3, 3)`` in the hypotheses' dtype.
-        masks: instance masks ``(B, Hi, Wi)`` bool.
-        obj_ids: object ids ``(B,)``.
         observed: the observed clouds ``(B, M, 3)`` that ICP registers, or None (lifted from
             the depth when needed).
         observed_mask: ``(B, M)`` bool, or None.
     """
 
-    rgb: torch.Tensor | None
-    depth: torch.Tensor
-    K: torch.Tensor
-    masks: torch.Tensor
-    obj_ids: Sequence[int] | torch.Tensor
     observed: torch.Tensor | None = None
     observed_mask: torch.Tensor | None = None
+
+    @classmethod
+    def of(
+        cls, image: ImageInstances, dtype: torch.dtype, observed: ObservedClouds | None
+    ) -> _Image:
+        """``image`` with its ``K`` in ``dtype`` and the observed clouds, if given."""
+        rgb, depth, K, masks, obj_ids = image
+        return cls(rgb, depth, K.to(dtype), masks, obj_ids, *(observed or ()))
 
     def take(self, rows: torch.Tensor, *more: torch.Tensor | None) -> tuple:
         """The instances ``rows`` ``(B',)`` of this image, then those rows of ``more``.
@@ -104,54 +108,45 @@ class _Contest:
 class PoseVerifier(PoseScorer):
     """Render-and-compare verification of 6D pose hypotheses with near-symmetry candidates.
 
-    Built once; :meth:`prepare` caches what each object needs (surface points with normals and
-    albedo, its near-symmetries). For the instances of one image, :meth:`verify` runs the whole
-    stage: :meth:`expand` each estimate with its near-symmetric candidates and holds a contest
-    of them: all are scored on a coarse grid (:meth:`score`), the best ``refine_top_k``
-    candidates (and, with ``refine_estimate``, the estimate) refined by ICP of the observed
-    cloud onto the model (:meth:`refine`) and scored again on the full grid, and the estimate is
-    kept unless a candidate beats it by more than the score's own spread
-    (:func:`~poseflow.verify.select_significant`); a chosen pose that still scores below
-    ``search_below`` is then searched over all orientations by the same contest
-    (:meth:`search`). :meth:`rank_hypotheses` runs it to rank an estimator's hypotheses. Each
-    step is a public method of :class:`~poseflow.verify.PoseScorer`, so the verifier also
-    scores hypotheses from anywhere.
-
-    Args:
-        config: the hyper-parameters; default :class:`VerifierConfig()`.
-        seed: seed of the surface sampling and of the observed cloud's thinning.
+    Built once, with :class:`~poseflow.verify.PoseScorer`'s arguments; :meth:`prepare` caches what
+    each object needs (surface points with normals and albedo, its near-symmetries). For the
+    instances of one image, :meth:`verify` runs the whole stage: :meth:`expand` each estimate with
+    its near-symmetric candidates and holds a contest of them: all are scored on a coarse grid
+    (:meth:`score`), the best ``refine_top_k`` candidates (and, with ``refine_estimate``, the
+    estimate) refined by ICP of the observed cloud onto the model (:meth:`refine`) and scored again
+    on the full grid, and the estimate is kept unless a candidate beats it by more than the score's
+    own spread (:func:`~poseflow.verify.select_significant`); a chosen pose that still scores below
+    ``search_below`` is then searched over all orientations by the same contest (:meth:`search`).
+    :meth:`rank_hypotheses` runs it to rank an estimator's hypotheses. Each step is a public method
+    of :class:`~poseflow.verify.PoseScorer`, so the verifier also scores hypotheses from anywhere.
 
     Example:
         >>> import open3d as o3d
-        >>> from poseflow.data.objects import ObjectModel
+        >>> from poseflow.data import ImageInstances, ObjectModel
         >>> from poseflow.render import Renderer
         >>> from poseflow.verify import VerifierConfig
         >>> box = o3d.geometry.TriangleMesh.create_box(0.1, 0.06, 0.03)
         >>> model = ObjectModel.from_mesh(box.translate((-0.05, -0.03, -0.015)), num_points=64)
-        >>> cfg = VerifierConfig(num_points=1024, crop_size=32, min_self_overlap=0.9)
-        >>> verifier = PoseVerifier(cfg)
+        >>> verifier = PoseVerifier(VerifierConfig(num_points=1024, crop_size=32,
+        ...                                        min_self_overlap=0.9))
         >>> verifier.prepare(1, model).candidates.shape  # the box's three half-turns
         torch.Size([3, 4, 4])
         >>> K = torch.tensor([[300.0, 0, 80], [0, 300.0, 60], [0, 0, 1]])
         >>> pose = torch.eye(4); pose[2, 3] = 0.4
         >>> out = Renderer([model.mesh]).render(pose[None], K, 160, 120)
-        >>> wrong = pose.clone(); wrong[0, 3] = 0.02  # 2 cm off
-        >>> score = verifier.score(None, out.depth, K, out.masks_full, [1],
-        ...                        torch.stack((pose, wrong))[None])
-        >>> score.total[0, 0] > score.total[0, 1]
-        tensor(True)
+        >>> image = ImageInstances(None, out.depth, K, out.masks_full, [1])  # no colour
+        >>> result = verifier.verify(image, pose[None])
+        >>> result.hypotheses.shape  # the estimate, its 3 candidates and 3 turns searched
+        torch.Size([1, 7, 4, 4])
+        >>> int(result.chosen[0]), bool(result.valid[0])  # the estimate is kept
+        (0, True)
     """
 
     def verify(
         self,
-        rgb: torch.Tensor | None,
-        depth: torch.Tensor,
-        K: torch.Tensor,
-        masks: torch.Tensor,
-        obj_ids: Sequence[int] | torch.Tensor,
+        image: ImageInstances,
         poses: torch.Tensor,
-        observed: torch.Tensor | None = None,
-        observed_mask: torch.Tensor | None = None,
+        observed: ObservedClouds | None = None,
         *,
         extra: torch.Tensor | None = None,
         extra_mask: torch.Tensor | None = None,
@@ -160,15 +155,13 @@ class PoseVerifier(PoseScorer):
         """Check each estimate against its near-symmetric candidates and keep the best.
 
         Args:
-            rgb: colour image ``(3, Hi, Wi)`` or None (depth and silhouette only).
-            depth: depth in metres ``(Hi, Wi)``.
-            K: intrinsics ``(3, 3)``.
-            masks: instance masks ``(B, Hi, Wi)`` bool.
-            obj_ids: object ids ``(B,)``, all prepared.
+            image: the colour image ``(3, Hi, Wi)`` (or None: depth and silhouette only), depth
+                in metres ``(Hi, Wi)``, intrinsics ``(3, 3)``, and the ``B`` instances' masks
+                ``(B, Hi, Wi)`` bool and object ids ``(B,)``, all prepared.
             poses: the estimates ``(B, 4, 4)``.
-            observed: the observed clouds ``(B, M, 3)`` (camera frame) that ICP registers;
-                lifted from ``depth`` and ``masks`` when None.
-            observed_mask: ``(B, M)`` bool for ``observed``.
+            observed: the observed clouds ``(B, M, 3)`` (camera frame) that ICP registers and
+                their valid points ``(B, M)`` bool (or None: all), as :meth:`observed_cloud`
+                gives them; lifted from the image's depth and masks when None.
             extra: more hypotheses of each instance ``(B, E, 4, 4)`` (e.g. the estimator's
                 other solutions), candidates like the near-symmetric ones: scored, the best
                 refined, and chosen only where they beat the estimate.
@@ -185,7 +178,7 @@ class PoseVerifier(PoseScorer):
             ValueRangeError: an object that was not prepared.
         """
         sizes = check_tensor(poses, "poses", ("B", 4, 4), finite=True)
-        check_mask(masks, "masks", ("B", None, None), sizes)
+        check_mask(image.masks, "masks", ("B", None, None), sizes)
         if extra is not None:
             check_tensor(extra, "extra", ("B", "E", 4, 4), sizes=sizes, finite=True)
             check_same(("poses", poses), ("extra", extra))
@@ -193,32 +186,27 @@ class PoseVerifier(PoseScorer):
                 check_mask(extra_mask, "extra_mask", ("B", "E"), sizes)
         B = sizes["B"]
         if B == 0:
-            self._objects(obj_ids, 0)
+            self._objects(image.obj_ids, 0)
             return self._unscored(poses[:, None])
-        image = _Image(rgb, depth, K.to(poses.dtype), masks, obj_ids, observed, observed_mask)
+        contested = _Image.of(image, poses.dtype, observed)
         if estimated is None:
-            return self._verified(image, poses, extra, extra_mask)
+            return self._verified(contested, poses, extra, extra_mask)
         check_mask(estimated, "estimated", ("B",), sizes)
         rows = estimated.nonzero()[:, 0]
         if len(rows) == B:
-            return self._verified(image, poses, extra, extra_mask)
+            return self._verified(contested, poses, extra, extra_mask)
         if not len(rows):  # one hypothesis each, the estimate, unscored
             return self._unscored(poses[:, None])
-        part = self._verified(*image.take(rows, poses, extra, extra_mask))
+        part = self._verified(*contested.take(rows, poses, extra, extra_mask))
         out = self._unscored(poses[:, None].expand(B, part.hypotheses.shape[1], 4, 4))
         out.scatter(rows, part)
         return out
 
     def search(
         self,
-        rgb: torch.Tensor | None,
-        depth: torch.Tensor,
-        K: torch.Tensor,
-        masks: torch.Tensor,
-        obj_ids: Sequence[int] | torch.Tensor,
+        image: ImageInstances,
         poses: torch.Tensor,
-        observed: torch.Tensor | None = None,
-        observed_mask: torch.Tensor | None = None,
+        observed: ObservedClouds | None = None,
     ) -> Verification:
         """Search every orientation for poses that explain the image poorly.
 
@@ -231,16 +219,13 @@ class PoseVerifier(PoseScorer):
         :meth:`verify` runs this on its chosen poses that score below ``search_below``.
 
         Args:
-            rgb: colour image ``(3, Hi, Wi)`` or None (depth and silhouette only).
-            depth: depth in metres ``(Hi, Wi)``.
-            K: intrinsics ``(3, 3)``.
-            masks: instance masks ``(B, Hi, Wi)`` bool.
-            obj_ids: object ids ``(B,)``, all prepared.
+            image: the colour image ``(3, Hi, Wi)`` (or None: depth and silhouette only), depth
+                in metres ``(Hi, Wi)``, intrinsics ``(3, 3)``, and the ``B`` instances' masks
+                ``(B, Hi, Wi)`` bool and object ids ``(B,)``, all prepared.
             poses: the poses searched around ``(B, 4, 4)`` (already refined: they are
                 compared as they are).
-            observed: the observed clouds ``(B, M, 3)`` that ICP registers; lifted from
-                ``depth`` and ``masks`` when None.
-            observed_mask: ``(B, M)`` bool for ``observed``.
+            observed: the observed clouds ``(B, M, 3)`` that ICP registers and their valid
+                points ``(B, M)`` (or None), as in :meth:`verify`; lifted when None.
 
         Returns:
             A :class:`~poseflow.verify.Verification` whose hypotheses are the pose, then
@@ -250,16 +235,11 @@ class PoseVerifier(PoseScorer):
         check_tensor(poses, "poses", ("B", 4, 4), finite=True)
         if poses.shape[0] == 0:
             return self._unscored(poses[:, None].expand(0, 1 + self.config.search_top_k, 4, 4))
-        image = _Image(rgb, depth, K.to(poses.dtype), masks, obj_ids, observed, observed_mask)
-        return self._searched(image, poses)
+        return self._searched(_Image.of(image, poses.dtype, observed), poses)
 
     def rank_hypotheses(
         self,
-        rgb: torch.Tensor | None,
-        depth: torch.Tensor,
-        K: torch.Tensor,
-        masks: torch.Tensor,
-        obj_ids: Sequence[int] | torch.Tensor,
+        image: ImageInstances,
         poses: torch.Tensor,
         *,
         extra: torch.Tensor,
@@ -276,11 +256,9 @@ class PoseVerifier(PoseScorer):
         nearly symmetric object. The best is then the incumbent of :meth:`verify`.
 
         Args:
-            rgb: colour image ``(3, Hi, Wi)`` or None (depth and silhouette only).
-            depth: depth in metres ``(Hi, Wi)``.
-            K: intrinsics ``(3, 3)``.
-            masks: instance masks ``(B, Hi, Wi)`` bool.
-            obj_ids: object ids ``(B,)``, all prepared.
+            image: the colour image ``(3, Hi, Wi)`` (or None: depth and silhouette only), depth
+                in metres ``(Hi, Wi)``, intrinsics ``(3, 3)``, and the ``B`` instances' masks
+                ``(B, Hi, Wi)`` bool and object ids ``(B,)``, all prepared.
             poses: the estimator's choice ``(B, 4, 4)``.
             extra: its other hypotheses ``(B, E, 4, 4)``.
             extra_mask: ``(B, E)`` bool, False for padding of ``extra``.
@@ -312,8 +290,9 @@ class PoseVerifier(PoseScorer):
         if B == 0 or E == 0:
             return Hypotheses(hyp, mask)
         top = min(self.config.rank_top_k, 1 + E)
-        image = _Image(rgb, depth, K.to(poses.dtype), masks, obj_ids)
-        contest = self._contest(image, hyp, mask, k=top if top > 1 else 0, ranking=True)
+        contest = self._contest(
+            _Image.of(image, poses.dtype, None), hyp, mask, k=top if top > 1 else 0, ranking=True
+        )
         best = torch.where(valid, contest.best(), 0)
         rows = torch.arange(B, device=hyp.device)
         swapped, flags = hyp.clone(), mask.clone()
@@ -351,10 +330,7 @@ class PoseVerifier(PoseScorer):
         """
         cfg = self.config
         boxes = self.crop_boxes(hypotheses[:, 0], image.obj_ids, image.K, image.masks)
-        coarse = self.score(
-            image.rgb, image.depth, image.K, image.masks, image.obj_ids, hypotheses, mask,
-            boxes=boxes, crop_size=cfg.coarse_crop_size,
-        )  # fmt: skip
+        coarse = self.score(image, hypotheses, mask, boxes=boxes, crop_size=cfg.coarse_crop_size)
         if not ranking and image.observed is None and (k or refine_first):
             lifted = self.observed_cloud(image.depth, image.K, image.masks)
             image = replace(image, observed=lifted[0], observed_mask=lifted[1])
@@ -378,10 +354,7 @@ class PoseVerifier(PoseScorer):
                 poses = torch.cat((poses[:, :first], refined), dim=1)
         full = None
         if k or not ranking:
-            full = self.score(
-                image.rgb, image.depth, image.K, image.masks, image.obj_ids, poses, kept,
-                boxes=boxes,
-            )  # fmt: skip
+            full = self.score(image, poses, kept, boxes=boxes)
         return _Contest(image, index, poses, kept, coarse, full)
 
     def _unscored(self, hypotheses: torch.Tensor) -> Verification:
