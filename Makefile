@@ -38,7 +38,7 @@ lint: $(STAMP)
 docs: $(STAMP)
 	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict --site-dir site
 
-BENCHMARKS := registration data networks features eval accuracy pipeline ablation threads
+BENCHMARKS := registration data networks features eval accuracy pipeline ablation threads demo_threads
 
 bench: $(STAMP)
 	for b in $(BENCHMARKS); do $(PY) benchmarks/$$b.py || exit 1; done

@@ -43,6 +43,7 @@ import torch
 from poseflow._checks import check_field_types, check_mask, check_tensor
 from poseflow._config import apply_overrides, config_from_dict, config_to_dict
 from poseflow._units import check_depth_extent, check_intrinsics
+from poseflow._workers import map_forked
 from poseflow.data.bop import BOPDataset
 from poseflow.data.frame import ImageInstances
 from poseflow.data.objects import ObjectModel, sample_surface
@@ -210,18 +211,27 @@ class ClassicBaseline:
         self.verifier = PoseVerifier(self.config.verifier, seed=self.config.seed)
         self._banks: dict[int, tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = {}
 
-    def prepare(self, obj_ids: Sequence[int] | None = None) -> None:
+    def prepare(self, obj_ids: Sequence[int] | None = None, *, workers: int = 1) -> None:
         """Build the descriptor banks now, and prepare the objects for the verifier when it is on.
 
         Else each is done on the object's first use.
 
         Args:
             obj_ids: the objects (default: all), e.g. so that timed estimates leave the banks out.
+            workers: prepare the objects in this many forked processes of one thread each
+                (``poseflow._workers.map_forked``): the same banks.
         """
-        for obj_id in sorted(self.models) if obj_ids is None else obj_ids:
-            self.bank(int(obj_id))
-            if self.config.verifier is not None:
-                self.verifier.prepare(int(obj_id), self.models[int(obj_id)])
+        ids = [int(o) for o in (sorted(self.models) if obj_ids is None else obj_ids)]
+        verify = self.config.verifier is not None
+
+        def prepare_one(n: int) -> tuple[Any, Any]:
+            bank = self.bank(ids[n])
+            return bank, self.verifier.prepare(ids[n], self.models[ids[n]]) if verify else None
+
+        for obj_id, (bank, prepared) in zip(ids, map_forked(prepare_one, len(ids), workers)):
+            self._banks[obj_id] = bank
+            if prepared is not None:
+                self.verifier.objects[obj_id] = prepared
 
     def bank(self, obj_id: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Descriptor bank of a model, built once per object from rendered views.
@@ -364,7 +374,7 @@ class ClassicBaseline:
         with a verifier. Returns :class:`~poseflow.eval.results.PoseResults`, one row per valid
         estimate.
         """
-        self.prepare()  # the banks (and the verifier's objects) are not any image's time
+        self.prepare(workers=options.get("workers", 1))  # not any image's time
         return predict_seeded(
             lambda _: self.estimator(),
             dataset,

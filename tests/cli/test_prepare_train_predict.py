@@ -322,6 +322,25 @@ def test_baseline_predicts_without_a_model(dataset, tmp_path, capsys):
     assert report["verification"] is True and report["stages_ms"]["verification"] > 0
 
 
+def test_two_threads_predict_the_images_in_two_processes_with_the_same_rows(tmp_path, capsys):
+    root = generate_dataset(
+        tmp_path / "ds", num_train_images=0, num_test_images=3, width=160, height=120,
+        progress=False,
+    )  # fmt: skip
+    rows, pictures = {}, {}
+    for threads in ("1", "2"):
+        csv, overlays = tmp_path / f"base{threads}.csv", tmp_path / f"pictures{threads}"
+        argv = ["predict", str(root), "--method", "baseline", "--out", str(csv), "--no-progress"]
+        assert main([*argv, "--overlays", str(overlays), "--threads", threads]) == 0
+        rows[threads], summary = read_results(csv), capsys.readouterr().out
+        assert ("by 2 worker processes" in summary) == (threads == "2")
+        assert "3 images" in summary
+        pictures[threads] = {p.name: p.read_bytes() for p in overlays.glob("*.png")}
+    for name in ("scene_ids", "im_ids", "obj_ids", "scores", "poses"):
+        assert torch.equal(getattr(rows["1"], name), getattr(rows["2"], name)), name
+    assert len(rows["1"]) >= 3 and pictures["1"] == pictures["2"] and len(pictures["1"]) == 3
+
+
 @pytest.mark.slow
 def test_train_under_torchrun(dataset, tmp_path, torchrun):
     out = tmp_path / "ddp"

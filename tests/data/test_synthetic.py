@@ -200,6 +200,17 @@ def test_deterministic(tmp_path, objects):
     assert (a / rel / "scene_gt.json").read_bytes() != (c / rel / "scene_gt.json").read_bytes()
 
 
+def test_images_rendered_in_workers_are_the_same_files(tmp_path, objects):
+    kw = dict(num_train_images=2, num_test_images=3, images_per_scene=2, width=48, height=40)
+    one = _generate(tmp_path / "one", objects, seed=5, **kw)
+    two = _generate(tmp_path / "two", objects, seed=5, workers=2, **kw)
+    files = sorted(p.relative_to(one) for p in one.rglob("*") if p.is_file())
+    assert files == sorted(p.relative_to(two) for p in two.rglob("*") if p.is_file())
+    assert len([f for f in files if f.parent.name == "rgb"]) == 5
+    for f in files:
+        assert (one / f).read_bytes() == (two / f).read_bytes(), f
+
+
 def test_default_demo_objects(tmp_path):
     pytest.importorskip("poseflow.data.demo_objects")
     root = generate_dataset(

@@ -207,3 +207,55 @@ def test_a_mask_of_another_size_is_a_shape_error_naming_both_files(dataset, tmp_
     with pytest.raises(ShapeError, match="12x10 but the depth") as err:
         predict_dataset(_oracle(dataset), copy)
     assert str(mask) in str(err.value) and str(scene.depth_path(im_id)) in str(err.value)
+
+
+def _seeded_noise(generator):
+    """An estimator whose poses are drawn from ``generator`` (reseeded per image by the caller)."""
+
+    def estimate(rgb, depth, K, masks, obj_ids):
+        n = len(obj_ids)
+        poses = torch.eye(4).repeat(n, 1, 1)
+        poses[:, :3, 3] = torch.rand(n, 3, generator=generator) + torch.tensor([0.0, 0.0, 0.5])
+        with stage("icp"):
+            scores = torch.rand(n, generator=generator)
+        return PoseEstimate(poses, scores, scores > 0.2)
+
+    return estimate
+
+
+def test_workers_give_the_rows_one_process_gives_with_the_timer_and_hooks(dataset):
+    from poseflow.eval import predict_seeded
+
+    object_ids = sorted({g.obj_id for s in dataset.scene_ids for g in dataset.scene(s).gt_of(0)})
+    runs = {}
+    for workers in (1, 2):
+        timer, seen = StageTimer(), []
+        results = predict_seeded(
+            _seeded_noise,
+            dataset,
+            device="cpu",
+            object_ids=object_ids,
+            seed=3,
+            timer=timer,
+            workers=workers,
+            after_image=lambda s, i, ids, est, seen=seen: seen.append(
+                (s, i, len(ids), len(est.valid))
+            ),
+        )
+        runs[workers] = results, timer, seen
+    (one, t1, seen1), (two, t2, seen2) = runs[1], runs[2]
+    for name in ("scene_ids", "im_ids", "obj_ids", "scores", "poses"):
+        assert torch.equal(getattr(one, name), getattr(two, name)), name
+    assert len(one) > 0 and seen1 == seen2 and len(seen1) == t1.num_images == t2.num_images
+    assert all(n == v for _, _, n, v in seen1)
+    assert t1.counts["icp"] == t2.counts["icp"] == t1.num_images and t2.totals["icp"] > 0
+
+
+def test_a_workers_units_error_stops_the_run_naming_the_image(dataset, tmp_path):
+    def scale(cam):
+        cam["depth_scale"] *= 1000
+
+    copy, path, im_id = _copy_with_camera(dataset, tmp_path, scale)
+    with pytest.raises(UnitsError, match="1000 times too large") as err:
+        predict_dataset(_oracle(dataset), copy, workers=2)
+    assert f"image {im_id}" in str(err.value) and str(path) in str(err.value)

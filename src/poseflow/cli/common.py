@@ -9,7 +9,8 @@
   ``demo``, or by default the shipped demo model), :func:`load_model` (a clear error for a
   truncated or malformed checkpoint) and :func:`add_cache_argument` (``--cache``);
 - ``--device``: :func:`add_device_argument` and :func:`resolve_device`;
-- ``--threads``: :func:`add_threads_argument` (every subcommand has it) and :func:`command_threads`;
+- ``--threads``: :func:`add_threads_argument` (every subcommand has it), :func:`command_threads`
+  and :func:`image_workers` (the processes of a command over many images);
 - ``--seed``: :func:`add_seed_argument`, with one default for every command (:data:`DEFAULT_SEED`).
 
 The model configuration and inference options are in :mod:`poseflow.cli.options`.
@@ -46,6 +47,7 @@ __all__ = [
     "check_writable",
     "command_output",
     "command_threads",
+    "image_workers",
     "load_model",
     "nonnegative_int",
     "option_values",
@@ -427,8 +429,8 @@ def add_threads_argument(parser: argparse.ArgumentParser, *, nested: bool = Fals
         default=argparse.SUPPRESS if nested else None,
         metavar="N",
         help="CPU threads of every pool poseflow runs work in: torch, numba, BLAS/OpenMP and "
-        "Open3D's ray casting (default: $OMP_NUM_THREADS if set, else 1; more threads are "
-        "faster only on cores that no other process is using)",
+        "Open3D's ray casting; predict and demo estimate their images in N processes of one "
+        "thread each instead (default: $OMP_NUM_THREADS if set, else 1)",
     )
 
 
@@ -452,6 +454,31 @@ def command_threads(args: argparse.Namespace) -> Iterator[int]:
     threads = default_num_threads() if threads is None else threads
     with num_threads(threads):
         yield threads
+
+
+@contextlib.contextmanager
+def image_workers(device: Any) -> Iterator[int]:
+    """The worker processes of a command over many images, the command's thread count on the CPU.
+
+    Whole images in processes of one thread each (``poseflow._workers.map_forked``)
+    use a few cores better than threads within an image, and stay as fast under a competing
+    load, where threads wait on each other; so with more than one worker the rest of the
+    command (loading, rendering, scoring) runs on one thread too. On a GPU: one process, the
+    command's threads unchanged.
+
+    Yields:
+        The number of worker processes.
+    """
+    import torch
+
+    from poseflow import get_num_threads, num_threads
+
+    workers = get_num_threads() if torch.device(device).type == "cpu" else 1
+    if workers == 1:
+        yield 1
+        return
+    with num_threads(1):
+        yield workers
 
 
 # ------------------------------------------------------------------------------ seed

@@ -119,7 +119,19 @@ def write_timing_chart(timer: Any, path: Path, *, title: str | None = None) -> b
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run the pose demo; prints the AR table and the timing breakdown."""
+    """Run the pose demo; prints the AR table and the timing breakdown.
+
+    With ``--threads N`` on the CPU the images are estimated in N processes of one thread each
+    (:func:`~poseflow.cli.common.image_workers`).
+    """
+    from poseflow.cli.common import image_workers, resolve_device
+
+    with image_workers(resolve_device(args.device)) as workers:
+        return _run(args, workers)
+
+
+def _run(args: argparse.Namespace, workers: int) -> int:
+    """The demo with its images estimated in ``workers`` processes."""
     import torch
 
     from poseflow.cli.common import (
@@ -151,16 +163,21 @@ def run(args: argparse.Namespace) -> int:
         seed=args.seed,
         progress=progress,
         overwrite=True,  # the demo's own folder, made again on every run
+        workers=workers,
     )
     models = _prepared(model, model_dir, root, out, progress)
 
     LOG.info("[3/5] FunFlow6D: estimating every target instance")
-    funflow, timer, written = _predict_funflow(model, root, out, seed=args.seed, progress=progress)
+    funflow, timer, written = _predict_funflow(
+        model, root, out, seed=args.seed, progress=progress, workers=workers
+    )
     reports = {"FunFlow6D": evaluate_bop(root, funflow)}
     times = {"FunFlow6D": funflow.average_time()}
     if not args.no_baseline:
         LOG.info("[4/5] classic baseline: FPFH + RANSAC + ICP on the same masks")
-        base = _predict_baseline(models, root, out, seed=args.seed, progress=progress)
+        base = _predict_baseline(
+            models, root, out, seed=args.seed, progress=progress, workers=workers
+        )
         written.append("baseline.csv")
         reports["baseline"] = evaluate_bop(root, base)
         times["baseline"] = base.average_time()
@@ -170,7 +187,7 @@ def run(args: argparse.Namespace) -> int:
     LOG.info("[5/5] scoring")
     _print_scores(reports, times, timer)
     if not args.no_overlays:
-        _write_overlays(out / "overlays", root, models, funflow)
+        _write_overlays(out / "overlays", root, models, funflow, workers)
         written.append("overlays/")
     print(f"\nwrote {out}/{', '.join(written)} in {time.perf_counter() - start:.0f} s")
     return 0
@@ -192,13 +209,13 @@ def _prepared(model: Any, model_dir: Path, root: Path, out: Path, progress: bool
 
 
 def _predict_funflow(
-    model: Any, root: Path, out: Path, *, seed: int, progress: bool
+    model: Any, root: Path, out: Path, *, seed: int, progress: bool, workers: int
 ) -> tuple[Any, Any, list[str]]:
     """FunFlow6D's results, its stage timer and the files written (CSV, timing JSON and chart)."""
     from poseflow.eval import StageTimer, write_results
 
     timer = StageTimer()
-    funflow = model.predict(root, seed=seed, timer=timer, progress=progress)
+    funflow = model.predict(root, seed=seed, timer=timer, progress=progress, workers=workers)
     write_results(out / "funflow6d.csv", funflow)
     timer.to_json(out / "timing.json")
     written = ["funflow6d.csv", "timing.json"]
@@ -207,14 +224,16 @@ def _predict_funflow(
     return funflow, timer, written
 
 
-def _predict_baseline(models: dict, root: Path, out: Path, *, seed: int, progress: bool) -> Any:
+def _predict_baseline(
+    models: dict, root: Path, out: Path, *, seed: int, progress: bool, workers: int
+) -> Any:
     """The classic baseline's results on the same masks, written to ``baseline.csv``."""
     from poseflow.baselines import ClassicBaseline
     from poseflow.eval import write_results
     from poseflow.features import FPFHEncoder
 
     baseline = ClassicBaseline(models, encoder=FPFHEncoder(), seed=seed)
-    base = baseline.predict(root, progress=progress)
+    base = baseline.predict(root, progress=progress, workers=workers)
     write_results(out / "baseline.csv", base)
     return base
 
@@ -241,7 +260,7 @@ def _print_scores(reports: dict[str, Any], times: dict[str, float], timer: Any) 
         print(f"  {stage:<20} {ms:>8.1f} ms  {share:>5.1f}%")
 
 
-def _write_overlays(folder: Path, root: Path, models: dict, funflow: Any) -> None:
+def _write_overlays(folder: Path, root: Path, models: dict, funflow: Any, workers: int) -> None:
     """One overlay picture per test image: FunFlow6D's estimates and the ground truth."""
     from poseflow.data.bop import BOPDataset
     from poseflow.eval import write_result_overlays
@@ -254,4 +273,5 @@ def _write_overlays(folder: Path, root: Path, models: dict, funflow: Any) -> Non
         funflow,
         images=[(s, i) for s in dataset.scene_ids for i in dataset.scene(s).im_ids],
         method="FunFlow6D",
+        workers=workers,
     )

@@ -271,7 +271,7 @@ def run(args: argparse.Namespace) -> int:
     Under ``torchrun`` every process estimates its share of the images and rank 0 writes the
     merged outputs (:mod:`poseflow.eval.distributed`).
     """
-    from poseflow.cli.common import check_writable, resolve_device
+    from poseflow.cli.common import check_writable, image_workers, resolve_device
     from poseflow.data.object_folder import check_dataset
     from poseflow.eval.distributed import join_ranks
 
@@ -285,7 +285,8 @@ def run(args: argparse.Namespace) -> int:
     changes = inference_changes(args, method=args.method)
     ranks = join_ranks(device)
     if ranks is None:
-        _report(args, _predict(args, root, device, changes))
+        with image_workers(device) as workers:
+            _report(args, _predict(args, root, device, changes, workers=workers), workers)
         return 0
     with ranks:
         ranks.run(
@@ -301,8 +302,10 @@ def _predict(
     device: Any,
     changes: dict[str, Any],
     ranks: Ranks | None = None,
+    *,
+    workers: int = 1,
 ) -> PredictionPart:
-    """Estimate the images (this rank's share under ``torchrun``)."""
+    """Estimate the images (this rank's share under ``torchrun``) in ``workers`` processes."""
     import time
 
     from poseflow.cli.common import load_model, resolve_model, show_progress
@@ -326,13 +329,14 @@ def _predict(
 
     if importlib.util.find_spec("open3d") is not None:  # import it before any clock starts
         import_open3d("prediction")  # a missing system library: the error names its package
-    estimator, generator = _estimator(args, root, model, objects, device, changes, progress=show)
+    estimator, generator = _estimator(
+        args, root, model, objects, device, changes, progress=show, workers=workers
+    )
     instances = 0
 
-    def counted(rgb: Any, depth: Any, K: Any, masks: Any, obj_ids: Any) -> Any:
+    def count(scene_id: int, im_id: int, obj_ids: list[int], estimate: Any) -> None:
         nonlocal instances
         instances += len(obj_ids)
-        return estimator(rgb, depth, K, masks, obj_ids)
 
     def before_image(scene_id: int, im_id: int) -> None:
         if ranks is not None:
@@ -342,7 +346,7 @@ def _predict(
 
     timer = StageTimer(clock=time.process_time if args.clock == "cpu" else time.perf_counter)
     results = predict_dataset(
-        counted,
+        estimator,
         ds,
         split=args.split,
         object_ids=sorted(objects),
@@ -353,6 +357,8 @@ def _predict(
         timer=timer,
         progress=show,
         before_image=before_image,
+        after_image=count,
+        workers=workers,
     )
     if detections:
         results = _add_detection_time(results, detections)
@@ -407,6 +413,7 @@ def _estimator(
     changes: dict[str, Any],
     *,
     progress: bool,
+    workers: int,
 ) -> tuple[Estimator | None, torch.Generator | None]:
     """The estimator of ``--method``, prepared, and the generator it draws from (None: baseline).
 
@@ -422,7 +429,7 @@ def _estimator(
         if not objects:  # without any, no image reaches the estimator
             return None, None
         baseline = ClassicBaseline(objects, verifier=changes["verifier"], seed=args.seed)
-        baseline.prepare()  # banks and verifier now, so that no image's time includes them
+        baseline.prepare(workers=workers)  # now, so that no image's time includes them
         return baseline.estimator(), None
     model.prepare_objects(objects, cache_dir=_cache_dir(args, root), progress=progress)
     generator = torch.Generator(device=device)
@@ -431,12 +438,15 @@ def _estimator(
     from poseflow.models import Hybrid
 
     baseline = ClassicBaseline(objects, verifier=None, seed=args.seed)
-    baseline.prepare()  # its banks now, so that no image's time includes them
+    baseline.prepare(workers=workers)  # its banks now, so that no image's time includes them
     return Hybrid(model, baseline).estimator(generator=generator), generator
 
 
-def _report(args: argparse.Namespace, part: PredictionPart) -> None:
-    """Write the CSV (and the timing JSON) of the whole run; print a summary."""
+def _report(args: argparse.Namespace, part: PredictionPart, workers: int = 1) -> None:
+    """Write the CSV (and the timing JSON) of the whole run; print a summary.
+
+    ``workers``: the processes that estimated the images and draw the overlays.
+    """
     from poseflow.eval.results import write_results
 
     results, timer, processes = part.results, part.timer, len(part.devices)
@@ -449,12 +459,13 @@ def _report(args: argparse.Namespace, part: PredictionPart) -> None:
         f"{part.instances} instances, {len(results)} poses "
         f"({part.instances - len(results)} invalid) written to {out}"
         + (f" by {processes} processes" if processes > 1 else "")
+        + (f" by {workers} worker processes" if workers > 1 else "")
     )
     mean = results.average_time()
     if mean >= 0:
         print(f"mean time per image: {1000 * mean:.1f} ms on {device}")
     if args.overlays is not None and len(results):
-        _write_overlays(args, results)
+        _write_overlays(args, results, workers)
     if args.timing is not None:
         report = {
             "method": args.method,
@@ -472,7 +483,7 @@ def _report(args: argparse.Namespace, part: PredictionPart) -> None:
         print(f"stage timing written to {args.timing}")
 
 
-def _write_overlays(args: argparse.Namespace, results: Any) -> None:
+def _write_overlays(args: argparse.Namespace, results: Any, workers: int) -> None:
     """One overlay picture per image with estimates, in ``args.overlays``."""
     from poseflow.cli.common import show_progress
     from poseflow.data.bop import BOPDataset
@@ -488,6 +499,7 @@ def _write_overlays(args: argparse.Namespace, results: Any) -> None:
         results,
         method=METHOD_LABELS[args.method],
         progress=show_progress(args),
+        workers=workers,
     )
     print(f"{len(written)} overlay pictures written to {args.overlays}")
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import Any
 
 from poseflow.cli.common import add_seed_argument, nonnegative_int, positive_int
 
@@ -108,14 +109,29 @@ def check_output_folder(out: str | Path, *, overwrite: bool) -> Path:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Generate the dataset described by ``args``; prints a summary and returns 0."""
-    from poseflow.cli.common import option_values, show_progress
-    from poseflow.data.synthetic import DepthNoise, generate_dataset
+    """Generate the dataset described by ``args``; prints a summary and returns 0.
+
+    With ``--threads N`` the images are rendered in N processes of one thread each.
+    """
+    from poseflow.cli.common import image_workers
 
     objects_per_image = _count_range(args.objects_per_image, "--objects-per-image")
     distractors = _count_range(args.distractors, "--distractors")
     check_output_folder(args.out, overwrite=args.overwrite)
-    root = generate_dataset(
+    with image_workers("cpu") as workers:
+        root = _generate(args, objects_per_image, distractors, workers)
+    print(f"wrote {args.train} train and {args.test} test images to {root}")
+    return 0
+
+
+def _generate(
+    args: argparse.Namespace, objects_per_image: Any, distractors: Any, workers: int
+) -> Path:
+    """The dataset of ``args`` rendered in ``workers`` processes; its folder."""
+    from poseflow.cli.common import option_values, show_progress
+    from poseflow.data.synthetic import DepthNoise, generate_dataset
+
+    return generate_dataset(
         args.out,
         args.objects,
         num_train_images=args.train,
@@ -127,6 +143,5 @@ def run(args: argparse.Namespace) -> int:
         image_ext=".jpg" if args.jpg else ".png",
         progress=show_progress(args),
         overwrite=args.overwrite,
+        workers=workers,
     )
-    print(f"wrote {args.train} train and {args.test} test images to {root}")
-    return 0

@@ -33,6 +33,7 @@ import numpy as np
 import torch
 from PIL import Image
 
+from poseflow._workers import map_forked
 from poseflow.data.bop import BOPWriter, TestTarget, write_test_targets
 from poseflow.data.depth_noise import DepthNoise
 from poseflow.data.scene_layout import Placed, look_at, place_on_plane, rot_z
@@ -256,6 +257,7 @@ def generate_dataset(
     mesh_scale: float = 1.0,
     progress: bool = True,
     overwrite: bool = False,
+    workers: int = 1,
 ) -> Path:
     """Render a synthetic BOP dataset with ``train`` and ``test`` splits.
 
@@ -297,6 +299,8 @@ def generate_dataset(
             Files of an earlier dataset that this one does not rewrite stay and mix with it
             (scenes, images, models), which is why a non-empty folder is refused by default,
             as ``poseflow synth`` refuses it without ``--overwrite``.
+        workers: render the images in this many forked processes of one thread each
+            (``poseflow._workers.map_forked``): the same files.
 
     Returns:
         ``out_dir`` as a :class:`~pathlib.Path`.
@@ -347,7 +351,7 @@ def generate_dataset(
     bar = tqdm(total=num_train_images + num_test_images, disable=not progress, unit="img")
     targets: list[TestTarget] = []
     for split, count in (("train", num_train_images), ("test", num_test_images)):
-        targets += _render_split(root, split, count, pools, settings, bar)
+        targets += _render_split(root, split, count, pools, settings, bar, workers)
     bar.close()
     write_test_targets(root / "test_targets_bop19.json", targets)
     return root
@@ -470,29 +474,45 @@ class _Image:
 
 
 def _render_split(
-    root: Path, split: str, count: int, pools: _Pools, s: _Settings, bar: Any
+    root: Path, split: str, count: int, pools: _Pools, s: _Settings, bar: Any, workers: int
 ) -> list[TestTarget]:
-    """Render and write the ``count`` images of ``split``; the test targets among them."""
+    """Render and write the ``count`` images of ``split``; the test targets among them.
+
+    Every scene and image draws from its own generator (seeded by the ids), so the images can
+    be rendered in ``workers`` processes and written here in order, the same files as in one.
+    """
     writer = BOPWriter(root, split, image_ext=s.image_ext, depth_scale=s.depth_scale)
     code = _SPLIT_CODES[split]
+    images = [
+        (scene_id, im_id)
+        for scene_id in range(math.ceil(count / s.images_per_scene))
+        for im_id in range(min(s.images_per_scene, count - scene_id * s.images_per_scene))
+    ]
+    scenes = {
+        scene_id: _draw_scene(np.random.default_rng([s.seed, code, scene_id]), pools, s)
+        for scene_id in sorted({scene_id for scene_id, _ in images})
+    }
+
+    def render(n: int) -> tuple[np.ndarray, _Image]:
+        scene_id, im_id = images[n]
+        placed, centre, spread = scenes[scene_id]
+        rng = np.random.default_rng([s.seed, code, scene_id, im_id])
+        T_w2c = _draw_camera(rng, centre, spread, pools.largest, s)
+        return T_w2c, _render_image(rng, pools.renderer, placed, T_w2c, s)
+
     targets: list[TestTarget] = []
-    for scene_id in range(math.ceil(count / s.images_per_scene)):
-        placed, centre, spread = _draw_scene(
-            np.random.default_rng([s.seed, code, scene_id]), pools, s
-        )
-        for im_id in range(min(s.images_per_scene, count - scene_id * s.images_per_scene)):
-            rng = np.random.default_rng([s.seed, code, scene_id, im_id])
-            T_w2c = _draw_camera(rng, centre, spread, pools.largest, s)
-            image = _render_image(rng, pools.renderer, placed, T_w2c, s)
-            writer.add_image(
-                scene_id, im_id, K=s.K, rgb=image.rgb, depth=image.depth, obj_ids=image.obj_ids,
-                poses=image.poses, masks=image.masks, masks_visib=image.masks_visib,
-                R_w2c=T_w2c[:3, :3], t_w2c=T_w2c[:3, 3],
-            )  # fmt: skip
-            if split == "test":
-                targets += _test_targets(scene_id, im_id, image, s.min_target_visib)
-            bar.update(1)
-        writer.flush()
+    for n, (T_w2c, image) in enumerate(map_forked(render, len(images), workers)):
+        scene_id, im_id = images[n]
+        writer.add_image(
+            scene_id, im_id, K=s.K, rgb=image.rgb, depth=image.depth, obj_ids=image.obj_ids,
+            poses=image.poses, masks=image.masks, masks_visib=image.masks_visib,
+            R_w2c=T_w2c[:3, :3], t_w2c=T_w2c[:3, 3],
+        )  # fmt: skip
+        if split == "test":
+            targets += _test_targets(scene_id, im_id, image, s.min_target_visib)
+        bar.update(1)
+        if n + 1 == len(images) or images[n + 1][0] != scene_id:
+            writer.flush()
     return targets
 
 

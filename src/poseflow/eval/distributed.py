@@ -226,11 +226,7 @@ def merge_timers(timers: Sequence[StageTimer]) -> StageTimer:
         raise ValueRangeError("the timers exclude different stages")
     out = StageTimer(synchronize=first.synchronize, excluded=first.excluded, clock=first.clock)
     for t in timers:
-        for name, seconds in t.totals.items():
-            out.totals[name] = out.totals.get(name, 0.0) + seconds
-        for name, count in t.counts.items():
-            out.counts[name] = out.counts.get(name, 0) + count
-        out.num_images += t.num_images
+        out.add(t)
     return out
 
 

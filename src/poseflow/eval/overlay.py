@@ -22,6 +22,7 @@ import numpy as np
 import torch
 from torch.nn import functional as F
 
+from poseflow._workers import map_forked
 from poseflow.errors import ShapeError, ValueRangeError
 from poseflow.render.raycast import Renderer
 
@@ -420,6 +421,7 @@ def write_result_overlays(
     method: str | None = None,
     ground_truth: bool = True,
     progress: bool = False,
+    workers: int = 1,
 ) -> list[Path]:
     """One :func:`write_overlay` picture per image of a split.
 
@@ -432,6 +434,8 @@ def write_result_overlays(
         method: the estimator's name, for the legend.
         ground_truth: outline the ground truth too, where the split has it.
         progress: show a progress bar.
+        workers: draw the images in this many forked processes of one thread each
+            (``poseflow._workers.map_forked``).
 
     Returns:
         The written files, in scene and image order.
@@ -445,8 +449,10 @@ def write_result_overlays(
     renderer = Renderer(meshes_in_order)
     if images is None:
         images = sorted(set(zip(results.scene_ids.tolist(), results.im_ids.tolist())))
-    written = []
-    for scene_id, im_id in tqdm(images, desc="overlays", disable=not progress):
+    images = list(images)
+
+    def draw(n: int) -> Path:
+        scene_id, im_id = images[n]
         scene = dataset.scene(scene_id)
         rows = (results.scene_ids == scene_id) & (results.im_ids == im_id)
         gt: dict[str, Any] = {}
@@ -469,5 +475,7 @@ def write_result_overlays(
             mesh_names=[f"obj {i}" for i in ids],
             **gt,
         )
-        written.append(path)
-    return written
+        return path
+
+    drawn = map_forked(draw, len(images), workers)
+    return list(tqdm(drawn, desc="overlays", total=len(images), disable=not progress))

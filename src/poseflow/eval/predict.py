@@ -19,6 +19,7 @@ from typing import Any
 import torch
 
 from poseflow._units import check_depth_extent, check_intrinsics, in_front_of_camera
+from poseflow._workers import check_workers, map_forked
 from poseflow.data.bop import BOPDataset, BOPScene, Detection
 from poseflow.data.frame import ImageInstances
 from poseflow.errors import BOPFormatError, ShapeError, ValueRangeError
@@ -220,7 +221,7 @@ class SeededEstimator:
 
         ``seed`` seeds the noise, sampling and RANSAC of each image with its ids, as ``poseflow
         predict`` does; ``options`` (``split``, ``targets``, ``detections``, ``max_images``,
-        ``timer``, ``progress``) are those of :func:`predict_dataset`. Returns
+        ``timer``, ``progress``, ``workers``) are those of :func:`predict_dataset`. Returns
         :class:`~poseflow.eval.results.PoseResults`, one row per valid estimate.
         """
         return predict_seeded(
@@ -246,7 +247,9 @@ def predict_dataset(
     timer: StageTimer | None = None,
     progress: bool = False,
     before_image: Callable[[int, int], None] | None = None,
+    after_image: Callable[[int, int, list[int], PoseEstimate], None] | None = None,
     diameters: Mapping[int, float] | None = None,
+    workers: int = 1,
 ) -> PoseResults:
     """Estimate the poses of the target instances of every image of a split.
 
@@ -266,13 +269,20 @@ def predict_dataset(
             estimator reports through :func:`~poseflow.eval.timing.stage` are charged to it.
         progress: show a progress bar.
         before_image: called as ``before_image(scene_id, im_id)`` before each image is read,
-            outside its time: e.g. to reseed the estimator's generator per image
-            (:func:`~poseflow.eval.distributed.image_seed`), or to stop when another process
-            of a split run failed (:meth:`~poseflow.eval.distributed.Ranks.check_peers`).
+            outside its time, in the process that estimates it: e.g. to reseed the estimator's
+            generator per image (:func:`~poseflow.eval.distributed.image_seed`), or to stop
+            when another process of a split run failed
+            (:meth:`~poseflow.eval.distributed.Ranks.check_peers`).
+        after_image: called here as ``after_image(scene_id, im_id, obj_ids, estimate)`` with
+            each estimated image's instances and vetted estimate (on the CPU), in image order.
         diameters: ``{obj_id: diameter in metres}`` against which each image's masked depth is
             checked (:func:`~poseflow._units.check_depth_extent`: a ``depth_scale`` off by a
             power of ten stops the run); None: those of the dataset's
             ``models/models_info.json`` when it exists; ``{}``: no check.
+        workers: estimate the images in this many forked processes of one thread each
+            (``poseflow._workers.map_forked``; CPU estimators only): the same rows,
+            in the same order, when an image's estimate does not depend on the images before
+            it (:func:`predict_seeded`).
 
     Returns:
         One row per valid estimate; a pose behind the camera (``t_z <= 0``) is never valid
@@ -293,25 +303,49 @@ def predict_dataset(
     known = None if object_ids is None else {int(o) for o in object_ids}
     if diameters is None:
         diameters = _model_diameters(ds)
-    parts = []
-    for (s, i), wanted in tqdm(keys, desc="predict", disable=not progress):
+    workers = check_workers(workers)
+
+    def estimate_image(n: int) -> _ImageEstimate | None:
+        (s, i), wanted = keys[n]
         if before_image is not None:
             before_image(s, i)
         scene = ds.scene(s)
         dets = None if detections is None else by_image.get((s, i), [])
         obj_ids, masks, mask_names = _instances(scene, i, dets, wanted, known)
         if not masks:
-            continue
+            return None
         depth, rgb, K = _read_image(scene, i, load_rgb, masks, mask_names)
         stacked = torch.stack(masks)
         if diameters:
             _check_depth(scene, i, depth, K, stacked, [diameters.get(o, nan) for o in obj_ids])
         est, elapsed = _timed(estimator, timer, rgb, depth, K, stacked, obj_ids)
-        ok = est.valid.cpu()
-        if bool(ok.any()):
-            k, ids = int(ok.sum()), [o for o, v in zip(obj_ids, ok.tolist()) if v]
-            scores, poses = est.scores.cpu()[ok], est.poses.cpu()[ok]
-            parts.append(PoseResults.from_columns([s] * k, [i] * k, ids, scores, poses, elapsed))
+        cpu = PoseEstimate(est.poses.cpu(), est.scores.cpu(), est.valid.cpu())
+        return _ImageEstimate(s, i, obj_ids, cpu, elapsed)
+
+    def in_worker(n: int) -> tuple[_ImageEstimate | None, StageTimer | None]:
+        """An image estimated in a worker, with the stage times it took there."""
+        if timer is None:
+            return estimate_image(n), None
+        timer.reset()
+        out = estimate_image(n)
+        taken = StageTimer(synchronize=False, excluded=timer.excluded)
+        taken.add(timer)
+        return out, taken
+
+    if workers == 1:
+        outcomes = ((estimate_image(n), None) for n in range(len(keys)))
+    else:
+        outcomes = map_forked(in_worker, len(keys), workers)
+    parts = []
+    for out, taken in tqdm(outcomes, desc="predict", total=len(keys), disable=not progress):
+        if taken is not None:
+            timer.add(taken)  # type: ignore[union-attr]
+        if out is None:
+            continue
+        if after_image is not None:
+            after_image(out.scene_id, out.im_id, out.obj_ids, out.estimate)
+        if bool(out.estimate.valid.any()):
+            parts.append(out.results())
     return PoseResults.concat(parts)
 
 
@@ -338,7 +372,8 @@ def predict_seeded(
         object_ids: the objects the estimator knows (others are skipped).
         seed: the run's seed.
         options: more keyword arguments of :func:`predict_dataset` (``split``, ``targets``,
-            ``detections``, ``load_rgb``, ``max_images``, ``timer``, ``progress``).
+            ``detections``, ``load_rgb``, ``max_images``, ``timer``, ``progress``,
+            ``workers``).
 
     Returns:
         One row per valid estimate.
@@ -353,6 +388,27 @@ def predict_seeded(
     return predict_dataset(
         make_estimator(generator), dataset, object_ids=object_ids, before_image=reseed, **options
     )
+
+
+@dataclass
+class _ImageEstimate:
+    """One image's instances and their vetted estimate (on the CPU), and the image's seconds."""
+
+    scene_id: int
+    im_id: int
+    obj_ids: list[int]
+    estimate: PoseEstimate
+    seconds: float
+
+    def results(self) -> PoseResults:
+        """The rows of the valid estimates (at least one)."""
+        ok = self.estimate.valid
+        k = int(ok.sum())
+        ids = [o for o, v in zip(self.obj_ids, ok.tolist()) if v]
+        est = self.estimate
+        return PoseResults.from_columns(
+            [self.scene_id] * k, [self.im_id] * k, ids, est.scores[ok], est.poses[ok], self.seconds
+        )
 
 
 def _timed(

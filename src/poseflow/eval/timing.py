@@ -188,6 +188,22 @@ class StageTimer:
         self.counts.clear()
         self.num_images = 0
 
+    def add(self, other: StageTimer) -> None:
+        """Add the images and stage times another timer recorded (e.g. in another process).
+
+        Example:
+            >>> a, b = StageTimer(), StageTimer()
+            >>> a.totals, a.counts, a.num_images = {"icp": 0.3}, {"icp": 2}, 2
+            >>> b.totals, b.counts, b.num_images = {"icp": 0.1}, {"icp": 1}, 1
+            >>> a.add(b); a.totals, a.counts, a.num_images
+            ({'icp': 0.4}, {'icp': 3}, 3)
+        """
+        for name, seconds in other.totals.items():
+            self.totals[name] = self.totals.get(name, 0.0) + seconds
+        for name, count in other.counts.items():
+            self.counts[name] = self.counts.get(name, 0) + count
+        self.num_images += other.num_images
+
     def breakdown(self) -> dict[str, Any]:
         """Mean milliseconds per image of each stage, their shares and the total.
 

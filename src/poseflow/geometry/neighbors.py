@@ -20,7 +20,6 @@ neighbours have distance ``inf`` and index ``0``.
 
 from __future__ import annotations
 
-import functools
 import os
 from concurrent.futures import ThreadPoolExecutor
 
@@ -28,6 +27,7 @@ import numpy as np
 import torch
 
 from poseflow._checks import check_mask, check_same, check_tensor
+from poseflow._threads import get_num_threads
 from poseflow.errors import ShapeError, ValueRangeError
 
 __all__ = ["NeighborIndex", "NeighborTracker", "nearest_neighbors"]
@@ -40,11 +40,22 @@ _PARALLEL_POINTS = 8192
 _CHUNK_ELEMENTS = 1 << 22
 
 
-@functools.cache
+#: The KD-tree query threads by their number; emptied in a forked child, which has no threads.
+_POOLS: dict[int, ThreadPoolExecutor] = {}
+os.register_at_fork(after_in_child=_POOLS.clear)
+
+
 def _pool() -> ThreadPoolExecutor | None:
-    """The threads that run KD-tree queries of several batch items at once (None on one core)."""
-    workers = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    return ThreadPoolExecutor(workers, thread_name_prefix="poseflow-knn") if workers > 1 else None
+    """The threads that run KD-tree queries of several batch items at once.
+
+    As many as :func:`poseflow.get_num_threads`; None for one thread.
+    """
+    workers = get_num_threads()
+    if workers <= 1:
+        return None
+    if workers not in _POOLS:
+        _POOLS[workers] = ThreadPoolExecutor(workers, thread_name_prefix="poseflow-knn")
+    return _POOLS[workers]
 
 
 class NeighborIndex:
