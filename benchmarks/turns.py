@@ -11,7 +11,8 @@ those how many are turns about the axis (tilt under 10°) or upside down (tilt o
 images: the ground-truth pose of every target is turned about the axis in ``--step`` degree
 steps, each turn is refined by the verifier's ICP and scored on its full grid, and the script
 counts the targets whose best score is at the true turn, and those where no other turn scores
-within ``--margin`` of it.
+within ``--margin`` of it. ``--set KEY=VALUE`` changes a field of the scan's
+:class:`~poseflow.verify.VerifierConfig` (``crop_size=128`` compares on a finer grid).
 
 Run ``python benchmarks/turns.py DATASET --obj ID --results A.csv [B.csv ...] [--scan]``.
 """
@@ -25,12 +26,13 @@ from pathlib import Path
 import _common
 import torch
 
+from poseflow.cli.options import add_set_argument, parse_set
 from poseflow.data import ImageInstances
 from poseflow.data.bop import BOPDataset
 from poseflow.data.object_folder import load_object_models
 from poseflow.eval.results import read_results
 from poseflow.models.verification import prepare_verification
-from poseflow.verify import PoseVerifier, axis_angle_matrix, revolution_axis
+from poseflow.verify import PoseVerifier, VerifierConfig, axis_angle_matrix, revolution_axis
 
 
 def split_error(R_gt: torch.Tensor, R_est: torch.Tensor, axis: torch.Tensor) -> tuple[float, float]:
@@ -59,6 +61,7 @@ def main() -> None:
     parser.add_argument("--scan", action="store_true", help="score the true pose's turns")
     parser.add_argument("--step", type=float, default=10.0, help="turn step of --scan, degrees")
     parser.add_argument("--margin", type=float, default=0.01, help="score margin of --scan")
+    add_set_argument(parser, "change a field of the scan's verifier configuration")
     args = parser.parse_args()
     torch.set_num_threads(1)
 
@@ -91,7 +94,7 @@ def main() -> None:
         print(f"{Path(path).name}: {counts}")
 
     if args.scan:
-        verifier = PoseVerifier()
+        verifier = PoseVerifier(VerifierConfig(**parse_set(args.set_fields)))
         prepare_verification(verifier, {args.obj: model}, progress=False)
         degrees = torch.arange(0.0, 360.0, args.step, dtype=torch.float64)
         turns = turns_about(direction, point, degrees).float()
@@ -115,6 +118,7 @@ def main() -> None:
             "no_other_turn_within_margin": unique,
             "step_degrees": args.step,
             "margin": args.margin,
+            "verifier": parse_set(args.set_fields),
         }
         print(f"scan: {report['scan']}")
     _common.report(report, __file__)

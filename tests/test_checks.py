@@ -38,6 +38,18 @@ def test_non_finite_values_raise_value_range_error():
         check_tensor(x, "x", ("N", 3), finite=True)
 
 
+@pytest.mark.parametrize("where", [(0, 0, 0), (2, 1, 3)])
+def test_an_expanded_tensor_is_checked_through_its_one_copy(where):
+    image = torch.rand(3, 4, 5)
+    expanded = image.expand(6, 3, 4, 5)  # one image for six instances, stride 0
+    check_tensor(expanded, "images", ("B", 3, None, None), finite=True)
+    image[where] = float("inf")
+    with pytest.raises(ValueRangeError, match="images contains NaN or inf"):
+        check_tensor(expanded, "images", ("B", 3, None, None), finite=True)
+    with pytest.raises(ValueRangeError):  # a dimension of size 1 with a stride of 0 too
+        check_tensor(image[:, None].expand(3, 2, 4, 5), "x", (3, 2, 4, 5), finite=True)
+
+
 def test_mask_must_be_bool():
     with pytest.raises(ShapeError, match="bool"):
         check_mask(torch.ones(2, 5), "mask", ("B", "N"), {"B": 2, "N": 5})

@@ -84,9 +84,19 @@ def check_tensor(
                 )
     if floating and not x.is_floating_point():
         raise ShapeError(f"{name} must be a floating-point tensor, got {x.dtype}")
-    if finite and x.numel() and not bool(torch.isfinite(x).all()):
+    if finite and x.numel() and not bool(torch.isfinite(_distinct(x)).all()):
         raise ValueRangeError(f"{name} contains NaN or inf")
     return sizes
+
+
+def _distinct(x: torch.Tensor) -> torch.Tensor:
+    """``x`` without the repeats of an ``expand``: one index along every dimension of stride 0.
+
+    An image expanded to ``B`` instances is then checked once, not ``B`` times.
+    """
+    if all(x.stride()):
+        return x
+    return x[tuple(slice(None) if st else slice(0, 1) for st in x.stride())]
 
 
 def check_mask(mask: object, name: str, shape: Sequence[Dim], sizes: dict[str, int]) -> None:

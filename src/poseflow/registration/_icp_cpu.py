@@ -14,6 +14,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from poseflow.registration._svd3_cpu import svd3
+
 __all__ = ["move", "pair_moments", "rigid_from_moments"]
 
 _jit = numba.njit(cache=True, nogil=True)
@@ -117,6 +119,8 @@ def rigid_from_moments(mu, cov, stats, eps, T, ok):  # type: ignore[no-untyped-d
     """
     a = np.empty((3, 3))
     R = np.empty((3, 3))
+    U, S, Vh = np.empty((3, 3)), np.empty(3), np.empty((3, 3))
+    work = np.empty((2, 3, 3))
     for j in range(cov.shape[0]):
         finite = True
         for r in range(3):
@@ -126,7 +130,7 @@ def rigid_from_moments(mu, cov, stats, eps, T, ok):  # type: ignore[no-untyped-d
         ok[j] = False
         if not finite:
             continue
-        U, S, Vh = np.linalg.svd(a)
+        svd3(a, U, S, Vh, work[0], work[1])
         ulp2 = eps**2 * (
             (mu[j, 0, 0] ** 2 + mu[j, 0, 1] ** 2 + mu[j, 0, 2] ** 2)
             + (mu[j, 1, 0] ** 2 + mu[j, 1, 1] ** 2 + mu[j, 1, 2] ** 2)
