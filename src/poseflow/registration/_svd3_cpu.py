@@ -1,12 +1,11 @@
 """The SVD of 3 × 3 matrices on the CPU, compiled with numba, for Procrustes.
 
-LAPACK's general SVD costs about 3 µs per 3 × 3 matrix through ``torch.linalg.svd`` (a call
-per matrix), which made it most of RANSAC's time: every hypothesis is one Procrustes. This is
-the one-sided Jacobi method (Hestenes): plane rotations applied to the columns of ``A`` until
-they are mutually orthogonal; the rotations accumulate into ``V``, the column norms are the
-singular values and the normalised columns are ``U``. For 3 × 3 it converges in a few sweeps,
-to full float64 accuracy, with a relative accuracy of the small singular values that LAPACK's
-bidiagonalisation does not promise.
+``torch.linalg.svd`` calls LAPACK's general SVD once per 3 × 3 matrix, which made it most of
+RANSAC's time: every hypothesis is one Procrustes. This is the one-sided Jacobi method
+(Hestenes): plane rotations applied to the columns of ``A`` until they are mutually orthogonal;
+the rotations accumulate into ``V``, the column norms are the singular values and the normalised
+columns are ``U``. For 3 × 3 it converges in a few sweeps, to full float64 accuracy, with a
+relative accuracy of the small singular values that LAPACK's bidiagonalisation does not promise.
 
 ``U`` is returned orthonormal even where ``A`` is rank-deficient (a minimal sample of three
 points always is): the second column is the second of ``A`` made orthogonal to the first, the
@@ -53,7 +52,8 @@ def svd3(a, u, s, vh, w, v):  # type: ignore[no-untyped-def]
         u: ``(3, 3)``, out: orthonormal left singular vectors as columns.
         s: ``(3,)``, out: the singular values, non-negative, decreasing.
         vh: ``(3, 3)``, out: the right singular vectors as rows, orthonormal.
-        w, v: ``(3, 3)`` work arrays (overwritten).
+        w: ``(3, 3)`` work array (overwritten).
+        v: ``(3, 3)`` work array (overwritten).
     """
     for r in range(3):
         for c in range(3):

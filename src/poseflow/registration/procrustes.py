@@ -214,7 +214,7 @@ def svd3x3(matrices: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Te
     """``U diag(S) Vh`` of float64 3 × 3 matrices ``(B, 3, 3)``, ``S`` ``(B, 3)`` decreasing.
 
     On the CPU, without gradient, the compiled one-sided Jacobi SVD of
-    :mod:`poseflow.registration._svd3_cpu` (about 20× faster than ``torch.linalg.svd`` per
+    :mod:`poseflow.registration._svd3_cpu` (LAPACK's general SVD costs far more per small
     matrix), whose ``U`` stays orthonormal where a matrix is rank-deficient; elsewhere
     ``torch.linalg.svd``. Either way ``U diag(1, 1, det U det Vh) Vh`` is the Procrustes
     rotation.
