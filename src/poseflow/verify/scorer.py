@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -310,30 +311,52 @@ class PoseScorer:
         K: torch.Tensor,
         boxes: torch.Tensor,
     ) -> VerifierScore:
-        """Render the hypotheses ``(B, H, 4, 4)`` onto the crops ``boxes`` and score them."""
+        """Render the hypotheses ``(B, H, 4, 4)`` onto the crops ``boxes`` and score them.
+
+        Hypotheses masked out (padding, duplicates) are neither rendered nor scored: they get
+        :meth:`VerifierScore.zeros`' entries, as scoring them masked would give.
+        """
         cfg = self.config
         S = observed.depth.shape[-1]
         points, normals, albedo, diam = _stack(objects, hypotheses)
         n = min(points.shape[1], math.ceil(points.shape[1] * (S / cfg.crop_size) ** 2))
-        points, normals, albedo = points[:, :n], normals[:, :n], albedo[:, :n]
         Kc = crop_intrinsics(K, boxes, S)
         pixel = (boxes[:, 2] - boxes[:, 0]) / S / K[:2, :2].diagonal().min()  # m per m depth
         z0 = hypotheses[:, 0, 2, 3].abs().clamp_min(1e-3)
+        per_instance = _Instances(
+            points[:, :n], normals[:, :n], albedo[:, :n], Kc, 2 * pixel * z0, diam, observed
+        )
+        if hypothesis_mask is None or bool(hypothesis_mask.all()):
+            return self._render_and_score(per_instance, hypotheses, hypothesis_mask)
+        B, H = hypothesis_mask.shape
+        out = VerifierScore.zeros(B, H, (S // cfg.block_size) ** 2, like=hypotheses)
+        b, h = hypothesis_mask.nonzero(as_tuple=True)
+        if len(b):
+            part = self._render_and_score(per_instance.take(b), hypotheses[b, h][:, None], None)
+            for name in VerifierScore.__dataclass_fields__:
+                getattr(out, name)[b, h] = getattr(part, name)[:, 0]
+        return out
+
+    def _render_and_score(
+        self, inst: _Instances, hypotheses: torch.Tensor, hypothesis_mask: torch.Tensor | None
+    ) -> VerifierScore:
+        """:func:`render_points` and :func:`score_renderings` of ``(B, H, 4, 4)`` hypotheses."""
+        cfg = self.config
         rendering = render_points(
-            points,
-            normals,
-            albedo,
+            inst.points,
+            inst.normals,
+            inst.albedo,
             hypotheses,
-            Kc,
-            S,
-            surface_tolerance=2 * pixel * z0,
-            occlusion_tolerance=cfg.occlusion_tolerance * diam,
+            inst.K,
+            inst.observed.depth.shape[-1],
+            surface_tolerance=inst.surface_tolerance,
+            occlusion_tolerance=cfg.occlusion_tolerance * inst.diameter,
         )
         return score_renderings(
             rendering,
-            observed,
-            depth_tolerance=cfg.depth_tolerance * diam,
-            visibility_tolerance=cfg.visibility_tolerance * diam,
+            inst.observed,
+            depth_tolerance=cfg.depth_tolerance * inst.diameter,
+            visibility_tolerance=cfg.visibility_tolerance * inst.diameter,
             appearance_window=cfg.appearance_window,
             contrast_reference=cfg.contrast_reference,
             weights=(cfg.depth_weight, cfg.silhouette_weight, cfg.appearance_weight),
@@ -413,6 +436,38 @@ class PoseScorer:
             return cloud.points, cloud.mask
         ok = cloud.mask & remove_statistical_outliers(cloud.points, cloud.mask)
         return self._thin(cloud.points, ok)
+
+
+@dataclass(frozen=True)
+class _Instances:
+    """What scoring needs of each of ``B`` instances on its crop.
+
+    Attributes:
+        points, normals, albedo: the model's surface samples ``(B, n, 3)``.
+        K: the crops' intrinsics ``(B, 3, 3)``.
+        surface_tolerance: ``(B,)`` metres, from the crop's pixel size at the first hypothesis.
+        diameter: ``(B,)`` metres.
+        observed: the observed crops ``(B, ...)``.
+    """
+
+    points: torch.Tensor
+    normals: torch.Tensor
+    albedo: torch.Tensor
+    K: torch.Tensor
+    surface_tolerance: torch.Tensor
+    diameter: torch.Tensor
+    observed: ObservedCrops
+
+    def take(self, rows: torch.Tensor) -> _Instances:
+        """The instances ``rows`` ``(P,)`` (repeats allowed)."""
+        o = self.observed
+        color = None if o.color is None else o.color[rows]
+        return _Instances(
+            *(getattr(self, f)[rows] for f in ("points", "normals", "albedo", "K")),
+            self.surface_tolerance[rows],
+            self.diameter[rows],
+            ObservedCrops(o.depth[rows], o.mask[rows], color),
+        )
 
 
 def _stack(
