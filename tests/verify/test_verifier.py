@@ -301,6 +301,35 @@ def test_extra_hypotheses_compete_with_the_near_symmetric_candidates(
         verifier.verify(*args, extra=true[None])
 
 
+def test_hypotheses_the_coarse_grid_cannot_tell_apart_are_scored_once(
+    box: ObjectModel, scene: dict[str, torch.Tensor]
+) -> None:
+    true, flipped = box_pose(), box_pose() @ half_turn([1.0, 0, 0])
+    nudged = true.clone()
+    nudged[:3, 3] += 0.001  # 1.7 mm: far below a coarse pixel (1.2 x 0.16 m / 24 = 8 mm)
+    apart = true.clone()
+    apart[:3, 3] += torch.tensor([0.02, 0.0, 0.0])  # 2 cm: apart
+    extra = torch.stack((true, nudged, apart, flipped))[None]  # (1, 4, 4, 4)
+    scored = []
+
+    class Recording(PoseVerifier):
+        def score(self, image, hypotheses, hypothesis_mask=None, **kwargs):
+            scored.append(hypothesis_mask.clone())
+            return super().score(image, hypotheses, hypothesis_mask, **kwargs)
+
+    verifier = Recording(CONFIG)
+    verifier.prepare(1, box)
+    image = one_box(scene)
+    ranked = verifier.rank_hypotheses(image, flipped[None], extra=extra)
+    assert scored[0].tolist() == [[True, True, False, True, False]]  # the coarse contest
+    assert torch.equal(ranked.poses[0, 0], true)  # the first of the duplicates is kept
+    out = verifier.verify(image, flipped[None], extra=extra)
+    # verify expands the flipped estimate with the box's half-turns first: one of them is the
+    # truth, so of the extras only the one 2 cm off is new
+    assert scored[1][0, -4:].tolist() == [False, False, True, False]
+    assert float(rotation_angle_error(out.poses[0, :3, :3], true[:3, :3])) < 1.0
+
+
 def test_ranking_makes_the_best_hypothesis_the_estimate(
     verifier: PoseVerifier, scene: dict[str, torch.Tensor]
 ) -> None:

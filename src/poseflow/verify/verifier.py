@@ -20,6 +20,7 @@ import torch
 
 from poseflow._checks import check_mask, check_same, check_tensor
 from poseflow.data.frame import ImageInstances
+from poseflow.geometry.se3 import rotation_angle_error
 from poseflow.verify.results import Hypotheses, Verification
 from poseflow.verify.score import VerifierScore
 from poseflow.verify.scorer import PoseScorer
@@ -330,6 +331,7 @@ class PoseVerifier(PoseScorer):
         """
         cfg = self.config
         boxes = self.crop_boxes(hypotheses[:, 0], image.obj_ids, image.K, image.masks)
+        mask = mask & self._distinct(hypotheses, mask, image.obj_ids)
         coarse = self.score(image, hypotheses, mask, boxes=boxes, crop_size=cfg.coarse_crop_size)
         if not ranking and image.observed is None and (k or refine_first):
             lifted = self.observed_cloud(image.depth, image.K, image.masks)
@@ -356,6 +358,36 @@ class PoseVerifier(PoseScorer):
         if k or not ranking:
             full = self.score(image, poses, kept, boxes=boxes)
         return _Contest(image, index, poses, kept, coarse, full)
+
+    def _distinct(
+        self, hypotheses: torch.Tensor, mask: torch.Tensor, obj_ids: object
+    ) -> torch.Tensor:
+        """``(B, H)`` bool: False for a hypothesis the coarse grid cannot tell from an earlier one.
+
+        Two poses of an object are the same to the coarse grid when no surface point moves by
+        a coarse pixel between them (``crop_margin`` times the diameter over
+        ``coarse_crop_size``): bounded by ``angle * r + |Δt|``, ``r`` the farthest surface
+        point from the model's origin. The first of such a group (the incumbent first) stays.
+        """
+        cfg = self.config
+        objects = self._objects(obj_ids, hypotheses.shape[0])
+        kw = {"dtype": hypotheses.dtype, "device": hypotheses.device}
+        radius = torch.stack([o.points.norm(dim=-1).max() for o in objects]).to(**kw)
+        pixel = torch.tensor([o.diameter for o in objects], **kw) * (
+            cfg.crop_margin / cfg.coarse_crop_size
+        )
+        B, H = mask.shape
+        pairs = (B, H, H, 4, 4)
+        angle = rotation_angle_error(
+            hypotheses[:, :, None].expand(pairs), hypotheses[:, None].expand(pairs), degrees=False
+        )
+        t = hypotheses[..., :3, 3]
+        shift = (t[:, :, None] - t[:, None]).norm(dim=-1)
+        close = angle * radius[:, None, None] + shift <= pixel[:, None, None]
+        keep = mask.clone()
+        for j in range(1, H):
+            keep[:, j] &= ~(close[:, :j, j] & keep[:, :j]).any(1)
+        return keep
 
     def _unscored(self, hypotheses: torch.Tensor) -> Verification:
         """The verification of unscored hypotheses ``(B, H, 4, 4)`` on the full grid."""
