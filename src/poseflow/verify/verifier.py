@@ -331,7 +331,9 @@ class PoseVerifier(PoseScorer):
         """
         cfg = self.config
         boxes = self.crop_boxes(hypotheses[:, 0], image.obj_ids, image.K, image.masks)
-        mask = mask & self._distinct(hypotheses, mask, image.obj_ids)
+        # the grid that decides: the full one where a ranking re-scores its best k unrefined
+        grid = cfg.crop_size if ranking and k else cfg.coarse_crop_size
+        mask = mask & self._distinct(hypotheses, mask, image.obj_ids, grid)
         coarse = self.score(image, hypotheses, mask, boxes=boxes, crop_size=cfg.coarse_crop_size)
         if not ranking and image.observed is None and (k or refine_first):
             lifted = self.observed_cloud(image.depth, image.K, image.masks)
@@ -360,22 +362,20 @@ class PoseVerifier(PoseScorer):
         return _Contest(image, index, poses, kept, coarse, full)
 
     def _distinct(
-        self, hypotheses: torch.Tensor, mask: torch.Tensor, obj_ids: object
+        self, hypotheses: torch.Tensor, mask: torch.Tensor, obj_ids: object, grid: int
     ) -> torch.Tensor:
-        """``(B, H)`` bool: False for a hypothesis the coarse grid cannot tell from an earlier one.
+        """``(B, H)`` bool: False where a crop of ``grid`` pixels shows an earlier hypothesis again.
 
-        Two poses of an object are the same to the coarse grid when no surface point moves by
-        a coarse pixel between them (``crop_margin`` times the diameter over
-        ``coarse_crop_size``): bounded by ``angle * r + |Δt|``, ``r`` the farthest surface
-        point from the model's origin. The first of such a group (the incumbent first) stays.
+        Two poses of an object look the same on the grid when no surface point moves by one of
+        its pixels between them (``crop_margin`` times the diameter over ``grid``): bounded by
+        ``angle * r + |Δt|``, ``r`` the farthest surface point from the model's origin. The
+        first of such a group (the incumbent first) stays.
         """
         cfg = self.config
         objects = self._objects(obj_ids, hypotheses.shape[0])
         kw = {"dtype": hypotheses.dtype, "device": hypotheses.device}
         radius = torch.stack([o.points.norm(dim=-1).max() for o in objects]).to(**kw)
-        pixel = torch.tensor([o.diameter for o in objects], **kw) * (
-            cfg.crop_margin / cfg.coarse_crop_size
-        )
+        pixel = torch.tensor([o.diameter for o in objects], **kw) * (cfg.crop_margin / grid)
         B, H = mask.shape
         pairs = (B, H, H, 4, 4)
         angle = rotation_angle_error(
