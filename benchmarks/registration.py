@@ -12,6 +12,11 @@ ICP is timed alternately on both sides after a warm-up, and reported as the best
 ``--repeats`` (with the ratio of the medians). Run
 ``OMP_NUM_THREADS=1 taskset -c 0 python benchmarks/registration.py`` for one core on both sides
 (``--quick`` for CI: 2 instances, 200 RANSAC hypotheses, three repeats).
+
+SVD: Procrustes' 3 × 3 SVD (``procrustes.svd3x3``, compiled on the CPU) against
+``torch.linalg.svd`` on ``--svd-matrices`` random float64 matrices (RANSAC's minimal samples of
+48 instances × 1,000 hypotheses by default), timed alternately, with the largest difference of
+the rotations ``U diag(1, 1, det U det Vh) Vh`` both give.
 """
 
 from __future__ import annotations
@@ -33,6 +38,7 @@ from poseflow.geometry.se3 import (
     translation_error,
 )
 from poseflow.registration import icp, ransac_procrustes
+from poseflow.registration.procrustes import svd3x3
 
 try:
     import open3d as o3d
@@ -194,6 +200,30 @@ def bench_icp(args: argparse.Namespace, device: torch.device, dtype: torch.dtype
     }
 
 
+def bench_svd(args: argparse.Namespace) -> dict:
+    """The compiled 3 × 3 SVD against ``torch.linalg.svd`` on the CPU (float64)."""
+    g = torch.Generator().manual_seed(0)
+    A = torch.randn(args.svd_matrices, 3, 3, generator=g, dtype=torch.float64)
+    t_ours, t_lapack, ours, lapack = timed_pair(
+        lambda: svd3x3(A), lambda: torch.linalg.svd(A), args.repeats
+    )
+
+    def rotation(U: torch.Tensor, Vh: torch.Tensor) -> torch.Tensor:
+        d = torch.linalg.det(U) * torch.linalg.det(Vh)
+        return (
+            U @ torch.diag_embed(torch.stack((torch.ones_like(d), torch.ones_like(d), d), -1)) @ Vh
+        )
+
+    gap = (rotation(ours[0], ours[2]) - rotation(lapack[0], lapack[2])).abs().max()
+    return {
+        "matrices": args.svd_matrices,
+        "poseflow_ms": round(min(t_ours) * 1e3, 2),
+        "torch_linalg_svd_ms": round(min(t_lapack) * 1e3, 2),
+        "speedup_of_medians": round(statistics.median(t_lapack) / statistics.median(t_ours), 2),
+        "max_rotation_difference": float(gap),
+    }
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="small batch, one repeat (CI)")
@@ -209,9 +239,10 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--icp-translation", type=float, default=0.01, help="metres")
     parser.add_argument("--icp-distance", type=float, default=0.02, help="metres")
     parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--svd-matrices", type=int, default=48_000, help="3 x 3 SVD batch")
     args = parser.parse_args(argv)
     if args.quick:
-        args.instances, args.iterations, args.repeats = 2, 200, 3
+        args.instances, args.iterations, args.repeats, args.svd_matrices = 2, 200, 3, 2_000
     device = torch.device(args.device)
     dtype = getattr(torch, args.dtype)
     record = {
@@ -223,6 +254,7 @@ def main(argv: list[str] | None = None) -> None:
         "open3d": None if o3d is None else o3d.__version__,
         "ransac": bench_ransac(args, device, dtype),
         "icp": bench_icp(args, device, dtype),
+        "svd": bench_svd(args),
     }
     report(record, __file__, argv)
 

@@ -84,12 +84,12 @@ def check_tensor(
                 )
     if floating and not x.is_floating_point():
         raise ShapeError(f"{name} must be a floating-point tensor, got {x.dtype}")
-    if finite and x.numel() and not bool(torch.isfinite(_distinct(x)).all()):
+    if finite and x.numel() and not bool(torch.isfinite(_one_copy(x)).all()):
         raise ValueRangeError(f"{name} contains NaN or inf")
     return sizes
 
 
-def _distinct(x: torch.Tensor) -> torch.Tensor:
+def _one_copy(x: torch.Tensor) -> torch.Tensor:
     """``x`` without the repeats of an ``expand``: one index along every dimension of stride 0.
 
     An image expanded to ``B`` instances is then checked once, not ``B`` times.
