@@ -183,7 +183,9 @@ def test_the_shipped_checkpoint_keeps_its_settings_under_the_new_names():
     raw = json.loads((DEMO_CHECKPOINT / "config.json").read_text())
     assert "icp_thresholds" in raw and raw["verification"] is True  # written before the renames
     config, _ = read_checkpoint(DEMO_CHECKPOINT)
-    assert config == FunFlow6DConfig.recipe("demo_small")
+    # written before the flow's precision was a field: it samples in float32, as it did
+    assert "flow_precision" not in raw and config.flow_precision == "fp32"
+    assert config == FunFlow6DConfig.recipe("demo_small").replace(flow_precision="fp32")
     new = config.to_dict()
     assert new["ransac_distance"] == raw["ransac_threshold"]
     assert new["icp_distances"] == raw["icp_thresholds"]
@@ -247,6 +249,14 @@ def test_inference_settings_change_through_with_inference_only():
         with pytest.raises(ValueRangeError, match="not an inference setting") as info:
             demo.with_inference({key: 1})
         assert ", ".join(INFERENCE_FIELDS) in str(info.value)
+
+
+def test_the_flow_precision_is_an_inference_setting_with_named_values():
+    demo = FunFlow6DConfig.recipe("demo_small")
+    assert demo.flow_precision == "auto"
+    assert demo.with_inference(flow_precision="fp32").flow_precision == "fp32"
+    with pytest.raises(ValueRangeError, match="flow_precision"):
+        demo.with_inference(flow_precision="int8")
 
 
 @pytest.mark.parametrize("name", sorted(ABLATIONS))

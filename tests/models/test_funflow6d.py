@@ -422,6 +422,15 @@ def test_checkpoints_from_before_the_descriptor_support_describe_the_sampled_poi
         old.replace(geometric_support_voxel=0.5)
 
 
+def test_checkpoints_from_before_the_flow_precision_sample_in_float32(tiny_model, tmp_path):
+    folder = tiny_model.save(tmp_path / "ckpt")
+    raw = json.loads((folder / "config.json").read_text())
+    assert raw["flow_precision"] == tiny_model.config.flow_precision == "auto"
+    del raw["flow_precision"]
+    (folder / "config.json").write_text(json.dumps(raw))
+    assert FunFlow6D.load(folder).config.flow_precision == "fp32"
+
+
 def test_the_descriptor_support_changes_the_geometric_features_only(tiny_model, scene):
     image = two_boxes(scene)
     config = tiny_model.config

@@ -113,3 +113,32 @@ def test_samples_per_instance_equal_sampling_the_repeated_instances(noise_condit
     assert not torch.allclose(once[0], once[1])  # each sample has its own noise
     with pytest.raises(ValueError):
         net.sample(inputs, sampler, frozen_mask=frozen, num_samples=0)
+
+
+@pytest.mark.parametrize("precision", ["fp32", "bf16"])
+def test_sampling_in_a_lower_precision_stays_close_and_integrates_in_the_inputs_dtype(precision):
+    from poseflow.flows.samplers import get_sampler
+
+    torch.manual_seed(0)
+    net = FunFlow6DNet(CFG).eval()
+    for p in net.parameters():
+        torch.nn.init.normal_(p, std=0.1)
+    inputs, _ = _inputs()
+    frozen = torch.zeros(2, 10, dtype=torch.bool)
+    frozen[:, :5] = True
+    anchor = torch.where(frozen[..., None], inputs.points, 0.0)
+
+    def run(name):
+        return net.sample(inputs, get_sampler("midpoint", steps=2), frozen_mask=frozen,
+                          x_frozen=anchor, num_samples=2, precision=name,
+                          generator=torch.Generator().manual_seed(3))  # fmt: skip
+
+    reference, out = run("fp32"), run(precision)
+    assert out.dtype == torch.float32
+    assert torch.equal(
+        out[frozen.repeat_interleave(2, 0)], reference[frozen.repeat_interleave(2, 0)]
+    )
+    atol = 0 if precision == "fp32" else 0.05 * float(reference.abs().max())
+    torch.testing.assert_close(out, reference, rtol=0, atol=atol)
+    with pytest.raises(ValueError, match="precision"):
+        run("fp8")

@@ -37,6 +37,12 @@ from poseflow.flows.loss import cfm_loss
 from poseflow.flows.objective import CFMObjective, FlowBatch, StepRandom
 from poseflow.flows.path import LinearPath, PathSample
 from poseflow.flows.positional import PointPositionalEncoder, nerf_embedding
+from poseflow.flows.precision import (
+    PRECISIONS,
+    autocast_dtype,
+    native_bfloat16,
+    precision_autocast,
+)
 from poseflow.flows.protocols import VelocityModel
 from poseflow.flows.samplers import (
     SAMPLERS,
@@ -62,6 +68,7 @@ from poseflow.flows.trainer import CFMTrainer, Objective, TrainConfig, ValidateH
 
 __all__ = [
     "EMA",
+    "PRECISIONS",
     "PRESETS",
     "SAMPLERS",
     "TIME_SAMPLERS",
@@ -89,6 +96,7 @@ __all__ = [
     "all_reduce_mean",
     "apply_equivalents",
     "atomic_write",
+    "autocast_dtype",
     "barrier",
     "cfm_loss",
     "destroy_distributed",
@@ -101,8 +109,10 @@ __all__ = [
     "load_checkpoint",
     "logit_normal_time",
     "main_rank_succeeded",
+    "native_bfloat16",
     "nearest_equivalent",
     "nerf_embedding",
+    "precision_autocast",
     "prune_checkpoints",
     "sample",
     "sample_time",

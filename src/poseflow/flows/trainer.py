@@ -81,6 +81,7 @@ from poseflow.flows.distributed import (
 )
 from poseflow.flows.ema import EMA
 from poseflow.flows.objective import CFMObjective, FlowBatch, StepRandom
+from poseflow.flows.precision import PRECISIONS
 from poseflow.flows.schedule import warmup_cosine_lr
 
 __all__ = ["CFMTrainer", "Objective", "TrainConfig", "ValidateHook"]
@@ -91,7 +92,6 @@ Objective = Callable[[nn.Module, Any, StepRandom], Any]
 ValidateHook = Callable[["CFMTrainer"], Mapping[str, float]]
 
 _FORMAT = "poseflow.flows.CFMTrainer/1"
-_PRECISIONS = {"fp32": None, "bf16": torch.bfloat16, "fp16": torch.float16}
 
 
 @dataclass
@@ -148,8 +148,8 @@ class TrainConfig:
             raise ValueRangeError("steps, batch_size and log_every must be >= 1")
         if self.warmup_steps < 0 or self.lr <= 0 or self.keep_checkpoints < 1:
             raise ValueRangeError("need warmup_steps >= 0, lr > 0, keep_checkpoints >= 1")
-        if self.precision not in _PRECISIONS:
-            raise ValueRangeError(f"precision must be one of {sorted(_PRECISIONS)}")
+        if self.precision not in PRECISIONS:
+            raise ValueRangeError(f"precision must be one of {sorted(PRECISIONS)}")
         if self.ema_decay is not None and not 0.0 <= self.ema_decay <= 1.0:
             raise ValueRangeError(f"ema_decay must be in [0, 1], got {self.ema_decay}")
         for name in ("val_every", "ckpt_every", "grad_clip"):
@@ -225,7 +225,7 @@ class CFMTrainer:
             self.params, lr=cfg.lr, betas=cfg.betas, weight_decay=cfg.weight_decay
         )
         on_cuda = self.device.type == "cuda"
-        self.amp_dtype = _PRECISIONS[cfg.precision] if on_cuda else None
+        self.amp_dtype = PRECISIONS[cfg.precision] if on_cuda else None
         self.scaler = torch.amp.GradScaler("cuda", enabled=self.amp_dtype == torch.float16)
         # after the DDP wrap, so that the average starts from rank 0's broadcast weights
         self.ema = EMA(self.model, decay=cfg.ema_decay) if cfg.ema_decay is not None else None

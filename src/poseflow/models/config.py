@@ -41,7 +41,7 @@ from typing import Any
 from poseflow._checks import check_field_types
 from poseflow._config import apply_overrides, config_from_dict, config_to_dict
 from poseflow.errors import MissingFileError, ValueRangeError
-from poseflow.flows import PRESETS, SAMPLERS, TIME_SAMPLERS
+from poseflow.flows import PRECISIONS, PRESETS, SAMPLERS, TIME_SAMPLERS
 from poseflow.flows.dit import AttentionMode, PointDiTConfig
 from poseflow.fusion import FUSIONS
 from poseflow.models.components import (
@@ -252,6 +252,10 @@ class FunFlow6DConfig:
         solver: ODE solver (``"euler"`` is the paper's, also ``"midpoint"``, ``"heun"``,
             ``"rk4"``).
         steps: integration steps ``K`` (paper: 50).
+        flow_precision: what the DiT computes in while sampling: ``"auto"`` (bfloat16 where
+            the device multiplies it natively, else float32; see
+            :func:`~poseflow.flows.autocast_dtype`), ``"bf16"``, ``"fp16"`` or ``"fp32"``
+            (the same poses on every machine; checkpoints written before the field read so).
         num_hypotheses: noise samples per instance; the pose with the best score is kept.
         pose_solver: ``"ransac"`` (RANSAC-Procrustes, paper) or ``"svd"`` (one Procrustes on all
             correspondences).
@@ -293,6 +297,7 @@ class FunFlow6DConfig:
     time_sampler: str = "uniform"
     solver: str = "euler"
     steps: int = 50
+    flow_precision: str = "auto"
     num_hypotheses: int = 1
     pose_solver: str = "ransac"
     ransac_iterations: int = 1000
@@ -321,6 +326,7 @@ class FunFlow6DConfig:
             ("time_sampler", tuple(TIME_SAMPLERS), False),
             ("solver", tuple(SAMPLERS), False),
             ("pose_solver", POSE_SOLVERS, False),
+            ("flow_precision", (*PRECISIONS, "auto"), False),
         ):
             check_name(name, getattr(self, name), allowed, takes_argument=takes_argument)
         if self.num_points < 8:
@@ -512,12 +518,13 @@ def _upgrade(data: Mapping[str, Any]) -> dict[str, Any]:
     return data
 
 
-#: Fields a trained model may change at inference: the sampler, the hypotheses, the pose solver,
-#: the verifier and the dense-cloud cap (the network and its feature sizes stay valid). Changed
-#: through :meth:`FunFlow6DConfig.with_inference`.
+#: Fields a trained model may change at inference: the sampler and its precision, the hypotheses,
+#: the pose solver, the verifier and the dense-cloud cap (the network and its feature sizes stay
+#: valid). Changed through :meth:`FunFlow6DConfig.with_inference`.
 INFERENCE_FIELDS: tuple[str, ...] = (
     "solver",
     "steps",
+    "flow_precision",
     "num_hypotheses",
     "dense_points",
     "pose_solver",

@@ -26,6 +26,7 @@ from poseflow.errors import ShapeError, ValueRangeError
 from poseflow.eval.timing import stage, timed
 from poseflow.flows.dit import PointDiT
 from poseflow.flows.positional import PointPositionalEncoder
+from poseflow.flows.precision import precision_autocast
 from poseflow.flows.samplers import ODESampler, initial_noise
 from poseflow.fusion import build_fusion
 from poseflow.models.config import NetConfig
@@ -176,6 +177,7 @@ class FunFlow6DNet(nn.Module):
         x_frozen: torch.Tensor | None = None,
         generator: torch.Generator | None = None,
         num_samples: int = 1,
+        precision: str = "fp32",
     ) -> torch.Tensor:
         """Integrate the flow from fresh noise ``X(0)`` to ``X(1)``, the condition computed once.
 
@@ -191,6 +193,9 @@ class FunFlow6DNet(nn.Module):
             x_frozen: where the anchor sits when it is pinned ``(B, 2N, 3)``, or None.
             generator: draws ``X(0) ~ N(0, I)``, all ``B · num_samples`` rows at once.
             num_samples: samples ``S`` per instance (e.g. pose hypotheses).
+            precision: what the DiT computes in (:func:`~poseflow.flows.autocast_dtype`:
+                ``"fp32"``, ``"bf16"``, ``"fp16"`` or ``"auto"``); the condition and the
+                integrated state stay in the inputs' dtype.
 
         Returns:
             ``X(1)`` ``(B·S, 2N, 3)``, the samples of an instance in consecutive rows.
@@ -207,7 +212,7 @@ class FunFlow6DNet(nn.Module):
                 cond = self.condition(inputs, x_0=x_0[::num_samples])
                 cond = cond.repeat_interleave(num_samples, dim=0)
         repeat = functools.partial(torch.repeat_interleave, repeats=num_samples, dim=0)
-        with stage("integration"):
+        with stage("integration"), precision_autocast(precision, points.device):
             return sampler.sample(
                 timed("flow_net", self.dit),
                 x_0,

@@ -49,8 +49,9 @@ def flow_proposals(
         inputs: the flow inputs of the ``B`` instances.
         obs: their observation (its validity ``(B,)`` and cleaned clouds ``(B, P, 3)``).
         objects: the prepared objects, ``{obj_id: PreparedObject}``.
-        config: the sampler (``solver``, ``steps``, ``anchor``), the pose solver's settings and
-            the verifier, whose ``rank_hypotheses`` keeps the other hypotheses as candidates.
+        config: the sampler (``solver``, ``steps``, ``anchor``, ``flow_precision``), the pose
+            solver's settings and the verifier, whose ``rank_hypotheses`` keeps the other
+            hypotheses as candidates.
         generator: seeds the noise and the pose solver's draws.
 
     Returns:
@@ -66,6 +67,7 @@ def flow_proposals(
         x_frozen=inputs.anchor if config.anchor == "pinned" else None,
         generator=generator,
         num_samples=H,
+        precision=config.flow_precision,
     )
     rep = inputs.repeat_interleave(H)
     dense = [o.dense_points for o in select_objects(objects, rep.obj_ids)]
