@@ -212,6 +212,68 @@ def test_batched_equals_per_item(seed: int, B: int, H: int) -> None:
             torch.testing.assert_close(one.color[0, 0], out.color[b, h])
 
 
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    B=st.integers(1, 3),
+    H=st.integers(1, 4),
+    double=st.booleans(),
+    masked=st.booleans(),
+)
+def test_compiled_splat_equals_the_tensor_splat_bit_for_bit(
+    seed: int, B: int, H: int, double: bool, masked: bool
+) -> None:
+    from poseflow.verify.render import _splat_compiled, _splat_tensors
+
+    dtype = torch.float64 if double else torch.float32
+    g = torch.Generator().manual_seed(seed)
+    N, S = 700, 20
+    pts = ((torch.rand(B, N, 3, generator=g) - 0.5) * 0.1).to(dtype)
+    pts[:, :50] = pts[:, 50:100]  # coincident points: ties in the z-buffer
+    nrm = torch.nn.functional.normalize(torch.randn(B, N, 3, generator=g), dim=-1).to(dtype)
+    col = torch.rand(B, N, 3, generator=g).to(dtype)
+    R = random_rotation(B * H, generator=g).reshape(B, H, 3, 3).to(dtype)
+    t = torch.stack(
+        (0.02 * torch.randn(B, H, generator=g), 0.02 * torch.randn(B, H, generator=g),
+         0.04 + torch.rand(B, H, generator=g)), -1,
+    ).to(dtype)  # fmt: skip
+    K = torch.tensor([[60.0, 0.5, 10.0], [0.0, 60.0, 10.0], [0.0, 0.0, 1.0]], dtype=dtype)
+    mask = torch.rand(B, N, generator=g) > 0.2 if masked else None
+    surface = (torch.rand(B, generator=g) * 0.01).to(dtype)
+    args = (pts, nrm, col, R, t, K.repeat(B, 1, 1), S, mask, surface)
+    compiled, tensors = _splat_compiled(*args), _splat_tensors(*args)
+    assert torch.isfinite(tensors[0]).sum() > 0
+    for a, b in zip(compiled, tensors, strict=True):
+        assert a.dtype == b.dtype == dtype and torch.equal(a, b)
+
+
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    B=st.integers(1, 2),
+    H=st.integers(1, 3),
+    passes=st.integers(0, 3),
+    double=st.booleans(),
+)
+def test_compiled_gap_closing_equals_the_tensor_one_bit_for_bit(
+    seed: int, B: int, H: int, passes: int, double: bool
+) -> None:
+    from poseflow.verify.render import _close_gaps_compiled, _close_gaps_tensors
+
+    dtype = torch.float64 if double else torch.float32
+    g = torch.Generator().manual_seed(seed)
+    S, C = 16, 3
+    size = B * H * S * S
+    zbuf = (0.5 + 0.1 * torch.rand(size, generator=g)).to(dtype)
+    zbuf[torch.rand(size, generator=g) < 0.35] = torch.inf  # gaps of every width
+    count = torch.randint(0, 4, (size,), generator=g).to(dtype)
+    csum = (torch.rand(size, C, generator=g) * count[:, None]).to(dtype)
+    occlusion = (0.05 * torch.rand(B, generator=g)).to(dtype)
+    args = (zbuf, csum, count, occlusion, H, S, passes)
+    compiled, tensors = _close_gaps_compiled(*args), _close_gaps_tensors(*args)
+    assert torch.equal(compiled.mask, tensors.mask)
+    assert torch.equal(compiled.depth, tensors.depth) and torch.equal(compiled.color, tensors.color)
+    assert compiled.depth.dtype == dtype
+
+
 def test_point_mask_hides_padding() -> None:
     pts = grid_plane(40, 0.05)
     vals = torch.ones(1, pts.shape[0], 1, dtype=torch.float64)

@@ -26,6 +26,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -205,19 +206,32 @@ def _splat(
         The z-buffer ``(B H S S,)`` (inf where empty), and the colour sums ``(B H S S, C)`` and
         counts ``(B H S S,)`` of the points within ``surface`` of each pixel's nearest.
     """
-    (B, N, C), H = colors.shape, poses.shape[1]
-    dtype, device = points.dtype, points.device
     R, t = poses[..., :3, :3], poses[..., :3, 3]
-    cam = points[:, None] @ R.transpose(-1, -2) + t[..., None, :]  # (B, H, N, 3)
-    facing = ((normals[:, None] @ R.transpose(-1, -2)) * cam).sum(-1) < 0
+    args = (points, normals, colors, R, t, K, S, point_mask, surface)
+    if points.device.type == "cpu" and points.dtype in (torch.float32, torch.float64):
+        return _splat_compiled(*args)
+    return _splat_tensors(*args)
+
+
+def _splat_tensors(
+    points: torch.Tensor,
+    normals: torch.Tensor,
+    colors: torch.Tensor,
+    R: torch.Tensor,
+    t: torch.Tensor,
+    K: torch.Tensor,
+    S: int,
+    point_mask: torch.Tensor | None,
+    surface: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`_splat` as tensor operations (any device), one scatter over all renderings."""
+    (B, N, C), H = colors.shape, R.shape[1]
+    dtype, device = points.dtype, points.device
+    cam, facing, u, v = _camera(points, normals, R, t, K)
     z = cam[..., 2]
-    keep = facing & (z > 1e-6)
+    keep = facing & (z > _NEAREST_DEPTH)
     if point_mask is not None:
         keep &= point_mask[:, None]
-    uvw = cam @ K[:, None].transpose(-1, -2)
-    zs = torch.where(keep, z, torch.ones_like(z))
-    u = torch.round(uvw[..., 0] / zs)
-    v = torch.round(uvw[..., 1] / zs)
     keep &= (u >= 0) & (u < S) & (v >= 0) & (v < S)
     bh, n = keep.reshape(B * H, N).nonzero(as_tuple=True)
     zk = z.reshape(B * H, N)[bh, n]
@@ -231,6 +245,64 @@ def _splat(
     csum.index_add_(0, pix[front], col)
     ccount = torch.zeros(B * H * S * S, dtype=dtype, device=device)
     ccount.index_add_(0, pix[front], torch.ones_like(zk[front]))
+    return zbuf, csum, ccount
+
+
+#: Points nearer to the camera than this (metres) are not drawn.
+_NEAREST_DEPTH = 1e-6
+
+
+def _camera(
+    points: torch.Tensor, normals: torch.Tensor, R: torch.Tensor, t: torch.Tensor, K: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Points in the camera ``(B, H, N, 3)``, whether they face it, and their pixel ``u, v``.
+
+    Every product and sum is written out in the order the compiled kernel
+    (:mod:`poseflow.verify._splat_cpu`) evaluates it, so that both give the same pixels.
+    """
+
+    def turned(vectors: torch.Tensor) -> torch.Tensor:  # R v, (B, H, N, 3)
+        x, y, z = (vectors[:, None, :, i, None] for i in range(3))
+        return x * R[:, :, None, :, 0] + y * R[:, :, None, :, 1] + z * R[:, :, None, :, 2]
+
+    cam = turned(points) + t[:, :, None]
+    m = turned(normals)
+    x, y, z = cam.unbind(-1)
+    facing = m[..., 0] * x + m[..., 1] * y + m[..., 2] * z < 0
+    k = K[:, None, None]
+    zs = torch.where(facing & (z > _NEAREST_DEPTH), z, torch.ones_like(z))
+    u = torch.round((x * k[..., 0, 0] + y * k[..., 0, 1] + z * k[..., 0, 2]) / zs)
+    v = torch.round((x * k[..., 1, 0] + y * k[..., 1, 1] + z * k[..., 1, 2]) / zs)
+    return cam, facing, u, v
+
+
+def _splat_compiled(
+    points: torch.Tensor,
+    normals: torch.Tensor,
+    colors: torch.Tensor,
+    R: torch.Tensor,
+    t: torch.Tensor,
+    K: torch.Tensor,
+    S: int,
+    point_mask: torch.Tensor | None,
+    surface: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`_splat`'s buffers from the compiled CPU kernel (float32 or float64), bit for bit."""
+    from poseflow.verify._splat_cpu import splat_kernel
+
+    (B, N, C), H = colors.shape, R.shape[1]
+    dtype = points.dtype
+    if point_mask is None:
+        point_mask = torch.ones(B, N, dtype=torch.bool)
+    zbuf = torch.full((B * H * S * S,), math.inf, dtype=dtype)
+    csum = torch.zeros(B * H * S * S, C, dtype=dtype)
+    ccount = torch.zeros(B * H * S * S, dtype=dtype)
+    arrays = (points, normals, colors.to(dtype), R, t, K.to(dtype), point_mask, surface)
+    near = np.dtype(str(dtype).removeprefix("torch.")).type(_NEAREST_DEPTH)
+    splat_kernel(
+        *(a.detach().contiguous().numpy() for a in arrays), near, S,
+        zbuf.numpy(), csum.numpy(), ccount.numpy(),
+    )  # fmt: skip
     return zbuf, csum, ccount
 
 
@@ -248,6 +320,50 @@ def _close_gaps(
     Back surfaces seen through gaps between samples are dropped, and the pixels that fell between
     samples filled.
     """
+    args = (zbuf, csum, ccount, occlusion, H, S, fill_passes)
+    if zbuf.device.type == "cpu" and zbuf.dtype in (torch.float32, torch.float64):
+        return _close_gaps_compiled(*args)
+    return _close_gaps_tensors(*args)
+
+
+def _close_gaps_compiled(
+    zbuf: torch.Tensor,
+    csum: torch.Tensor,
+    ccount: torch.Tensor,
+    occlusion: torch.Tensor,
+    H: int,
+    S: int,
+    fill_passes: int,
+) -> PointRendering:
+    """:func:`_close_gaps` by the compiled CPU kernel (float32 or float64), bit for bit."""
+    from poseflow.verify._splat_cpu import close_gaps_kernel
+
+    B, C, dtype = occlusion.shape[0], csum.shape[1], zbuf.dtype
+    depth = torch.zeros(B * H, S, S, dtype=dtype)
+    color = torch.zeros(B * H, C, S, S, dtype=dtype)
+    drawn = torch.zeros(B * H, S, S, dtype=torch.bool)
+    close_gaps_kernel(
+        zbuf.reshape(B * H, S, S).numpy(), csum.reshape(B * H, S, S, C).numpy(),
+        ccount.reshape(B * H, S, S).numpy(), occlusion.repeat_interleave(H).contiguous().numpy(),
+        fill_passes, depth.numpy(), color.numpy(), drawn.numpy(),
+    )  # fmt: skip
+    return PointRendering(
+        depth=depth.reshape(B, H, S, S),
+        mask=drawn.reshape(B, H, S, S),
+        color=color.reshape(B, H, C, S, S),
+    )
+
+
+def _close_gaps_tensors(
+    zbuf: torch.Tensor,
+    csum: torch.Tensor,
+    ccount: torch.Tensor,
+    occlusion: torch.Tensor,
+    H: int,
+    S: int,
+    fill_passes: int,
+) -> PointRendering:
+    """:func:`_close_gaps` as tensor operations (any device)."""
     B, C, dtype = occlusion.shape[0], csum.shape[1], zbuf.dtype
     zimg = zbuf.reshape(B * H, 1, S, S)
     drawn = torch.isfinite(zimg)
