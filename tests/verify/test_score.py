@@ -245,3 +245,31 @@ def test_bad_arguments_raise() -> None:
     with pytest.raises(ValueRangeError):
         select_significant(make_score(torch.ones(1, 2, 4)), significance=1.5)
     assert math.isfinite(float(score(render, obs).total))
+
+
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    B=st.integers(1, 2),
+    H=st.integers(1, 3),
+    C=st.integers(1, 3),
+    half=st.integers(1, 3),
+    double=st.booleans(),
+)
+def test_compiled_appearance_equals_the_tensor_one_to_rounding(
+    seed: int, B: int, H: int, C: int, half: int, double: bool
+) -> None:
+    from poseflow.verify.score import _appearance_compiled, _appearance_tensors
+
+    dtype = torch.float64 if double else torch.float32
+    g = torch.Generator().manual_seed(seed)
+    S = 12
+    rendered = torch.rand(B, H, C, S, S, generator=g).to(dtype)
+    rendered[..., :4, :] = 0.5  # flat windows: the contrast floor and a zero weight
+    observed = (torch.rand(B, C, S, S, generator=g) * 2).to(dtype)
+    both = torch.rand(B, H, S, S, generator=g) > 0.3
+    args = (rendered, observed, both, 2 * half + 1, 0.1)
+    compiled, tensors = _appearance_compiled(*args), _appearance_tensors(*args)
+    assert compiled.dtype == dtype and (tensors != 0).any()
+    assert torch.equal(compiled != 0, tensors != 0)  # the same windows count
+    eps = torch.finfo(dtype).eps
+    torch.testing.assert_close(compiled, tensors, rtol=0, atol=16 * eps)

@@ -34,6 +34,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
 from poseflow._checks import check_mask, check_tensor
@@ -54,6 +55,8 @@ __all__ = [
 #: Relative contrast below which a window counts as flat noise in the correlation's
 #: denominator (keeps the correlation of two flat windows near 0 instead of undefined).
 _CONTRAST_FLOOR = 0.02
+#: The smallest mean colour the relative contrast of a window divides by.
+_LEAST_MEAN = 1e-3
 
 
 @dataclass
@@ -256,6 +259,40 @@ def appearance_agreement(
         >>> round(same[0, 0, 8, 8].item(), 2)
         0.99
     """
+    if rendered.device.type == "cpu" and rendered.dtype in (torch.float32, torch.float64):
+        return _appearance_compiled(rendered, observed, both, window, contrast_reference)
+    return _appearance_tensors(rendered, observed, both, window, contrast_reference)
+
+
+def _appearance_compiled(
+    rendered: torch.Tensor,
+    observed: torch.Tensor,
+    both: torch.Tensor,
+    window: int,
+    contrast_reference: float,
+) -> torch.Tensor:
+    """:func:`appearance_agreement` by the compiled CPU kernel (float32 or float64), bit for bit."""
+    from poseflow.verify._score_cpu import appearance_kernel
+
+    B, H, _, S, _ = rendered.shape
+    out = torch.zeros(B, H, S, S, dtype=rendered.dtype)
+    scalar = np.dtype(str(rendered.dtype).removeprefix("torch.")).type
+    appearance_kernel(
+        rendered.contiguous().numpy(), observed.to(rendered.dtype).contiguous().numpy(),
+        both.contiguous().numpy(), window, scalar(_CONTRAST_FLOOR), scalar(contrast_reference),
+        scalar(_LEAST_MEAN), scalar(torch.finfo(rendered.dtype).tiny), out.numpy(),
+    )  # fmt: skip
+    return out
+
+
+def _appearance_tensors(
+    rendered: torch.Tensor,
+    observed: torch.Tensor,
+    both: torch.Tensor,
+    window: int,
+    contrast_reference: float,
+) -> torch.Tensor:
+    """:func:`appearance_agreement` as tensor operations (any device)."""
     B, H, C, S, _ = rendered.shape
     w = both[:, :, None].to(rendered.dtype)  # (B, H, 1, S, S)
     x = rendered * w
@@ -275,7 +312,7 @@ def appearance_agreement(
     denom = ((vx + floor_x) * (vy + floor_y)).sqrt()
     tiny = torch.finfo(rendered.dtype).tiny
     ncc = torch.where(denom > 0, cov / denom.clamp_min(tiny), 0.0).clamp(-1.0, 1.0)
-    contrast = vx.sqrt() / mx.abs().clamp_min(1e-3)
+    contrast = vx.sqrt() / mx.abs().clamp_min(_LEAST_MEAN)
     weight = (contrast / contrast_reference).clamp(max=1.0)
     enough = both & (n[:, :, 0] >= (window * window + 1) // 2)
     return torch.where(enough, (weight * ncc).mean(2), 0.0)
