@@ -93,7 +93,7 @@ def _box3(image, i, j):  # type: ignore[no-untyped-def]
 
 @numba.njit(cache=True, nogil=True)
 def close_gaps_kernel(zbuf, csum, ccount, occlusion, fill_passes, depth, color, drawn):  # type: ignore[no-untyped-def]
-    """``render._close_gaps`` of ``R`` renderings, written into ``depth``, ``color``, ``drawn``.
+    """``render._close_gaps_tensors`` of ``R`` renderings, into ``depth``, ``color``, ``drawn``.
 
     A round fills every empty pixel with at least 5 drawn neighbours from the values before the
     round; a round that fills nothing ends the filling (the next ones would fill nothing either).

@@ -186,31 +186,13 @@ def render_points(
     B, H, S = sizes["B"], sizes["H"], size
     surface = _per_instance(surface_tolerance, B, points, "surface_tolerance")
     occlusion = _per_instance(occlusion_tolerance, B, points, "occlusion_tolerance")
-    zbuf, csum, ccount = _splat(points, normals, colors, poses, K, S, point_mask, surface)
-    return _close_gaps(zbuf, csum, ccount, occlusion, H, S, fill_passes)
-
-
-def _splat(
-    points: torch.Tensor,
-    normals: torch.Tensor,
-    colors: torch.Tensor,
-    poses: torch.Tensor,
-    K: torch.Tensor,
-    S: int,
-    point_mask: torch.Tensor | None,
-    surface: torch.Tensor,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Project the points into the crops: the z-buffer and each pixel's front surface.
-
-    Returns:
-        The z-buffer ``(B H S S,)`` (inf where empty), and the colour sums ``(B H S S, C)`` and
-        counts ``(B H S S,)`` of the points within ``surface`` of each pixel's nearest.
-    """
     R, t = poses[..., :3, :3], poses[..., :3, 3]
-    args = (points, normals, colors, R, t, K, S, point_mask, surface)
-    if points.device.type == "cpu" and points.dtype in (torch.float32, torch.float64):
-        return _splat_compiled(*args)
-    return _splat_tensors(*args)
+    # the compiled CPU kernels give the tensor versions' answers, bit for bit, faster
+    compiled = points.device.type == "cpu" and points.dtype in (torch.float32, torch.float64)
+    splat = _splat_compiled if compiled else _splat_tensors
+    close_gaps = _close_gaps_compiled if compiled else _close_gaps_tensors
+    zbuf, csum, ccount = splat(points, normals, colors, R, t, K, S, point_mask, surface)
+    return close_gaps(zbuf, csum, ccount, occlusion, H, S, fill_passes)
 
 
 def _splat_tensors(
@@ -224,7 +206,14 @@ def _splat_tensors(
     point_mask: torch.Tensor | None,
     surface: torch.Tensor,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """:func:`_splat` as tensor operations (any device), one scatter over all renderings."""
+    """Project the points into the crops: the z-buffer and each pixel's front surface.
+
+    Tensor operations (any device), one scatter over all renderings.
+
+    Returns:
+        The z-buffer ``(B H S S,)`` (inf where empty), and the colour sums ``(B H S S, C)`` and
+        counts ``(B H S S,)`` of the points within ``surface`` of each pixel's nearest.
+    """
     (B, N, C), H = colors.shape, R.shape[1]
     dtype, device = points.dtype, points.device
     cam, facing, u, v = _camera(points, normals, R, t, K)
@@ -287,7 +276,7 @@ def _splat_compiled(
     point_mask: torch.Tensor | None,
     surface: torch.Tensor,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """:func:`_splat`'s buffers from the compiled CPU kernel (float32 or float64), bit for bit."""
+    """:func:`_splat_tensors`'s buffers by the compiled CPU kernel (float32 or float64)."""
     from poseflow.verify._splat_cpu import splat_kernel
 
     (B, N, C), H = colors.shape, R.shape[1]
@@ -306,26 +295,6 @@ def _splat_compiled(
     return zbuf, csum, ccount
 
 
-def _close_gaps(
-    zbuf: torch.Tensor,
-    csum: torch.Tensor,
-    ccount: torch.Tensor,
-    occlusion: torch.Tensor,
-    H: int,
-    S: int,
-    fill_passes: int,
-) -> PointRendering:
-    """The rendering of :func:`_splat`'s buffers ``(B H S S, ...)``, its gaps closed.
-
-    Back surfaces seen through gaps between samples are dropped, and the pixels that fell between
-    samples filled.
-    """
-    args = (zbuf, csum, ccount, occlusion, H, S, fill_passes)
-    if zbuf.device.type == "cpu" and zbuf.dtype in (torch.float32, torch.float64):
-        return _close_gaps_compiled(*args)
-    return _close_gaps_tensors(*args)
-
-
 def _close_gaps_compiled(
     zbuf: torch.Tensor,
     csum: torch.Tensor,
@@ -335,7 +304,7 @@ def _close_gaps_compiled(
     S: int,
     fill_passes: int,
 ) -> PointRendering:
-    """:func:`_close_gaps` by the compiled CPU kernel (float32 or float64), bit for bit."""
+    """:func:`_close_gaps_tensors` by the compiled CPU kernel (float32 or float64)."""
     from poseflow.verify._splat_cpu import close_gaps_kernel
 
     B, C, dtype = occlusion.shape[0], csum.shape[1], zbuf.dtype
@@ -363,7 +332,11 @@ def _close_gaps_tensors(
     S: int,
     fill_passes: int,
 ) -> PointRendering:
-    """:func:`_close_gaps` as tensor operations (any device)."""
+    """The rendering of the splat's buffers ``(B H S S, ...)``, its gaps closed (any device).
+
+    Back surfaces seen through gaps between samples are dropped, and the pixels that fell between
+    samples filled.
+    """
     B, C, dtype = occlusion.shape[0], csum.shape[1], zbuf.dtype
     zimg = zbuf.reshape(B * H, 1, S, S)
     drawn = torch.isfinite(zimg)
