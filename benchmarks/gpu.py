@@ -261,25 +261,25 @@ def refit_umap(
 
 @contextlib.contextmanager
 def autocast_networks(model: FunFlow6D, device_type: str, dtype: torch.dtype | None) -> Iterator:
-    """Run ``model``'s networks under autocast to ``dtype``; geometry stays in float32.
+    """Run ``model``'s networks in ``dtype``; geometry stays in float32.
 
-    The networks are a DINOv2 appearance encoder and the velocity network's
-    :meth:`~poseflow.models.FunFlow6DNet.sample` (fusion, positional encoder, DiT); dense SIFT, a
-    fixed filter bank, stays in float32 (under autocast it returns bfloat16 features, which
-    observation cannot store). FunFlow6D has no precision option of its own, so the methods are
-    wrapped on the instances for the block. ``dtype=None`` changes nothing.
+    The velocity network samples in the model's ``flow_precision`` (``"fp32"`` for
+    ``dtype=None``, ``"bf16"`` for bfloat16); a DINOv2 appearance encoder runs under autocast
+    (its method wrapped on the instance for the block). Dense SIFT, a fixed filter bank, stays in
+    float32 (under autocast it returns bfloat16 features, which observation cannot store).
     """
-    if dtype is None:
-        yield
-        return
-    wrapped = [(model.net, "sample")]
-    if isinstance(model.appearance_encoder, DINOv2Encoder):
+    config = model.config
+    names = {None: "fp32", torch.bfloat16: "bf16", torch.float16: "fp16"}
+    model.config = config.with_inference(flow_precision=names[dtype])
+    wrapped = []
+    if dtype is not None and isinstance(model.appearance_encoder, DINOv2Encoder):
         wrapped.append((model.appearance_encoder, "encode"))
     for owner, name in wrapped:
         setattr(owner, name, _autocast(getattr(owner, name), device_type, dtype))
     try:
         yield
     finally:
+        model.config = config
         for owner, name in wrapped:
             delattr(owner, name)  # the instance attribute goes; the method shows again
 

@@ -12,7 +12,6 @@ import torch
 
 from poseflow.flows import get_sampler
 from poseflow.models import FunFlow6D, NetInputs
-from poseflow.models.network import FunFlow6DNet
 
 BENCHMARKS = Path(__file__).resolve().parents[2] / "benchmarks"
 
@@ -76,29 +75,32 @@ def test_fusion_table_names_the_kernel_of_every_case(gpu, tiny_model):
                     assert row["first_ms"] > 0 and row["median_ms"] > 0
 
 
-def test_autocast_wraps_the_networks_only_and_restores_them(gpu, tiny_model):
+def test_networks_run_in_the_precision_and_the_model_is_restored(gpu, tiny_model):
     seen = []
     hook = tiny_model.net.dit.register_forward_pre_hook(
         lambda module, args: seen.append(torch.is_autocast_enabled("cpu"))
     )
-    encoder = tiny_model.appearance_encoder
+    encoder, config = tiny_model.appearance_encoder, tiny_model.config
     try:
         with gpu.autocast_networks(tiny_model, "cpu", torch.bfloat16):
-            assert "sample" in vars(tiny_model.net) and "encode" in vars(encoder)
+            assert tiny_model.config.flow_precision == "bf16" and "encode" in vars(encoder)
             features = encoder.encode(torch.rand(1, 3, 28, 28))
             assert not torch.is_autocast_enabled("cpu")  # only inside the wrapped calls
             inputs = _inputs(tiny_model)
             frozen = torch.zeros(inputs.mask.shape, dtype=torch.bool)
             frozen[:, : inputs.mask.shape[1] // 2] = True  # the query half
-            tiny_model.net.sample(inputs, get_sampler("euler", steps=2), frozen_mask=frozen)
+            tiny_model.net.sample(
+                inputs, get_sampler("euler", steps=2), frozen_mask=frozen,
+                precision=tiny_model.config.flow_precision,
+            )  # fmt: skip
     finally:
         hook.remove()
     assert features.dtype == torch.float32  # DINOv2 returns the images' dtype
     assert seen and all(seen)
-    assert "sample" not in vars(tiny_model.net) and "encode" not in vars(encoder)
-    assert type(tiny_model.net).sample is FunFlow6DNet.sample
+    assert tiny_model.config == config and "encode" not in vars(encoder)
     with gpu.autocast_networks(tiny_model, "cpu", None):
-        assert "sample" not in vars(tiny_model.net)
+        assert tiny_model.config.flow_precision == "fp32" and "encode" not in vars(encoder)
+    assert tiny_model.config == config
 
 
 def _inputs(model):
