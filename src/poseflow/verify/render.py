@@ -13,7 +13,8 @@ image.
 
 :func:`render_points` draws a model's coloured surface points at many poses at once: every point
 is moved, culled when it faces away from the camera, projected to its nearest crop pixel and
-z-buffered with one ``scatter_reduce`` over all ``B x H`` renderings (no loop over hypotheses).
+z-buffered, by one ``scatter_reduce`` over all ``B x H`` renderings on any device, or on the
+CPU by a compiled kernel with the same answers (:mod:`poseflow.verify._splat_cpu`).
 Each pixel takes the depth of its nearest point and the mean colour of the points on that front
 surface. Two fixes make points behave like a surface: a pixel whose depth lies far behind the
 nearest depth of its 3 x 3 neighbourhood shows a back surface through a gap between samples and is
@@ -237,6 +238,16 @@ def _splat_tensors(
     return zbuf, csum, ccount
 
 
+def numpy_scalar(value: float, dtype: torch.dtype) -> np.generic:
+    """``value`` as a numpy scalar of ``dtype``, the type a compiled kernel computes in.
+
+    Example:
+        >>> numpy_scalar(0.1, torch.float32).dtype
+        dtype('float32')
+    """
+    return np.dtype(str(dtype).removeprefix("torch.")).type(value)
+
+
 #: Points nearer to the camera than this (metres) are not drawn.
 _NEAREST_DEPTH = 1e-6
 
@@ -287,7 +298,7 @@ def _splat_compiled(
     csum = torch.zeros(B * H * S * S, C, dtype=dtype)
     ccount = torch.zeros(B * H * S * S, dtype=dtype)
     arrays = (points, normals, colors.to(dtype), R, t, K.to(dtype), point_mask, surface)
-    near = np.dtype(str(dtype).removeprefix("torch.")).type(_NEAREST_DEPTH)
+    near = numpy_scalar(_NEAREST_DEPTH, dtype)
     splat_kernel(
         *(a.detach().contiguous().numpy() for a in arrays), near, S,
         zbuf.numpy(), csum.numpy(), ccount.numpy(),

@@ -31,15 +31,15 @@ candidate must clear is the spread of the score itself on that instance, not a c
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
-import numpy as np
 import torch
 
 from poseflow._checks import check_mask, check_tensor
 from poseflow.errors import ValueRangeError
-from poseflow.verify.render import ObservedCrops, PointRendering, box_sum
+from poseflow.verify.render import ObservedCrops, PointRendering, box_sum, numpy_scalar
 
 __all__ = [
     "VerifierScore",
@@ -276,7 +276,7 @@ def _appearance_compiled(
 
     B, H, _, S, _ = rendered.shape
     out = torch.zeros(B, H, S, S, dtype=rendered.dtype)
-    scalar = np.dtype(str(rendered.dtype).removeprefix("torch.")).type
+    scalar = functools.partial(numpy_scalar, dtype=rendered.dtype)
     appearance_kernel(
         rendered.contiguous().numpy(), observed.to(rendered.dtype).contiguous().numpy(),
         both.contiguous().numpy(), window, scalar(_CONTRAST_FLOOR), scalar(contrast_reference),
