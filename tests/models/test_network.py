@@ -140,5 +140,6 @@ def test_sampling_in_a_lower_precision_stays_close_and_integrates_in_the_inputs_
     )
     atol = 0 if precision == "fp32" else 0.05 * float(reference.abs().max())
     torch.testing.assert_close(out, reference, rtol=0, atol=atol)
+    assert torch.equal(out, reference) == (precision == "fp32")  # bf16 did run in bf16
     with pytest.raises(ValueError, match="precision"):
         run("fp8")

@@ -189,7 +189,7 @@ def render_points(
     occlusion = _per_instance(occlusion_tolerance, B, points, "occlusion_tolerance")
     R, t = poses[..., :3, :3], poses[..., :3, 3]
     # the compiled CPU kernels give the tensor versions' answers, bit for bit, faster
-    compiled = points.device.type == "cpu" and points.dtype in (torch.float32, torch.float64)
+    compiled = runs_compiled(points)
     splat = _splat_compiled if compiled else _splat_tensors
     close_gaps = _close_gaps_compiled if compiled else _close_gaps_tensors
     zbuf, csum, ccount = splat(points, normals, colors, R, t, K, S, point_mask, surface)
@@ -217,9 +217,8 @@ def _splat_tensors(
     """
     (B, N, C), H = colors.shape, R.shape[1]
     dtype, device = points.dtype, points.device
-    cam, facing, u, v = _camera(points, normals, R, t, K)
+    cam, keep, u, v = _camera(points, normals, R, t, K)
     z = cam[..., 2]
-    keep = facing & (z > _NEAREST_DEPTH)
     if point_mask is not None:
         keep &= point_mask[:, None]
     keep &= (u >= 0) & (u < S) & (v >= 0) & (v < S)
@@ -236,6 +235,11 @@ def _splat_tensors(
     ccount = torch.zeros(B * H * S * S, dtype=dtype, device=device)
     ccount.index_add_(0, pix[front], torch.ones_like(zk[front]))
     return zbuf, csum, ccount
+
+
+def runs_compiled(x: torch.Tensor) -> bool:
+    """Whether the compiled CPU kernels take ``x``: a CPU tensor of float32 or float64."""
+    return x.device.type == "cpu" and x.dtype in (torch.float32, torch.float64)
 
 
 def numpy_scalar(value: float, dtype: torch.dtype) -> np.generic:
@@ -255,7 +259,7 @@ _NEAREST_DEPTH = 1e-6
 def _camera(
     points: torch.Tensor, normals: torch.Tensor, R: torch.Tensor, t: torch.Tensor, K: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Points in the camera ``(B, H, N, 3)``, whether they face it, and their pixel ``u, v``.
+    """Points in the camera ``(B, H, N, 3)``, whether they face it in front of it, their pixels.
 
     Every product and sum is written out in the order the compiled kernel
     (:mod:`poseflow.verify._splat_cpu`) evaluates it, so that both give the same pixels.
@@ -268,12 +272,12 @@ def _camera(
     cam = turned(points) + t[:, :, None]
     m = turned(normals)
     x, y, z = cam.unbind(-1)
-    facing = m[..., 0] * x + m[..., 1] * y + m[..., 2] * z < 0
+    shown = (m[..., 0] * x + m[..., 1] * y + m[..., 2] * z < 0) & (z > _NEAREST_DEPTH)
     k = K[:, None, None]
-    zs = torch.where(facing & (z > _NEAREST_DEPTH), z, torch.ones_like(z))
+    zs = torch.where(shown, z, torch.ones_like(z))
     u = torch.round((x * k[..., 0, 0] + y * k[..., 0, 1] + z * k[..., 0, 2]) / zs)
     v = torch.round((x * k[..., 1, 0] + y * k[..., 1, 1] + z * k[..., 1, 2]) / zs)
-    return cam, facing, u, v
+    return cam, shown, u, v
 
 
 def _splat_compiled(
@@ -297,7 +301,7 @@ def _splat_compiled(
     zbuf = torch.full((B * H * S * S,), math.inf, dtype=dtype)
     csum = torch.zeros(B * H * S * S, C, dtype=dtype)
     ccount = torch.zeros(B * H * S * S, dtype=dtype)
-    arrays = (points, normals, colors.to(dtype), R, t, K.to(dtype), point_mask, surface)
+    arrays = (points, normals, colors, R, t, K, point_mask, surface)
     near = numpy_scalar(_NEAREST_DEPTH, dtype)
     splat_kernel(
         *(a.detach().contiguous().numpy() for a in arrays), near, S,

@@ -39,7 +39,13 @@ import torch
 
 from poseflow._checks import check_mask, check_tensor
 from poseflow.errors import ValueRangeError
-from poseflow.verify.render import ObservedCrops, PointRendering, box_sum, numpy_scalar
+from poseflow.verify.render import (
+    ObservedCrops,
+    PointRendering,
+    box_sum,
+    numpy_scalar,
+    runs_compiled,
+)
 
 __all__ = [
     "VerifierScore",
@@ -259,7 +265,7 @@ def appearance_agreement(
         >>> round(same[0, 0, 8, 8].item(), 2)
         0.99
     """
-    if rendered.device.type == "cpu" and rendered.dtype in (torch.float32, torch.float64):
+    if runs_compiled(rendered):
         return _appearance_compiled(rendered, observed, both, window, contrast_reference)
     return _appearance_tensors(rendered, observed, both, window, contrast_reference)
 
@@ -271,7 +277,7 @@ def _appearance_compiled(
     window: int,
     contrast_reference: float,
 ) -> torch.Tensor:
-    """:func:`appearance_agreement` by the compiled CPU kernel (float32 or float64), bit for bit."""
+    """:func:`appearance_agreement` by the compiled CPU kernel (float32 or float64), to rounding."""
     from poseflow.verify._score_cpu import appearance_kernel
 
     B, H, _, S, _ = rendered.shape
