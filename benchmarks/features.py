@@ -19,9 +19,9 @@ the average number of inliers
 Timings per instance (CPU here): encoders, target lifting, and the reducer transform of 2,000
 points, poseflow against umap-learn in the same run and on the same fitted UMAP, both warm (a
 warm-up call, then the best of three; umap-learn's first call of the run, which includes its
-numba compilation, is reported on its own line); FPFH's torch
-backend against its Open3D backend, on one 2,000-point cloud and on a padded batch of 8 target
-clouds of 256 points (FunFlow6D's batch).
+numba compilation, is reported on its own line); FPFH's torch and compiled (numba) backends
+against its Open3D backend, on one 2,000-point cloud and on a padded batch of 8 target clouds
+of 256 points (FunFlow6D's batch).
 
 Prints a table, one JSON line with every figure, writes ``features.json`` and a bar chart
 ``features.png`` to ``--out``, then the command. Run ``python benchmarks/features.py``
@@ -213,7 +213,7 @@ def main() -> None:
         "timings_ms": timings_ms,
         "umap_transform_speedup_warm": speedup,
         "umap_transform_speedup_warm_fit_5000": large,
-        "fpfh_time_torch_over_open3d": fpfh_ratio,
+        "fpfh_time_over_open3d": fpfh_ratio,
     }
     print(_table(len(run.instances), results, timings_ms, speedup, large, fpfh_ratio))
     (out / "features.json").write_text(json.dumps(summary, indent=2))
@@ -368,26 +368,32 @@ def _encoder_timings(
     """Per-instance encoder times (ms): 2,000 points for geometry, one crop for appearance.
 
     Returns:
-        The timings and FPFH's torch / Open3D time ratio per size.
+        The timings and the torch and numba backends' FPFH time over Open3D's, per size.
     """
     timings_ms: dict[str, Any] = {}
     inst = run.instances[0]
     obj = run.objects[inst["obj_id"]]
     q = obj.points[None].float()
-    timings_ms["FPFH, 2000 points"], _ = _ms(lambda: fpfh.encode(q, None, None, obj.diameter))
-    fpfh_o3d = FPFHEncoder(backend="open3d")
-    timings_ms["FPFH (Open3D), 2000 points"], _ = _ms(
-        lambda: fpfh_o3d.encode(q, None, None, obj.diameter)
-    )
     batch, batch_mask, batch_diam = _target_batch(run.instances, run.objects, 8, 256)
     sizes = ("2000 points", f"{len(batch)} x 256 target points")
-    timings_ms[f"FPFH, {sizes[1]}"], _ = _ms(
-        lambda: fpfh.encode(batch, None, batch_mask, batch_diam)
-    )
-    timings_ms[f"FPFH (Open3D), {sizes[1]}"], _ = _ms(
-        lambda: fpfh_o3d.encode(batch, None, batch_mask, batch_diam)
-    )
-    fpfh_ratio = {s: timings_ms[f"FPFH, {s}"] / timings_ms[f"FPFH (Open3D), {s}"] for s in sizes}
+    backends = {
+        "torch": fpfh,
+        "numba": FPFHEncoder(backend="numba"),
+        "Open3D": FPFHEncoder(backend="open3d"),
+    }
+    for name, enc in backends.items():
+        timings_ms[f"FPFH ({name}), {sizes[0]}"], _ = _ms(
+            lambda enc=enc: enc.encode(q, None, None, obj.diameter)
+        )
+        timings_ms[f"FPFH ({name}), {sizes[1]}"], _ = _ms(
+            lambda enc=enc: enc.encode(batch, None, batch_mask, batch_diam)
+        )
+    fpfh_ratio = {
+        f"{name} / Open3D, {s}": timings_ms[f"FPFH ({name}), {s}"]
+        / timings_ms[f"FPFH (Open3D), {s}"]
+        for name in ("torch", "numba")
+        for s in sizes
+    }
     crop = torch.rand(1, 3, 128, 128)
     timings_ms["dense SIFT encode, 128x128 crop"], _ = _ms(lambda: sift.encode(crop))
     timings_ms["DINOv2 ViT-S/14 encode, 224x224 crop"], _ = _ms(
@@ -462,8 +468,8 @@ def _table(
     if large is not None:
         lines.append(f"  the same, UMAP fitted on 5,000 points: {large:.1f}x")
     lines.append(
-        "  FPFH time, torch / Open3D: "
-        + ", ".join(f"{size} {r:.2f}x" for size, r in fpfh_ratio.items())
+        "  FPFH time against Open3D's: "
+        + ", ".join(f"{key} {r:.2f}x" for key, r in fpfh_ratio.items())
     )
     return "\n".join(lines)
 

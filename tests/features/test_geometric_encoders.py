@@ -54,7 +54,7 @@ def test_fpfh_batched_with_mask_equals_loop(device: torch.device, dtype: torch.d
     )
 
 
-@pytest.mark.parametrize("backend", ["open3d", "torch"])
+@pytest.mark.parametrize("backend", ["numba", "open3d", "torch"])
 def test_fpfh_of_the_first_points_equals_describing_all(backend: str) -> None:
     """Masked rows among the first ones stay zero; the others equal encode's."""
     pts = _sphere(400, 3)[None].expand(2, -1, -1).clone()

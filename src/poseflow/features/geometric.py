@@ -6,10 +6,10 @@ come back as zeros. Encoders are frozen: no gradients, no training.
 
 - :class:`FPFHEncoder`: multi-scale FPFH at radii given as fractions of the object diameter (the
   paper's two scales, 30 % and 40 %), concatenated and L2-normalised. Weight-free, the offline
-  default. It runs :func:`~poseflow.features.fpfh.compute_fpfh`, Open3D's FPFH computed in batched
-  PyTorch (CPU or CUDA, no Open3D needed; re-exported here with
-  :func:`~poseflow.features.fpfh.estimate_outward_normals`, the normals of :func:`open3d_normals`
-  in PyTorch), or Open3D itself cloud by cloud (by default on CPU, where it is faster).
+  default. It runs Open3D's FPFH as a compiled CPU kernel (``poseflow.features._fpfh_cpu``, the
+  default on CPU), as :func:`~poseflow.features.fpfh.compute_fpfh` in batched PyTorch (CPU or
+  CUDA; re-exported here with :func:`~poseflow.features.fpfh.estimate_outward_normals`, the
+  normals of :func:`open3d_normals` in PyTorch), or Open3D itself cloud by cloud.
 - :class:`~poseflow.features.gedi.GeDiEncoder`: GeDi's architecture in plain PyTorch (own module).
 - :class:`TorchScriptEncoder` and :class:`CallableEncoder`: adapters that plug in any per-point
   encoder (dGeDi exported to TorchScript, a user's function).
@@ -17,7 +17,6 @@ come back as zeros. Encoders are frozen: no gradients, no training.
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import NamedTuple, Protocol, runtime_checkable
@@ -31,6 +30,7 @@ from poseflow.errors import DegenerateInputError, MissingWeightsError, ShapeErro
 from poseflow.features.fpfh import check_clouds, compute_fpfh, estimate_outward_normals
 
 __all__ = [
+    "FPFH_BACKENDS",
     "CallableEncoder",
     "CheckedClouds",
     "FPFHEncoder",
@@ -259,14 +259,8 @@ def open3d_normals(points: np.ndarray, radius: float, *, max_nn: int = 30) -> np
     return normals
 
 
-@functools.cache
-def _open3d_available() -> bool:
-    """Whether Open3D imports (it needs system libraries that a machine may lack)."""
-    try:
-        import open3d  # noqa: F401
-    except (ImportError, OSError):
-        return False
-    return True
+#: :class:`FPFHEncoder`'s backends.
+FPFH_BACKENDS = ("auto", "numba", "torch", "open3d")
 
 
 class FPFHEncoder(Hyperparameters, GeometricEncoder):
@@ -274,18 +268,21 @@ class FPFHEncoder(Hyperparameters, GeometricEncoder):
 
     Each scale is Open3D's 33-bin FPFH histogram with a hybrid search of radius
     ``fraction * diameter`` and at most ``max_nn`` neighbours; the scales are concatenated
-    (``D = 33 * len(radius_fractions)``) and each row is L2-normalised. Two backends give the
+    (``D = 33 * len(radius_fractions)``) and each row is L2-normalised. The backends give the
     same descriptors to float64 rounding, except where Open3D's own result hangs on rounding
-    (neighbours at exactly equal distances; two neighbours whose normals are equal up to
-    rounding, as estimated normals on a flat face can be):
+    (neighbours at exactly equal distances, as a point and its copy in a support cloud are;
+    two neighbours whose normals are equal up to rounding, as estimated normals on a flat face
+    can be):
 
+    - ``"numba"``: a compiled kernel, cloud by cloud, on the CPU in float64; the scales share
+      one neighbour search and each pair's feature is computed once. With :meth:`encode_first`
+      it builds the histograms of the described points and their neighbours only.
     - ``"torch"``: :func:`compute_fpfh`, the whole padded batch at once on the input's device
       (CPU or CUDA), float64 inside; the scales share one neighbour search. Needs no Open3D.
     - ``"open3d"``: Open3D's ``compute_fpfh_feature``, cloud by cloud, on the CPU in float64.
-    - ``"auto"`` (default): ``"open3d"`` for CPU inputs, ``"torch"`` for any other device or
-      when Open3D cannot be imported. On one CPU thread Open3D is the faster of the two (the
-      torch backend takes 1.2 to 1.9 times as long for 8 clouds of 64 to 256 points and for one
-      of 2,000; ``benchmarks/features.py`` prints the ratio).
+    - ``"auto"`` (default): ``"numba"`` for CPU inputs, ``"torch"`` for any other device. On
+      one CPU thread the compiled kernel is the fastest (``benchmarks/features.py`` prints the
+      ratios to Open3D).
 
     The descriptors have the input's device and dtype, unit norm on valid rows (a point with an
     empty neighbourhood gets a zero histogram) and zero on padded rows.
@@ -296,7 +293,7 @@ class FPFHEncoder(Hyperparameters, GeometricEncoder):
         normal_radius_fraction: normal-estimation radius as a fraction of the diameter, used when
             ``encode`` gets no normals (at most 30 neighbours, turned away from the centroid:
             :func:`estimate_outward_normals`, or :func:`open3d_normals` with ``"open3d"``).
-        backend: ``"auto"``, ``"torch"`` or ``"open3d"``.
+        backend: one of :data:`FPFH_BACKENDS`.
 
     Example:
         >>> enc = FPFHEncoder()
@@ -318,8 +315,10 @@ class FPFHEncoder(Hyperparameters, GeometricEncoder):
     ) -> None:
         if max_nn < 3:
             raise ValueRangeError(f"max_nn must be at least 3, got {max_nn}")
-        if backend not in ("auto", "torch", "open3d"):
-            raise ValueRangeError(f"backend must be 'auto', 'torch' or 'open3d', got {backend!r}")
+        if backend not in FPFH_BACKENDS:
+            raise ValueRangeError(
+                f"backend must be one of {', '.join(map(repr, FPFH_BACKENDS))}, got {backend!r}"
+            )
         self.radius_fractions = check_radius_fractions(radius_fractions)
         self.max_nn = int(max_nn)
         self.normal_radius_fraction = float(normal_radius_fraction)
@@ -341,9 +340,10 @@ class FPFHEncoder(Hyperparameters, GeometricEncoder):
     ) -> torch.Tensor:
         """:meth:`encode`'s descriptors of the first ``count`` points only ``(B, count, D)``.
 
-        Their neighbourhoods are drawn from all the points. Open3D then computes the histograms
-        of those points and their neighbours only (about half the time of :meth:`encode` on a
-        support cloud ten times larger); the torch backend describes every point and slices.
+        Their neighbourhoods are drawn from all the points. The compiled kernel and Open3D then
+        compute the histograms of those points and their neighbours only (about half the time
+        of :meth:`encode` on a support cloud ten times larger); the torch backend describes
+        every point and slices.
         """
         clouds = CheckedClouds(
             points, normals, *check_geometric_inputs(points, normals, mask, diameter)
@@ -357,29 +357,60 @@ class FPFHEncoder(Hyperparameters, GeometricEncoder):
         points = clouds.points
         backend = self.backend
         if backend == "auto":
-            on_cpu = points.device.type == "cpu"
-            backend = "open3d" if on_cpu and _open3d_available() else "torch"
+            backend = "numba" if points.device.type == "cpu" else "torch"
         if backend == "torch":
             out = self._encode_torch(clouds)[:, :count]
+        elif backend == "numba":
+            out = self._encode_numba(clouds, count)
         else:
             out = self._encode_open3d(clouds, count)
         out = torch.nn.functional.normalize(out, dim=-1)
         return out.to(device=points.device, dtype=points.dtype)
 
+    def _normals64(self, clouds: CheckedClouds) -> torch.Tensor:
+        """The clouds' float64 normals, estimated (:func:`estimate_outward_normals`) if absent."""
+        if clouds.normals is not None:
+            return clouds.normals.to(torch.float64)
+        radius = self.normal_radius_fraction * clouds.diameter.to(torch.float64)
+        pts = clouds.points.to(torch.float64)
+        return estimate_outward_normals(pts, clouds.mask, radius=radius, max_nn=30)
+
     def _encode_torch(self, clouds: CheckedClouds) -> torch.Tensor:
         """Raw float64 histograms ``(B, P, D)`` by :func:`compute_fpfh`."""
-        normals, mask = clouds.normals, clouds.mask
         pts = clouds.points.to(torch.float64)
         diameter = clouds.diameter.to(torch.float64)
-        if normals is None:
-            radius = self.normal_radius_fraction * diameter
-            nrm = estimate_outward_normals(pts, mask, radius=radius, max_nn=30)
-        else:
-            nrm = normals.to(torch.float64)
+        nrm = self._normals64(clouds)
         fractions = torch.tensor(self.radius_fractions, dtype=torch.float64, device=pts.device)
         return compute_fpfh(
-            pts, nrm, mask, radius=diameter[:, None] * fractions, max_nn=self.max_nn
+            pts, nrm, clouds.mask, radius=diameter[:, None] * fractions, max_nn=self.max_nn
         )
+
+    def _encode_numba(self, clouds: CheckedClouds, count: int) -> torch.Tensor:
+        """Raw float64 CPU histograms of the first ``count`` points ``(B, count, D)``, compiled."""
+        from poseflow.features._fpfh_cpu import fpfh_first_kernel
+
+        points = clouds.points.detach().cpu().double()
+        normals = self._normals64(clouds).detach().cpu()
+        mask = clouds.mask.cpu()
+        out = torch.zeros(points.shape[0], count, self.dim, dtype=torch.float64)
+        for b in range(points.shape[0]):
+            valid = mask[b]
+            described = valid[:count]
+            if not bool(described.any()):
+                continue
+            d = float(clouds.diameter[b])
+            bounds = np.array([(fraction * d) ** 2 for fraction in self.radius_fractions])
+            # the described points first among the valid ones, then the rest
+            order = torch.cat([described.nonzero()[:, 0], count + valid[count:].nonzero()[:, 0]])
+            histograms = fpfh_first_kernel(
+                points[b, order].numpy(),
+                normals[b, order].numpy(),
+                int(described.sum()),
+                bounds,
+                self.max_nn,
+            )
+            out[b, described] = torch.from_numpy(histograms)
+        return out
 
     def _encode_open3d(self, clouds: CheckedClouds, count: int) -> torch.Tensor:
         """Raw float64 CPU histograms of the first ``count`` points ``(B, count, D)``, by Open3D."""
