@@ -124,6 +124,31 @@ def test_resume_reuses_the_training_set_and_continues(run_dir, dataset, tmp_path
     assert "differs from that of the run" in capsys.readouterr().err
 
 
+def test_distill_from_a_trained_model_makes_a_one_step_sampler(run_dir, dataset, tmp_path, capsys):
+    out = tmp_path / "distilled"
+    capsys.readouterr()
+    argv = ["train", str(dataset), "--out", str(out), "--steps", "2", "--batch-size", "4"]
+    argv += ["--distill-from", str(run_dir / "model"), "--device", "cpu", "--no-progress"]
+    assert main(argv) == 0
+    text = capsys.readouterr().out
+    assert "training set reused: " in text  # the teacher's run folder's set
+    assert "distilled into a one-step sampler in 2 steps" in text
+    assert not (out / "train_set.safetensors").exists()
+    teacher, student = FunFlow6D.load(run_dir / "model"), FunFlow6D.load(out / "model")
+    assert (student.config.steps, student.config.solver) == (1, "euler")
+    assert teacher.config.with_inference(steps=1, solver="euler") == student.config
+    moved = [
+        not torch.equal(a, b)
+        for a, b in zip(teacher.state_dict().values(), student.state_dict().values(), strict=True)
+    ]
+    assert any(moved)  # trained from the teacher's weights
+    run = json.loads((out / "run.json").read_text())
+    assert run["distilled_from"] == str((run_dir / "model").resolve())
+    # the student keeps the teacher's configuration: no configuration options
+    assert main([*argv[:2], "--out", str(tmp_path / "other"), *argv[4:], *TINY[:2]]) == 2
+    assert "teacher's configuration" in capsys.readouterr().err
+
+
 def test_changed_features_rebuild_the_training_set(run_dir, dataset, tmp_path, capsys):
     out = tmp_path / "run"
     out.mkdir()

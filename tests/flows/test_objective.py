@@ -95,3 +95,53 @@ def test_bad_input_raises() -> None:
         CFMObjective()(Recorder(torch.zeros(2, 3)), torch.zeros(2, 3), _rng())
     with pytest.raises(ShapeError):
         CFMObjective()(lambda **kw: None, torch.zeros(2, 3, 3), _rng())
+
+
+class Spin(torch.nn.Module):
+    """A teacher whose velocity depends on the state: rotation about z, plus the condition."""
+
+    def forward(self, *, x, t, condition=None, **kwargs):
+        v = torch.stack([-x[..., 1], x[..., 0], torch.zeros_like(x[..., 2])], -1)
+        return v if condition is None else v + condition
+
+
+def test_distillation_regresses_the_teachers_endpoint_from_the_same_noise() -> None:
+    from poseflow.flows.objective import DistillationObjective
+    from poseflow.flows.samplers import get_sampler
+
+    x_1 = torch.randn(3, 5, 3, generator=torch.Generator().manual_seed(4), dtype=torch.float64)
+    cond = torch.full((3, 5, 3), 0.25, dtype=torch.float64)
+    batch = {"x_1": x_1, "condition": cond}
+    sampler = get_sampler("midpoint", steps=1)
+    student = Recorder(torch.zeros(3, 5, 3, dtype=torch.float64))
+    loss = DistillationObjective(Spin(), sampler, noise_kwarg="x_noise")(student, batch, _rng(5))
+    x_0 = torch.randn(3, 5, 3, generator=torch.Generator().manual_seed(5), dtype=torch.float64)
+    call = student.calls[0]
+    assert torch.equal(call["x"], x_0) and bool((call["t"] == 0).all())
+    assert torch.equal(call["x_noise"], x_0) and call["condition"] is cond
+    end = sampler.sample(Spin(), x_0, condition=cond)  # the teacher's own sample
+    assert torch.allclose(loss, ((end - x_0) ** 2).mean())
+    # a student that already takes the teacher's step in one Euler step has zero loss
+    exact = Recorder(end - x_0)
+    zero = DistillationObjective(Spin(), sampler)(exact, batch, _rng(5))
+    assert float(zero) < 1e-24
+
+
+def test_distillation_pins_anchors_and_ignores_them() -> None:
+    from poseflow.flows.objective import DistillationObjective
+    from poseflow.flows.samplers import get_sampler
+
+    x_1 = torch.randn(2, 5, 3, generator=torch.Generator().manual_seed(6))
+    frozen = torch.tensor([[True, True, False, False, False]] * 2)
+    mask = torch.tensor([[True] * 5, [True, True, True, True, False]])
+    batch = {"x_1": x_1, "frozen_mask": frozen, "mask": mask}
+    teacher = Recorder(torch.ones(2, 5, 3))
+    student = Recorder(torch.zeros(2, 5, 3))
+    objective = DistillationObjective(teacher, get_sampler("heun", steps=2), pin_frozen=True)
+    loss = objective(student, batch, _rng())
+    assert len(teacher.calls) == 4  # Heun: two calls per step
+    assert torch.equal(teacher.calls[0]["x"][frozen], x_1[frozen])
+    assert torch.equal(student.calls[0]["x"][frozen], x_1[frozen])
+    # the teacher moves every free point by 1 per unit time (its anchors stay): the target
+    # is 1 on the valid free points; the loss is their mean squared error against 0
+    assert torch.allclose(loss, torch.tensor(1.0))

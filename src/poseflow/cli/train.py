@@ -107,6 +107,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--data-only", action="store_true", help="stop after caching the training set"
     )
     parser.add_argument(
+        "--distill-from",
+        metavar="MODEL_DIR",
+        default=None,
+        help="distil this trained model into a one-step sampler: start from its weights and "
+        "configuration and learn to take in one Euler step what its solver takes in several "
+        "(its training set is reused when MODEL_DIR sits in the run folder that made it)",
+    )
+    parser.add_argument(
         "--symmetric-targets",
         action=argparse.BooleanOptionalAction,
         default=True,
@@ -118,8 +126,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_config_arguments(parser)
 
 
-def _run_config(args: argparse.Namespace, out: Path) -> Any:
-    """The model configuration: from the options, or the saved run's when resuming."""
+def _run_config(args: argparse.Namespace, out: Path, teacher: Any = None) -> Any:
+    """The model configuration: from the options, the teacher's, or the saved run's (resuming)."""
     from poseflow.cli.options import build_config, config_requested
     from poseflow.errors import UsageError
     from poseflow.flows import latest_checkpoint
@@ -142,6 +150,12 @@ def _run_config(args: argparse.Namespace, out: Path) -> Any:
             f"{out} already holds the checkpoints of a run; pass --resume to continue it or "
             "choose another --out"
         )
+    if teacher is not None:
+        if config_requested(args):
+            raise UsageError(
+                "--distill-from keeps the teacher's configuration; drop the configuration options"
+            )
+        return teacher.config
     return build_config(args)
 
 
@@ -214,16 +228,23 @@ def _training_set(
     symmetries: dict[int, Any],
     write: bool,
     progress: bool,
+    also: Path | None = None,
 ) -> tuple[Any, bool]:
-    """Load the cached training set when its key matches, else build (and, on rank 0, save) it."""
+    """Load the cached training set when its key matches, else build (and, on rank 0, save) it.
+
+    ``also``: another run folder whose cached set is used when its key matches (read only).
+    """
     from poseflow._cache import atomic_write
     from poseflow.models.training import build_training_set
 
     key = _train_set_key(model.config, root, args)
     path, meta = out / "train_set.safetensors", out / "train_set.json"
-    cached = _cached_training_set(path, meta, key)
-    if cached is not None:
-        return cached, True
+    for folder in (out, also) if also is not None else (out,):
+        cached = _cached_training_set(
+            folder / "train_set.safetensors", folder / "train_set.json", key
+        )
+        if cached is not None:
+            return cached, True
     data = build_training_set(
         model,
         root,
@@ -282,7 +303,7 @@ def run(args: argparse.Namespace) -> int:
     """Prepare, build the training set, train and save; prints the times; returns 0."""
     import torch.distributed as dist
 
-    from poseflow.cli.common import check_writable, resolve_device
+    from poseflow.cli.common import check_writable, load_model, resolve_device
     from poseflow.data.object_folder import check_dataset
     from poseflow.errors import PoseflowError, UsageError
     from poseflow.flows import destroy_distributed, init_distributed, main_rank_succeeded
@@ -303,7 +324,10 @@ def run(args: argparse.Namespace) -> int:
         if not ctx.is_main and not main_rank_succeeded(ctx):
             raise PoseflowError("rank 0 failed to prepare the objects or the training set")
         try:
-            model, data, reused, times = _prepare(args, root, out, train_config, ctx.is_main)
+            teacher = load_model(args.distill_from) if args.distill_from is not None else None
+            model, data, reused, times = _prepare(
+                args, root, out, train_config, ctx.is_main, teacher
+            )
         except BaseException:
             if ctx.is_main:
                 main_rank_succeeded(ctx, False)
@@ -324,13 +348,15 @@ def run(args: argparse.Namespace) -> int:
             out_dir=out / "checkpoints",
             resume=args.resume,
             device=ctx.device,
+            teacher=teacher,
         )
         times["training"] = time.perf_counter() - t0
         if ctx.is_main:
             model.save(out / "model")
             loss = f", final loss {metrics['loss']:.4f}" if "loss" in metrics else ""
             world = f" on {ctx.world_size} processes" if ctx.is_distributed else ""
-            print(f"trained {args.steps} steps{world} on {ctx.device}{loss}")
+            what = "distilled into a one-step sampler in" if teacher is not None else "trained"
+            print(f"{what} {args.steps} steps{world} on {ctx.device}{loss}")
             total = time.perf_counter() - start
             print(f"model saved to {out / 'model'} in {total:.1f} s ({_fmt(times)})")
         return 0
@@ -354,9 +380,17 @@ def _train_config(args: argparse.Namespace) -> Any:
 
 
 def _prepare(
-    args: argparse.Namespace, root: Path, out: Path, train_config: Any, main: bool
+    args: argparse.Namespace,
+    root: Path,
+    out: Path,
+    train_config: Any,
+    main: bool,
+    teacher: Any = None,
 ) -> tuple[Any, Any, bool, dict[str, float]]:
     """The model with its objects prepared and its training set (rank 0 writes ``run.json``).
+
+    Distilling, the model starts as a copy of the ``teacher`` and the teacher's run folder's
+    training set is reused when it matches.
 
     Returns:
         The model, the training set, whether the set was reused from the cache, and the seconds
@@ -369,9 +403,11 @@ def _prepare(
     from poseflow.data.object_folder import load_object_models, object_cache_dir
     from poseflow.models import FunFlow6D
 
-    config = _run_config(args, out)
+    config = _run_config(args, out, teacher)
     torch.manual_seed(args.seed)
     model = FunFlow6D(config)
+    if teacher is not None:
+        model.load_state_dict(teacher.state_dict())
     cache = Path(args.cache) if args.cache is not None else out / "model"
     show = show_progress(args) and main
     times = {}
@@ -381,13 +417,17 @@ def _prepare(
     times["objects"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     symmetries = {oid: m.symmetries for oid, m in models.items()}
+    also = Path(args.distill_from).resolve().parent if teacher is not None else None
     data, reused = _training_set(
-        model, root, args, out, symmetries=symmetries, write=main, progress=show
+        model, root, args, out, symmetries=symmetries, write=main, progress=show, also=also
     )
     times["training set"] = time.perf_counter() - t0
     if main:
         out.mkdir(parents=True, exist_ok=True)
-        text = json.dumps(_run_record(out, args, root, config, train_config), indent=1)
+        record = _run_record(out, args, root, config, train_config)
+        if teacher is not None:
+            record.setdefault("distilled_from", str(Path(args.distill_from).resolve()))
+        text = json.dumps(record, indent=1)
         atomic_write(out / "run.json", lambda tmp: tmp.write_text(text))
     return model, data, reused, times
 

@@ -34,7 +34,7 @@ from poseflow.flows.dit import (
 from poseflow.flows.ema import EMA
 from poseflow.flows.equivalents import apply_equivalents, identity_maps, nearest_equivalent
 from poseflow.flows.loss import cfm_loss
-from poseflow.flows.objective import CFMObjective, FlowBatch, StepRandom
+from poseflow.flows.objective import CFMObjective, DistillationObjective, FlowBatch, StepRandom
 from poseflow.flows.path import LinearPath, PathSample
 from poseflow.flows.positional import PointPositionalEncoder, nerf_embedding
 from poseflow.flows.precision import (
@@ -76,6 +76,7 @@ __all__ = [
     "CFMObjective",
     "CFMTrainer",
     "DiTBlock",
+    "DistillationObjective",
     "DistributedContext",
     "EulerSampler",
     "FlowBatch",

@@ -31,10 +31,10 @@ from poseflow._checks import check_tensor
 from poseflow.errors import ShapeError, ValueRangeError
 from poseflow.flows.equivalents import nearest_equivalent
 from poseflow.flows.loss import cfm_loss
-from poseflow.flows.path import LinearPath
+from poseflow.flows.path import LinearPath, PathSample
 from poseflow.flows.timesteps import TIME_SAMPLERS, sample_time
 
-__all__ = ["CFMObjective", "FlowBatch", "StepRandom"]
+__all__ = ["CFMObjective", "DistillationObjective", "FlowBatch", "StepRandom"]
 
 
 @dataclass
@@ -210,6 +210,82 @@ class CFMObjective:
         return cfm_loss(
             velocity.to(x_1.dtype),
             ps,
+            fb.mask,
+            fb.frozen_mask,
+            include_frozen=self.include_frozen,
+        )
+
+
+class DistillationObjective:
+    """Train a one-step sampler: one Euler step of the model lands where the teacher's solver does.
+
+    Draws ``x_0 ~ N(0, I)`` as :class:`CFMObjective` does, integrates the frozen ``teacher``
+    from it with ``sampler`` (e.g. one midpoint step, two teacher calls), and regresses the
+    model's velocity at ``t = 0`` on ``X_teacher(1) - x_0``: afterwards
+    ``x_0 + model(x_0, 0)`` approximates the teacher's sample from the same noise, at one model
+    call instead of ``sampler.evaluations``. The loss is :func:`cfm_loss` over the points that
+    count, in the dtype of ``x_1``; the teacher runs without gradients, outside any autocast.
+
+    Args:
+        teacher: the trained velocity model, called as ``teacher(x=x_t, t=t, **cond)``.
+        sampler: the teacher's solver (:func:`~poseflow.flows.samplers.get_sampler`).
+        include_frozen: keep anchor points in the loss (see :func:`cfm_loss`).
+        pin_frozen: anchor points start at their clean coordinates (``x_frozen = x_1``), as
+            for a model trained with ``CFMObjective(pin_frozen=True)``.
+        noise_kwarg: if set, ``x_0`` is also passed to both models under this keyword.
+
+    Example:
+        >>> from poseflow.flows.samplers import get_sampler
+        >>> class Drift(torch.nn.Module):  # teacher: constant velocity 2
+        ...     def forward(self, *, x, t):
+        ...         return torch.full_like(x, 2.0)
+        >>> rng = StepRandom(torch.Generator().manual_seed(0))
+        >>> objective = DistillationObjective(Drift(), get_sampler("midpoint", steps=1))
+        >>> float(objective(Drift(), torch.zeros(4, 5, 3), rng)) < 1e-12  # the student agrees
+        True
+    """
+
+    def __init__(
+        self,
+        teacher: nn.Module,
+        sampler: Any,
+        *,
+        include_frozen: bool = False,
+        pin_frozen: bool = False,
+        noise_kwarg: str | None = None,
+    ) -> None:
+        self.teacher = teacher
+        self.sampler = sampler
+        self.include_frozen = include_frozen
+        self.pin_frozen = pin_frozen
+        self.noise_kwarg = noise_kwarg
+
+    def __call__(self, model: nn.Module, batch: Any, rng: StepRandom) -> torch.Tensor:
+        """Return the scalar loss of one batch."""
+        fb = FlowBatch.from_any(batch)
+        x_1 = fb.x_1
+        check_tensor(x_1, "x_1", ("B", "L", "C"))
+        x_0 = rng.randn_like(x_1)
+        cond = dict(fb.cond)
+        if self.noise_kwarg is not None:
+            cond[self.noise_kwarg] = x_0
+        pinned = self.pin_frozen and fb.frozen_mask is not None
+
+        def teacher(*, x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+            return self.teacher(x=x, t=t, **cond)
+
+        with torch.autocast(x_1.device.type, enabled=False):
+            end = self.sampler.sample(
+                teacher, x_0, frozen_mask=fb.frozen_mask, x_frozen=x_1 if pinned else None
+            )
+        start = torch.where(fb.frozen_mask[..., None], x_1, x_0) if pinned else x_0
+        t = torch.zeros(x_1.shape[0], dtype=x_1.dtype, device=x_1.device)
+        velocity = model(x=start, t=t, **cond)
+        if not isinstance(velocity, torch.Tensor):
+            raise ShapeError(f"the model must return a tensor, got {type(velocity).__name__}")
+        return cfm_loss(
+            velocity.to(x_1.dtype),
+            PathSample(x_t=start, dx_t=end - start, t=t),
             fb.mask,
             fb.frozen_mask,
             include_frozen=self.include_frozen,

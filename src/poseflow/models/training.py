@@ -19,7 +19,14 @@ from poseflow._cache import atomic_write
 from poseflow.data.bop import BOPImageDataset
 from poseflow.data.frame import ImageInstances
 from poseflow.errors import DegenerateInputError, ValueRangeError
-from poseflow.flows import CFMObjective, CFMTrainer, TrainConfig, identity_maps
+from poseflow.flows import (
+    CFMObjective,
+    CFMTrainer,
+    DistillationObjective,
+    TrainConfig,
+    get_sampler,
+    identity_maps,
+)
 from poseflow.models.funflow6d import FunFlow6D
 from poseflow.models.inputs import OPTIONAL_TRAINING_FIELDS, TRAINING_FIELDS, equivalent_maps
 
@@ -209,8 +216,14 @@ def train(
     resume: bool = False,
     validate: Any = None,
     device: str | torch.device | None = None,
+    teacher: FunFlow6D | None = None,
 ) -> dict[str, float]:
-    """Train the model's network by conditional flow matching.
+    """Train the model's network by conditional flow matching, or distil a teacher into it.
+
+    With a ``teacher`` (a trained model of the same configuration, usually the one ``model``
+    starts from), the network learns to take in one Euler step what the teacher's sampler
+    (``teacher.config.solver`` and ``steps``) takes in several
+    (:class:`~poseflow.flows.DistillationObjective`); the model is then set to sample so.
 
     Args:
         model: the model (its network is trained in place; the EMA weights are copied into it
@@ -221,15 +234,22 @@ def train(
         resume: continue from the latest checkpoint in ``out_dir``.
         validate: optional validation hook (see :class:`~poseflow.flows.CFMTrainer`).
         device: training device.
+        teacher: the model to distil, or None (flow matching).
 
     Returns:
         The last logged metrics.
     """
-    objective = CFMObjective(
-        time_sampler=model.config.time_sampler,
-        pin_frozen=model.config.anchor == "pinned",
-        noise_kwarg="x_0",
-    )
+    pin_frozen = model.config.anchor == "pinned"
+    if teacher is None:
+        objective: Any = CFMObjective(
+            time_sampler=model.config.time_sampler, pin_frozen=pin_frozen, noise_kwarg="x_0"
+        )
+    else:
+        teacher = teacher.to(device if device is not None else "cpu").eval().requires_grad_(False)
+        sampler = get_sampler(teacher.config.solver, steps=teacher.config.steps)
+        objective = DistillationObjective(
+            teacher, sampler, pin_frozen=pin_frozen, noise_kwarg="x_0"
+        )
     trainer = CFMTrainer(
         model,
         data,
@@ -243,4 +263,6 @@ def train(
         trainer.resume()
     metrics = trainer.fit()
     model.load_state_dict(trainer.ema_model.state_dict())
+    if teacher is not None:
+        model.config = model.config.with_inference(steps=1, solver="euler")
     return metrics
