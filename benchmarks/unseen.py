@@ -2,9 +2,10 @@
 
 The recipe a new user follows, end to end, on any BOP folder with ``models/`` (millimetres) and a
 test split: ``poseflow synth`` renders training images of the dataset's own meshes (never its
-test images), ``poseflow train`` trains FunFlow6D on them, ``poseflow predict`` estimates every
-target of the test split with the trained model, the classic baseline and their hybrid under
-one verification (ground-truth visible masks; ``--methods`` picks), once per seed, and
+test images), ``poseflow train`` trains FunFlow6D on them (and, with ``--distill-steps``,
+``poseflow train --distill-from`` distils it into a one-step sampler), ``poseflow predict``
+estimates every target of the test split with the trained model, the classic baseline and their
+hybrid under one verification (ground-truth visible masks; ``--methods`` picks), once per seed, and
 ``poseflow eval`` scores them with the BOP 2019 AR. Prints the AR of each per object (mean and
 spread over the seeds), one JSON line and the command.
 
@@ -57,7 +58,16 @@ def _recipe(args: argparse.Namespace, dataset: Path, work: Path) -> Path:
             "--steps", str(args.steps), "--batch-size", "16", "--lr", "1e-3",
             "--ema-decay", "0.995", "--device", "cpu", "--no-progress", *args.train_args.split(),
         ])  # fmt: skip
-    return model
+    if not args.distill_steps:
+        return model
+    one_step = work / "run_1step"
+    if not (one_step / "model" / "model.safetensors").is_file():
+        _run([
+            "train", str(train_data), "--out", str(one_step), "--distill-from", str(model),
+            "--steps", str(args.distill_steps), "--batch-size", "16", "--lr", str(args.distill_lr),
+            "--ema-decay", "0.995", "--device", "cpu", "--no-progress",
+        ])  # fmt: skip
+    return one_step / "model"
 
 
 def _score(dataset: Path, csv: Path) -> dict:
@@ -90,6 +100,13 @@ def main() -> None:
     parser.add_argument("--config", default=str(REPO / "configs" / "learned_small.json"))
     parser.add_argument("--train-images", type=int, default=400)
     parser.add_argument("--steps", type=int, default=5000)
+    parser.add_argument(
+        "--distill-steps",
+        type=int,
+        default=0,
+        help="then distil the model into a one-step sampler in this many steps (0: not)",
+    )
+    parser.add_argument("--distill-lr", type=float, default=2e-4)
     parser.add_argument("--mesh-scale", type=float, default=0.001, help="model units to metres")
     parser.add_argument("--synth-seed", type=int, default=1)
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="predict seeds")
@@ -111,6 +128,7 @@ def main() -> None:
             _run(["synth", str(dataset), "--train", "0", "--test", "2", "--seed", "5",
                   "--width", "320", "--height", "240", "--no-progress"])  # fmt: skip
             args.train_images, args.steps, args.seeds = 4, 20, [0]
+            args.distill_steps = min(args.distill_steps, 5)
             work = Path(tmp) / "work"
         elif args.dataset is None:
             parser.error("give a BOP dataset folder, or --quick")

@@ -245,7 +245,7 @@ def train(
             time_sampler=model.config.time_sampler, pin_frozen=pin_frozen, noise_kwarg="x_0"
         )
     else:
-        teacher = teacher.to(device if device is not None else "cpu").eval().requires_grad_(False)
+        teacher = teacher.eval().requires_grad_(False)
         sampler = get_sampler(teacher.config.solver, steps=teacher.config.steps)
         objective = DistillationObjective(
             teacher, sampler, pin_frozen=pin_frozen, noise_kwarg="x_0"
@@ -259,6 +259,8 @@ def train(
         out_dir=out_dir,
         device=device,
     )
+    if teacher is not None:
+        teacher.to(trainer.device)
     if resume:
         trainer.resume()
     metrics = trainer.fit()
