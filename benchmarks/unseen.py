@@ -104,7 +104,8 @@ def main() -> None:
         "--distill-steps",
         type=int,
         default=0,
-        help="then distil the model into a one-step sampler in this many steps (0: not)",
+        help="then distil the model into a one-step sampler in this many steps (0: not); "
+        "its results are tagged 1step (--train-args apply to the teacher only)",
     )
     parser.add_argument("--distill-lr", type=float, default=2e-4)
     parser.add_argument("--mesh-scale", type=float, default=0.001, help="model units to metres")
@@ -143,7 +144,8 @@ def main() -> None:
         reports: dict[str, list[dict]] = {m: [] for m in args.methods}
         for seed in args.seeds:
             for method in reports:
-                csv = work / f"{method}{args.tag}-seed{seed}_{dataset.name}-test.csv"
+                tag = args.tag + ("1step" if args.distill_steps and method != "baseline" else "")
+                csv = work / f"{method}{tag}-seed{seed}_{dataset.name}-test.csv"
                 command = ["predict", str(dataset), "--out", str(csv), "--seed", str(seed)]
                 command += ["--method", method, "--no-progress", *extra]
                 if method != "baseline":
@@ -152,6 +154,7 @@ def main() -> None:
                 reports[method].append(_score(dataset, csv))
         summary = {m: _summary(r) for m, r in reports.items()}
     summary["dataset"], summary["seeds"] = dataset.name, args.seeds
+    summary["distill_steps"] = args.distill_steps
     runs = [summary[m] for m in args.methods]
     print(f"\n{dataset.name}: AR over seeds {args.seeds} (mean ± half range)")
     print(f"{'object':<10}" + "".join(f"{m:>17}" for m in args.methods))

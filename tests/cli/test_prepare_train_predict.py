@@ -147,6 +147,20 @@ def test_distill_from_a_trained_model_makes_a_one_step_sampler(run_dir, dataset,
     # the student keeps the teacher's configuration: no configuration options
     assert main([*argv[:2], "--out", str(tmp_path / "other"), *argv[4:], *TINY[:2]]) == 2
     assert "teacher's configuration" in capsys.readouterr().err
+    # --resume finds the teacher in run.json and keeps distilling; another teacher is refused
+    resume = [*argv[:4], "--steps", "3", "--batch-size", "4", "--resume", "--no-progress"]
+    with pytest.warns(UserWarning, match=r"steps 3 \(was 2\)"):
+        assert main(resume) == 0
+    assert "distilled into a one-step sampler in 3 steps" in capsys.readouterr().out
+    assert FunFlow6D.load(out / "model").config.solver == "euler"
+    assert main([*resume, "--distill-from", str(out / "model")]) == 2
+    assert f"distils {(run_dir / 'model').resolve()}" in capsys.readouterr().err
+    # a flow-matching run cannot be resumed as a distillation
+    plain = tmp_path / "plain"
+    shutil.copytree(run_dir, plain)
+    joined = [*argv[:2], "--out", str(plain), *argv[4:], "--resume"]
+    assert main(joined) == 2
+    assert "trains by flow matching" in capsys.readouterr().err
 
 
 def test_changed_features_rebuild_the_training_set(run_dir, dataset, tmp_path, capsys):

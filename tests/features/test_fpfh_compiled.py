@@ -50,14 +50,12 @@ def test_kernel_equals_compute_fpfh(seed, P, max_nn, radii, data) -> None:
     torch.testing.assert_close(torch.from_numpy(out), ref, rtol=0, atol=1e-10)
 
 
-def test_kernel_equals_open3d_per_scale() -> None:
+def test_two_scales_equal_open3d() -> None:
     pytest.importorskip("open3d")
-    from poseflow.features.geometric import FPFHEncoder as Encoder
-
     points, normals = _random_cloud(4, 2, 200)
     kwargs = {"radius_fractions": (0.15, 0.3), "max_nn": 40}
-    ours = Encoder(backend="numba", **kwargs).encode(points, normals, None, 0.17)
-    ref = Encoder(backend="open3d", **kwargs).encode(points, normals, None, 0.17)
+    ours = FPFHEncoder(backend="numba", **kwargs).encode(points, normals, None, 0.17)
+    ref = FPFHEncoder(backend="open3d", **kwargs).encode(points, normals, None, 0.17)
     assert (ours - ref).abs().max() < 1e-12
 
 
@@ -106,3 +104,19 @@ def test_backend_names() -> None:
     assert set(FPFH_BACKENDS) == {"auto", "numba", "torch", "open3d"}
     with pytest.raises(ValueRangeError, match="numba"):
         FPFHEncoder(backend="compiled")
+
+
+def test_a_cosine_past_one_by_rounding_swaps_as_open3d() -> None:
+    """A float32 unit normal along the line between two points: |cos| exceeds 1 in float64.
+
+    acos is NaN there, so the reference (and Open3D) swaps in neither order; so must the kernel.
+    """
+    g = torch.Generator().manual_seed(0)
+    n1 = torch.nn.functional.normalize(torch.randn(3, generator=g), dim=0).double()
+    assert n1.norm() > 1  # float32 rounding left it a hair long
+    n2 = torch.nn.functional.normalize(torch.randn(3, generator=g, dtype=F64), dim=0)
+    points = torch.stack([torch.zeros(3, dtype=F64), 0.01 * n1])
+    normals = torch.stack([n1, n2])
+    ref = compute_fpfh(points[None], normals[None], radius=0.05, max_nn=10)[0]
+    out = fpfh_first_kernel(points.numpy(), normals.numpy(), 2, np.array([0.05**2]), 10)
+    torch.testing.assert_close(torch.from_numpy(out), ref, rtol=0, atol=1e-10)

@@ -136,7 +136,10 @@ def test_distillation_pins_anchors_and_ignores_them() -> None:
     mask = torch.tensor([[True] * 5, [True, True, True, True, False]])
     batch = {"x_1": x_1, "frozen_mask": frozen, "mask": mask}
     teacher = Recorder(torch.ones(2, 5, 3))
-    student = Recorder(torch.zeros(2, 5, 3))
+    wrong = torch.zeros(2, 5, 3)
+    wrong[1, 4] = 7.0  # at the padded point only: must not count
+    wrong[:, :2] = 5.0  # at the anchors only: must not count
+    student = Recorder(wrong)
     objective = DistillationObjective(teacher, get_sampler("heun", steps=2), pin_frozen=True)
     loss = objective(student, batch, _rng())
     assert len(teacher.calls) == 4  # Heun: two calls per step

@@ -114,3 +114,10 @@ def test_the_training_set_keeps_the_maps_of_symmetric_objects_only(tiny_model, t
     )
     metrics = train(copy.deepcopy(tiny_model), symmetric, config=config, device="cpu")
     assert torch.isfinite(torch.tensor(metrics["loss"]))
+
+
+def test_a_model_cannot_teach_itself(tiny_model) -> None:
+    from poseflow.models.training import train
+
+    with pytest.raises(ValueRangeError, match="another model"):
+        train(tiny_model, None, teacher=tiny_model)

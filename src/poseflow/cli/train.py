@@ -112,7 +112,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="distil this trained model into a one-step sampler: start from its weights and "
         "configuration and learn to take in one Euler step what its solver takes in several "
-        "(its training set is reused when MODEL_DIR sits in the run folder that made it)",
+        "(the training set of the run folder holding MODEL_DIR is reused when it was made "
+        "from the same dataset and data options); --resume finds the teacher in run.json",
     )
     parser.add_argument(
         "--symmetric-targets",
@@ -157,6 +158,29 @@ def _run_config(args: argparse.Namespace, out: Path, teacher: Any = None) -> Any
             )
         return teacher.config
     return build_config(args)
+
+
+def _teacher_folder(args: argparse.Namespace, out: Path) -> str | None:
+    """The model to distil: ``--distill-from``, or on ``--resume`` the one ``run.json`` names.
+
+    Raises:
+        UsageError: resuming with a ``--distill-from`` other than the run's, or a run that
+            trains by flow matching with one.
+    """
+    from poseflow.errors import UsageError
+
+    run_file = out / "run.json"
+    if not (args.resume and run_file.is_file()):
+        return args.distill_from
+    recorded = json.loads(run_file.read_text()).get("distilled_from")
+    given = None if args.distill_from is None else str(Path(args.distill_from).resolve())
+    if recorded is None and given is not None:
+        raise UsageError(
+            f"the run in {out} trains by flow matching; distil into a new --out instead"
+        )
+    if recorded is not None and given is not None and given != recorded:
+        raise UsageError(f"the run in {out} distils {recorded}, not {given}")
+    return recorded
 
 
 #: Trainer settings whose change on ``--resume`` makes the run differ from an uninterrupted one.
@@ -229,10 +253,11 @@ def _training_set(
     write: bool,
     progress: bool,
     also: Path | None = None,
-) -> tuple[Any, bool]:
+) -> tuple[Any, Path | None]:
     """Load the cached training set when its key matches, else build (and, on rank 0, save) it.
 
     ``also``: another run folder whose cached set is used when its key matches (read only).
+    Returns the set and the folder it was read from (None: built).
     """
     from poseflow._cache import atomic_write
     from poseflow.models.training import build_training_set
@@ -244,7 +269,7 @@ def _training_set(
             folder / "train_set.safetensors", folder / "train_set.json", key
         )
         if cached is not None:
-            return cached, True
+            return cached, folder
     data = build_training_set(
         model,
         root,
@@ -259,7 +284,7 @@ def _training_set(
         data.save(path)
         text = json.dumps(key, indent=1)
         atomic_write(meta, lambda tmp: tmp.write_text(text))
-    return data, False
+    return data, None
 
 
 def _run_record(
@@ -324,8 +349,9 @@ def run(args: argparse.Namespace) -> int:
         if not ctx.is_main and not main_rank_succeeded(ctx):
             raise PoseflowError("rank 0 failed to prepare the objects or the training set")
         try:
+            args.distill_from = _teacher_folder(args, out)
             teacher = load_model(args.distill_from) if args.distill_from is not None else None
-            model, data, reused, times = _prepare(
+            model, data, source, times = _prepare(
                 args, root, out, train_config, ctx.is_main, teacher
             )
         except BaseException:
@@ -334,11 +360,12 @@ def run(args: argparse.Namespace) -> int:
             raise
         if ctx.is_main:
             main_rank_succeeded(ctx, True)
-            where = "reused" if reused else "built"
+            where = "reused" if source is not None else "built"
             print(f"training set {where}: {len(data)} instances from {root}/{args.split}")
         if args.data_only:
             if ctx.is_main:
-                print(f"cached in {out / 'train_set.safetensors'} ({_fmt(times)})")
+                cached = (source or out) / "train_set.safetensors"
+                print(f"cached in {cached} ({_fmt(times)})")
             return 0
         t0 = time.perf_counter()
         metrics = train(
@@ -386,15 +413,15 @@ def _prepare(
     train_config: Any,
     main: bool,
     teacher: Any = None,
-) -> tuple[Any, Any, bool, dict[str, float]]:
+) -> tuple[Any, Any, Path | None, dict[str, float]]:
     """The model with its objects prepared and its training set (rank 0 writes ``run.json``).
 
     Distilling, the model starts as a copy of the ``teacher`` and the teacher's run folder's
     training set is reused when it matches.
 
     Returns:
-        The model, the training set, whether the set was reused from the cache, and the seconds
-        of each step.
+        The model, the training set, the folder whose cached set was reused (None: built), and
+        the seconds of each step.
     """
     import torch
 
@@ -418,7 +445,7 @@ def _prepare(
     t0 = time.perf_counter()
     symmetries = {oid: m.symmetries for oid, m in models.items()}
     also = Path(args.distill_from).resolve().parent if teacher is not None else None
-    data, reused = _training_set(
+    data, source = _training_set(
         model, root, args, out, symmetries=symmetries, write=main, progress=show, also=also
     )
     times["training set"] = time.perf_counter() - t0
@@ -429,7 +456,7 @@ def _prepare(
             record.setdefault("distilled_from", str(Path(args.distill_from).resolve()))
         text = json.dumps(record, indent=1)
         atomic_write(out / "run.json", lambda tmp: tmp.write_text(text))
-    return model, data, reused, times
+    return model, data, source, times
 
 
 def _fmt(times: dict[str, float]) -> str:

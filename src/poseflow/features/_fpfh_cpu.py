@@ -38,8 +38,8 @@ def _pair_bins(
     As :func:`poseflow.features.fpfh._pair_bins`: the pair is ordered so that the source normal
     makes the smaller angle with ``d = p_j - p_i``; coincident points and ``d`` parallel to the
     source normal give zero features. The fourth value says whether the pair ``(j, i)`` has the
-    same bins: always, unless both normals make the same angle with ``d`` (then each order
-    keeps its own source, as Open3D does).
+    same bins: always, unless both normals make the same angle with ``d``, or a cosine exceeds
+    1 by rounding (then each order keeps its own source, as Open3D does).
     """
     d0 = points[j, 0] - points[i, 0]
     d1 = points[j, 1] - points[i, 1]
@@ -53,12 +53,12 @@ def _pair_bins(
         a1 = (n1[0] * d0 + n1[1] * d1 + n1[2] * d2) / length
         a2 = (n2[0] * d0 + n2[1] * d1 + n2[2] * d2) / length
         c1, c2 = abs(a1), abs(a2)
-        if abs(c1 - c2) > _CLEAR:  # acos falls at least as fast as its argument rises
-            swap = c1 < c2
-        else:  # close: compare the angles themselves, as Open3D does
+        if abs(c1 - c2) > _CLEAR and c1 <= 1.0 and c2 <= 1.0:
+            swap = c1 < c2  # acos falls at least as fast as its argument rises
+        else:  # close, or a cosine past 1 by rounding (acos NaN: no order swaps): as Open3D
             angle1, angle2 = math.acos(c1), math.acos(c2)
             swap = angle1 > angle2
-            symmetric = angle1 != angle2
+            symmetric = angle1 < angle2 or angle1 > angle2
         u, t = (n2, n1) if swap else (n1, n2)
         if swap:
             d0, d1, d2 = -d0, -d1, -d2

@@ -281,8 +281,9 @@ class FPFHEncoder(Hyperparameters, GeometricEncoder):
       (CPU or CUDA), float64 inside; the scales share one neighbour search. Needs no Open3D.
     - ``"open3d"``: Open3D's ``compute_fpfh_feature``, cloud by cloud, on the CPU in float64.
     - ``"auto"`` (default): ``"numba"`` for CPU inputs, ``"torch"`` for any other device. On
-      one CPU thread the compiled kernel is the fastest (``benchmarks/features.py`` prints the
-      ratios to Open3D).
+      one CPU thread the compiled kernel is the fastest on FunFlow6D's clouds (hundreds of
+      points); its neighbour search is brute force, quadratic in the points, so Open3D's k-d
+      tree can be faster on clouds of thousands (``benchmarks/features.py`` prints the ratios).
 
     The descriptors have the input's device and dtype, unit norm on valid rows (a point with an
     empty neighbourhood gets a zero histogram) and zero on padded rows.
@@ -400,8 +401,7 @@ class FPFHEncoder(Hyperparameters, GeometricEncoder):
                 continue
             d = float(clouds.diameter[b])
             bounds = np.array([(fraction * d) ** 2 for fraction in self.radius_fractions])
-            # the described points first among the valid ones, then the rest
-            order = torch.cat([described.nonzero()[:, 0], count + valid[count:].nonzero()[:, 0]])
+            order = valid.nonzero()[:, 0]  # the described points come first
             histograms = fpfh_first_kernel(
                 points[b, order].numpy(),
                 normals[b, order].numpy(),

@@ -245,6 +245,10 @@ def train(
             time_sampler=model.config.time_sampler, pin_frozen=pin_frozen, noise_kwarg="x_0"
         )
     else:
+        if teacher is model:
+            raise ValueRangeError(
+                "the teacher must be another model: copy it (e.g. FunFlow6D.load of its folder)"
+            )
         teacher = teacher.eval().requires_grad_(False)
         sampler = get_sampler(teacher.config.solver, steps=teacher.config.steps)
         objective = DistillationObjective(
