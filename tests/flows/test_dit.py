@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import shutil
+from dataclasses import replace
 
 import pytest
 import torch
@@ -133,6 +134,71 @@ def test_padding_does_not_change_valid_points(seed, clouds, pad, layout):
             one = {"cloud_ids": extra["cloud_ids"][i : i + 1, keep]}
         alone = m(x[i : i + 1, keep], t[i : i + 1], condition=c[i : i + 1, keep], **one)
         assert torch.allclose(v[i, keep], alone[0], atol=1e-10)
+
+
+def _model_of_depth(depth, attention, seed):
+    """A trained-looking tiny model with ``depth`` blocks."""
+    torch.manual_seed(seed)
+    m = PointDiT(replace(PRESETS["tiny"], depth=depth, attention=attention)).double()
+    gen = torch.Generator().manual_seed(seed + 1)
+    with torch.no_grad():
+        for p in m.parameters():
+            p.add_(0.2 * torch.randn(p.shape, generator=gen, dtype=p.dtype))
+    return m.eval()
+
+
+@settings(max_examples=12, deadline=None)
+@given(
+    seed=st.integers(0, 2**16),
+    depth=st.integers(1, 4),
+    attention=st.sampled_from(["alternating", "global"]),
+    groups=st.integers(1, 3),
+    repeats=st.integers(1, 4),
+    nq=st.integers(1, 5),
+    nt=st.integers(1, 5),
+    padded=st.booleans(),
+)
+def test_fixed_query_shortcuts_change_no_velocity_that_is_used(
+    seed, depth, attention, groups, repeats, nq, nt, padded
+):
+    """frozen_query / query_repeats: the target's velocities of the plain forward pass."""
+    m = _model_of_depth(depth, attention, seed)
+    gen = torch.Generator().manual_seed(seed)
+    B, L = groups * repeats, nq + nt
+    x, t, c = inputs(B, L, seed=seed, dtype=torch.float64)
+    t = torch.rand(groups, generator=gen, dtype=torch.float64).repeat_interleave(repeats)
+    mask = torch.rand(B, L, generator=gen) > 0.3 if padded else torch.ones(B, L, dtype=torch.bool)
+    for value in (x, c, mask):  # one query per group, its own targets per row
+        value[:, :nq] = value[::repeats, :nq].repeat_interleave(repeats, dim=0)
+    plain = m(x, t, condition=c, mask=mask, num_query=nq)
+    shared = m(x, t, condition=c, mask=mask, num_query=nq, query_repeats=repeats)
+    frozen = m(x, t, condition=c, mask=mask, num_query=nq, frozen_query=True)
+    both = m(x, t, condition=c, mask=mask, num_query=nq, frozen_query=True, query_repeats=repeats)
+    assert torch.allclose(shared, plain, atol=1e-12)
+    for v in (frozen, both):
+        assert torch.allclose(v[:, nq:], plain[:, nq:], atol=1e-12)
+        assert torch.equal(v[:, :nq], torch.zeros(B, nq, 3, dtype=v.dtype))
+
+
+def test_fixed_query_shortcuts_refuse_what_they_cannot_do():
+    m = model(dtype=torch.float64)
+    x, t, c = inputs(4, 6, seed=7, dtype=torch.float64)
+    t = t[:1].expand(4)
+    for value in (x, c):
+        value[:, :3] = value[:1, :3]
+    with pytest.raises(ValueRangeError, match="num_query"):
+        m(x, t, condition=c, frozen_query=True)
+    with pytest.raises(ValueRangeError, match="divisor"):
+        m(x, t, condition=c, num_query=3, query_repeats=3)
+    with pytest.raises(ValueRangeError, match="integer"):
+        m(x, t, condition=c, num_query=3, query_repeats=True)
+    m(x, t, condition=c, num_query=3, query_repeats=4)  # one group of equal rows
+    other = x.clone()
+    other[2, 1] += 1.0
+    with pytest.raises(ValueRangeError, match="differ"):
+        m(other, t, condition=c, num_query=3, query_repeats=2)
+    with pytest.raises(ValueRangeError, match="differ"):
+        m(x, torch.arange(4.0, dtype=torch.float64) / 4, condition=c, num_query=3, query_repeats=2)
 
 
 def test_num_query_and_cloud_ids_agree(dtype, tol):

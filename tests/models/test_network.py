@@ -143,3 +143,43 @@ def test_sampling_in_a_lower_precision_stays_close_and_integrates_in_the_inputs_
     assert torch.equal(out, reference) == (precision == "fp32")  # bf16 did run in bf16
     with pytest.raises(ValueError, match="precision"):
         run("fp8")
+
+
+@pytest.mark.parametrize("pinned", [True, False])
+@pytest.mark.parametrize("noise_conditioning", [False, True])
+def test_sampling_uses_the_dits_fixed_query_shortcuts_without_changing_samples(
+    pinned, noise_conditioning
+):
+    """A pinned anchor is run once per instance and its velocity never computed; same samples."""
+    from poseflow.flows.samplers import get_sampler
+
+    torch.manual_seed(0)
+    cfg = dataclasses.replace(CFG, noise_conditioning=noise_conditioning)
+    net = FunFlow6DNet(cfg).double().eval()
+    for p in net.parameters():
+        torch.nn.init.normal_(p, std=0.2)
+    inputs, _ = _inputs(B=3)
+    inputs = NetInputs(**{f: getattr(inputs, f).double() for f in NetInputs.field_names()[:4]})
+    inputs.mask = torch.ones(3, 10, dtype=torch.bool)
+    inputs.mask[1, 2] = inputs.mask[2, 7:] = False
+    frozen = torch.zeros(3, 10, dtype=torch.bool)
+    frozen[:, :5] = True
+    anchor = torch.where(frozen[..., None], inputs.points, 0.0) if pinned else None
+    seen = []
+    dit = net.dit
+
+    class Plain(torch.nn.Module):
+        def forward(self, x, t, *, frozen_query=False, query_repeats=1, **cond):
+            seen.append((frozen_query, query_repeats))
+            return dit(x, t, **cond)
+
+    def run():
+        return net.sample(inputs, get_sampler("midpoint", steps=2), frozen_mask=frozen,
+                          x_frozen=anchor, num_samples=4,
+                          generator=torch.Generator().manual_seed(2))  # fmt: skip
+
+    fast = run()
+    net.dit = Plain()
+    plain = run()
+    assert seen == [(True, 4 if pinned and not noise_conditioning else 1)] * 4
+    torch.testing.assert_close(fast, plain, rtol=0, atol=1e-12)

@@ -212,6 +212,11 @@ class FunFlow6DNet(nn.Module):
                 cond = self.condition(inputs, x_0=x_0[::num_samples])
                 cond = cond.repeat_interleave(num_samples, dim=0)
         repeat = functools.partial(torch.repeat_interleave, repeats=num_samples, dim=0)
+        n = points.shape[1] // 2
+        # A frozen query needs no velocity; pinned (and not noise-conditioned) it is the same
+        # for all samples of an instance, which the DiT then runs once per instance.
+        frozen_query = bool(frozen_mask[:, :n].all()) and not bool(frozen_mask[:, n:].any())
+        shared = frozen_query and x_frozen is not None and not self.config.noise_conditioning
         with stage("integration"), precision_autocast(precision, points.device):
             return sampler.sample(
                 timed("flow_net", self.dit),
@@ -220,7 +225,9 @@ class FunFlow6DNet(nn.Module):
                 x_frozen=None if x_frozen is None else repeat(x_frozen),
                 condition=cond,
                 mask=None if inputs.mask is None else repeat(inputs.mask),
-                num_query=points.shape[1] // 2,
+                num_query=n,
+                frozen_query=frozen_query,
+                query_repeats=num_samples if shared else 1,
             )
 
     def forward(
