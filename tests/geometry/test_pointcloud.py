@@ -457,6 +457,22 @@ def test_statistical_outliers_batched_equals_loop() -> None:
         assert torch.equal(out[b][mask[b]], one[0])
 
 
+def test_statistical_outliers_ignore_padding_and_refuse_nan_at_valid_points() -> None:
+    g = torch.Generator().manual_seed(7)
+    pts = torch.randn(3, 60, 3, generator=g)
+    mask = torch.rand(3, 60, generator=g) > 0.5
+    mask[2] = False  # an item without any valid point
+    out = remove_statistical_outliers(pts, mask, k=6)
+    junk = pts.clone()
+    junk[~mask] = torch.nan  # padding may hold anything
+    assert torch.equal(remove_statistical_outliers(junk, mask, k=6), out)
+    assert not out[2].any() and out[0].sum() > 0
+    bad = pts.clone()
+    bad[0, mask[0].nonzero()[0, 0]] = torch.inf
+    with pytest.raises(ValueRangeError, match="NaN or inf"):
+        remove_statistical_outliers(bad, mask, k=6)
+
+
 @given(seed=st.integers(0, 2**31 - 1), N=st.integers(0, 300))
 def test_cloud_diameter_exact(seed, N) -> None:
     g = torch.Generator().manual_seed(seed)

@@ -14,7 +14,7 @@ import torch
 from poseflow._checks import check_mask, check_tensor
 from poseflow.errors import ValueRangeError
 from poseflow.geometry.crops import crop_box_around, crop_resize, crop_to_pixels, pixels_to_crop
-from poseflow.geometry.neighbors import nearest_neighbors
+from poseflow.geometry.neighbors import NeighborIndex
 from poseflow.geometry.normals import estimate_normals
 from poseflow.geometry.projection import BackprojectedCloud, backproject_depth, project_points
 from poseflow.geometry.sampling import farthest_point_sample, voxel_downsample
@@ -74,9 +74,19 @@ def remove_statistical_outliers(
     if N == 0:
         return mask.clone()
     pts = torch.where(mask.unsqueeze(-1), points, 0.0)
-    dist, _ = nearest_neighbors(pts, pts, k=min(k, N), reference_mask=mask)
-    found = torch.isfinite(dist)
-    d = torch.where(found, dist, 0.0).to(torch.float64).sum(-1) / found.sum(-1).clamp(min=1)
+    if not bool(torch.isfinite(pts).all()):
+        raise ValueRangeError("points contains NaN or inf at valid points")
+    # Only the valid points are searched for (padding can be most of a batch item).
+    index = NeighborIndex(pts, mask)
+    d = torch.zeros(B, N, dtype=torch.float64, device=points.device)
+    for b in range(B):
+        rows = mask[b].nonzero()[:, 0]
+        if len(rows) == 0:
+            continue
+        item = torch.tensor([b], device=points.device)
+        dist, _ = index.query_unchecked(pts[b : b + 1, rows], min(k, N), None, items=item)
+        found = torch.isfinite(dist[0])
+        d[b, rows] = torch.where(found, dist[0], 0.0).to(torch.float64).sum(-1) / found.sum(-1)
     n = mask.sum(1).to(torch.float64)
     mean = (d * mask).sum(1) / n.clamp(min=1)
     var = (((d - mean[:, None]) * mask).square()).sum(1) / (n - 1).clamp(min=1)
