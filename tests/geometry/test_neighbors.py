@@ -77,6 +77,46 @@ def test_matches_brute_force(seed, B, N, M, k, masked, backend, device, dtype):
     _check(dist.cpu(), idx.cpu(), query, reference, expected, mask, tol)
 
 
+@settings(FIXTURES, max_examples=30, deadline=None)
+@given(
+    seed=seeds,
+    B=st.integers(1, 4),
+    M=st.integers(0, 3000),
+    k=st.integers(1, 5),
+    masked=st.booleans(),
+    threads=st.sampled_from([1, 2]),
+    backend=st.sampled_from(BACKENDS),
+)
+def test_neighbors_of_valid_points_are_the_query_of_the_cloud_itself(
+    seed, B, M, k, masked, threads, backend, device, dtype
+):
+    """Valid rows answer as a query of the whole cloud would; padded rows are missing."""
+    import poseflow
+
+    if backend == "kdtree" and device.type != "cpu":
+        return
+    g = torch.Generator().manual_seed(seed)
+    reference = _cloud(g, B, M)
+    mask = torch.rand(B, M, generator=g) < torch.rand(B, 1, generator=g) if masked else None
+    d = torch.cdist(reference, reference, compute_mode="donot_use_mm_for_euclid_dist")
+    if mask is not None:
+        d = d.masked_fill(~mask[:, None, :] | ~mask[..., None], torch.inf)
+    kk = min(k, M)
+    expected = torch.nn.functional.pad(
+        d.topk(kk, dim=-1, largest=False).values, (0, k - kk), value=torch.inf
+    )
+    index = NeighborIndex(
+        reference.to(device, dtype), None if mask is None else mask.to(device), backend=backend
+    )
+    with poseflow.num_threads(threads):
+        dist, idx = index.neighbors_of_valid_points(k)
+    assert dist.dtype == dtype and dist.device.type == device.type
+    tol = 1e-5 if dtype == torch.float32 else 1e-12
+    _check(dist.cpu(), idx.cpu(), reference, reference, expected, mask, tol)
+    with pytest.raises(ValueRangeError, match="k must"):
+        index.neighbors_of_valid_points(0)
+
+
 @given(seed=seeds, k=st.integers(1, 4), bound=st.floats(0.01, 0.5))
 def test_kdtree_backend_matches_scipy_and_bound(seed, k, bound):
     g = torch.Generator().manual_seed(seed)

@@ -143,6 +143,54 @@ class NeighborIndex:
             raise ValueRangeError("query contains NaN or inf")
         return self.query_unchecked(query, k, max_distance)
 
+    def neighbors_of_valid_points(self, k: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """The ``k`` nearest valid reference points of every valid reference point.
+
+        What :meth:`query` answers for the reference cloud itself, each point among its own
+        neighbours, with only the valid points searched for (padding can be most of an item).
+
+        Args:
+            k: number of neighbours, at least 1.
+
+        Returns:
+            ``(dist, idx)`` ``(B, M, k)`` as :meth:`query` returns them; padded rows have
+            ``dist = inf`` and ``idx = 0``.
+
+        Example:
+            >>> ref = torch.tensor([[[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [9.0, 9.0, 9.0]]])
+            >>> index = NeighborIndex(ref, torch.tensor([[True, True, False]]))
+            >>> dist, idx = index.neighbors_of_valid_points(2)
+            >>> idx[0].tolist(), dist[0, 2].tolist()
+            ([[0, 1], [1, 0], [0, 0]], [inf, inf])
+        """
+        if isinstance(k, bool) or not isinstance(k, int) or k < 1:
+            raise ValueRangeError(f"k must be an integer >= 1, got {k!r}")
+        ref, mask = self.reference, self.reference_mask
+        B, M = ref.shape[:2]
+        if mask is None or ref.device.type != "cpu":  # one batched search is what the GPU wants
+            dist, idx = self.query_unchecked(ref, k, None)
+            if mask is not None:
+                dist = dist.masked_fill(~mask[..., None], torch.inf)
+                idx = idx.masked_fill(~mask[..., None], 0)
+            return dist, idx
+        dist = torch.full((B, M, k), torch.inf, dtype=ref.dtype)
+        idx = torch.zeros(B, M, k, dtype=torch.long)
+        rows = [mask[b].nonzero()[:, 0] for b in range(B)]
+        items = [b for b in range(B) if len(rows[b])]
+
+        def search(b: int) -> None:
+            found = self.query_unchecked(ref[b : b + 1, rows[b]], k, None, torch.tensor([b]))
+            dist[b, rows[b]], idx[b, rows[b]] = found[0][0], found[1][0]
+
+        pool = _pool()
+        if pool is not None and len(items) > 1 and int(mask.sum()) >= _PARALLEL_POINTS:
+            self._tracker_tree()  # built before the threads share it
+            list(pool.map(search, items))
+        else:
+            for b in items:
+                search(b)
+        return dist, idx
+
     def query_unchecked(
         self,
         query: torch.Tensor,

@@ -8,7 +8,7 @@ import torch
 
 from poseflow._checks import check_mask, check_tensor
 from poseflow.errors import ValueRangeError
-from poseflow.geometry.neighbors import nearest_neighbors
+from poseflow.geometry.neighbors import NeighborIndex
 
 __all__ = ["estimate_normals"]
 
@@ -52,7 +52,7 @@ def estimate_normals(
     pts = points if mask is None else torch.where(mask.unsqueeze(-1), points, 0.0)
     if N == 0:
         return torch.zeros_like(points)
-    dist, nn = nearest_neighbors(pts, pts, k=min(k, N), reference_mask=mask)
+    dist, nn = NeighborIndex(pts, mask).neighbors_of_valid_points(min(k, N))
     found = torch.isfinite(dist)
     # one flat index_select (a gather with an expanded index is several times slower)
     rows = nn + N * torch.arange(B, device=nn.device).reshape(B, 1, 1)

@@ -73,20 +73,9 @@ def remove_statistical_outliers(
     check_mask(mask, "mask", ("B", "N"), sizes)
     if N == 0:
         return mask.clone()
-    pts = torch.where(mask.unsqueeze(-1), points, 0.0)
-    if not bool(torch.isfinite(pts).all()):
-        raise ValueRangeError("points contains NaN or inf at valid points")
-    # Only the valid points are searched for (padding can be most of a batch item).
-    index = NeighborIndex(pts, mask)
-    d = torch.zeros(B, N, dtype=torch.float64, device=points.device)
-    for b in range(B):
-        rows = mask[b].nonzero()[:, 0]
-        if len(rows) == 0:
-            continue
-        item = torch.tensor([b], device=points.device)
-        dist, _ = index.query_unchecked(pts[b : b + 1, rows], min(k, N), None, items=item)
-        found = torch.isfinite(dist[0])
-        d[b, rows] = torch.where(found, dist[0], 0.0).to(torch.float64).sum(-1) / found.sum(-1)
+    dist, _ = NeighborIndex(points, mask).neighbors_of_valid_points(min(k, N))
+    found = torch.isfinite(dist)
+    d = torch.where(found, dist, 0.0).to(torch.float64).sum(-1) / found.sum(-1).clamp(min=1)
     n = mask.sum(1).to(torch.float64)
     mean = (d * mask).sum(1) / n.clamp(min=1)
     var = (((d - mean[:, None]) * mask).square()).sum(1) / (n - 1).clamp(min=1)
