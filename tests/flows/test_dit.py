@@ -390,3 +390,24 @@ def test_dit_blocks_load_weights_saved_with_nn_gelu():
         "mlp.2.bias",
         "mlp.2.weight",
     ]
+
+
+def test_cpu_inference_runs_the_mlp_in_chunks_with_the_same_values(monkeypatch):
+    import poseflow.flows.dit as dit_module
+
+    m = model()
+    x, t, c = inputs(300, 10, seed=11)  # 300 rows of 10 tokens: more than one chunk
+    calls = []
+    mlp_forward = m.blocks[0].mlp.forward
+
+    def counted(y):
+        calls.append(y.shape[0])
+        return mlp_forward(y)
+
+    monkeypatch.setattr(m.blocks[0].mlp, "forward", counted)
+    with torch.no_grad():
+        chunked = m(x, t, condition=c, num_query=4)
+        monkeypatch.setattr(dit_module, "_MLP_CHUNK_TOKENS", 10**9)
+        whole = m(x, t, condition=c, num_query=4)
+    assert calls[:-1] == [204, 96] and calls[-1] == 300
+    assert torch.equal(chunked, whole)
