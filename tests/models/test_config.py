@@ -185,7 +185,10 @@ def test_the_shipped_checkpoint_keeps_its_settings_under_the_new_names():
     config, _ = read_checkpoint(DEMO_CHECKPOINT)
     # written before the flow's precision was a field: it samples in float32, as it did
     assert "flow_precision" not in raw and config.flow_precision == "fp32"
-    assert config == FunFlow6DConfig.recipe("demo_small").replace(flow_precision="fp32")
+    assert "appearance_precision" not in raw and config.appearance_precision == "fp32"
+    assert config == FunFlow6DConfig.recipe("demo_small").replace(
+        flow_precision="fp32", appearance_precision="fp32"
+    )
     new = config.to_dict()
     assert new["ransac_distance"] == raw["ransac_threshold"]
     assert new["icp_distances"] == raw["icp_thresholds"]
@@ -255,12 +258,13 @@ def test_inference_settings_change_through_with_inference_only():
         assert ", ".join(INFERENCE_FIELDS) in str(info.value)
 
 
-def test_the_flow_precision_is_an_inference_setting_with_named_values():
+@pytest.mark.parametrize("name", ["flow_precision", "appearance_precision"])
+def test_the_precisions_are_inference_settings_with_named_values(name):
     demo = FunFlow6DConfig.recipe("demo_small")
-    assert demo.flow_precision == "auto"
-    assert demo.with_inference(flow_precision="fp32").flow_precision == "fp32"
-    with pytest.raises(ValueRangeError, match="flow_precision"):
-        demo.with_inference(flow_precision="int8")
+    assert getattr(demo, name) == "auto"
+    assert getattr(demo.with_inference(**{name: "fp32"}), name) == "fp32"
+    with pytest.raises(ValueRangeError, match=name):
+        demo.with_inference(**{name: "int8"})
 
 
 @pytest.mark.parametrize("name", sorted(ABLATIONS))

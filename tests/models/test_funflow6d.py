@@ -422,13 +422,14 @@ def test_checkpoints_from_before_the_descriptor_support_describe_the_sampled_poi
         old.replace(geometric_support_voxel=0.5)
 
 
-def test_checkpoints_from_before_the_flow_precision_sample_in_float32(tiny_model, tmp_path):
+@pytest.mark.parametrize("name", ["flow_precision", "appearance_precision"])
+def test_checkpoints_from_before_a_precision_field_compute_in_float32(tiny_model, tmp_path, name):
     folder = tiny_model.save(tmp_path / "ckpt")
     raw = json.loads((folder / "config.json").read_text())
-    assert raw["flow_precision"] == tiny_model.config.flow_precision == "auto"
-    del raw["flow_precision"]
+    assert raw[name] == getattr(tiny_model.config, name) == "auto"
+    del raw[name]
     (folder / "config.json").write_text(json.dumps(raw))
-    assert FunFlow6D.load(folder).config.flow_precision == "fp32"
+    assert getattr(FunFlow6D.load(folder).config, name) == "fp32"
 
 
 def test_the_descriptor_support_changes_the_geometric_features_only(tiny_model, scene):
@@ -473,3 +474,26 @@ def test_predict_gives_an_image_the_same_poses_whatever_came_before(tiny_model, 
     rows = (both.scene_ids == scene_id) & (both.im_ids == last)
     assert bool((~rows).any()) and len(alone) == int(rows.sum()) > 0
     assert torch.equal(alone.poses, both.poses[rows])
+
+
+def test_appearance_precision_applies_to_network_encoders_only(tiny_model, scene):
+    """bfloat16 features close to float32 for a network encoder; dense SIFT stays float32."""
+    from poseflow.features import DenseSIFTEncoder
+    from poseflow.features.learned import LearnedAppearanceEncoder
+    from poseflow.models.observe import observe
+
+    learned = LearnedAppearanceEncoder()  # the shipped descriptor
+    image = two_boxes(scene)
+
+    def features(encoder, precision):
+        return observe(
+            *image, [0.1, 0.1], num_points=32, dense_points=512, appearance_encoder=encoder,
+            generator=torch.Generator().manual_seed(0), appearance_precision=precision,
+        ).appearance  # fmt: skip
+
+    full, half = features(learned, "fp32"), features(learned, "bf16")
+    assert full.dtype == half.dtype == torch.float32 and not torch.equal(full, half)
+    assert float((half - full).norm() / full.norm()) < 0.05  # bfloat16: 8 bits of mantissa
+    sift = DenseSIFTEncoder(input_size=32)
+    assert torch.equal(features(sift, "bf16"), features(sift, "fp32"))
+    assert learned.autocast and not getattr(sift, "autocast", False)

@@ -87,8 +87,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         parser,
         sampler=False,
         set_help="change an inference-time config field (num_hypotheses, dense_points, "
-        "flow_precision, pose_solver, ransac_*, icp_*, verifier or verifier.FIELD; the sampler "
-        "comes from "
+        "flow_precision, appearance_precision, pose_solver, ransac_*, icp_*, verifier or "
+        "verifier.FIELD; the sampler comes from "
         "--samplers); VALUE read as JSON, repeatable",
     )
     parser.add_argument("--warmup", type=int, default=1, help="untimed images per setting")

@@ -107,8 +107,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_inference_arguments(
         parser,
         set_help="change an inference-time config field of the model (num_hypotheses, "
-        "flow_precision, pose_solver, ransac_*, icp_*, verifier or verifier.FIELD, ...; with "
-        "--method baseline: "
+        "flow_precision, appearance_precision, pose_solver, ransac_*, icp_*, verifier or "
+        "verifier.FIELD, ...; with --method baseline: "
         "verifier only, its fields changing the baseline's defaults); VALUE read as JSON, "
         "repeatable",
     )

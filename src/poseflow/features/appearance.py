@@ -62,6 +62,9 @@ class AppearanceEncoder(Protocol):
             (average the views, the paper's choice for DINOv2) or ``"select"`` (keep every view
             and pick, per target instance, the views that match it; for descriptors that change
             with the in-plane rotation).
+
+    An encoder that is a neural network may also set ``autocast = True``: FunFlow6D then runs
+    it under its ``appearance_precision`` (bfloat16 where the device computes it natively).
     """
 
     dim: int
@@ -179,6 +182,9 @@ class DINOv2Encoder:
         >>> enc.encode(torch.rand(2, 3, 40, 40)).shape
         torch.Size([2, 32, 2, 2])
     """
+
+    #: a network: FunFlow6D's ``appearance_precision`` applies (see :class:`AppearanceEncoder`)
+    autocast = True
 
     query_pooling = "mean"
 

@@ -244,6 +244,9 @@ class LearnedAppearanceEncoder:
         (12, 'mean', torch.Size([2, 12, 8, 8]))
     """
 
+    #: a network: FunFlow6D's ``appearance_precision`` applies (see ``AppearanceEncoder``)
+    autocast = True
+
     def __init__(
         self,
         weights: str | Path | DescriptorNet | None = None,

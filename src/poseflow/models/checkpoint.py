@@ -33,11 +33,12 @@ CHECKPOINT_FORMAT = "poseflow.FunFlow6D/1"
 #: Configuration fields added after checkpoints were first written, with the value a checkpoint
 #: whose ``config.json`` lacks them is read with: what it did before the field existed (no
 #: render-and-compare verification, geometric descriptors from the sampled points alone, the
-#: flow in float32). New configurations take the fields' defaults instead.
+#: flow and the appearance encoder in float32). New configurations take the fields' defaults.
 CHECKPOINT_FIELDS_ADDED: dict[str, Any] = {
     "verifier": None,
     "geometric_support_voxel": 0.0,
     "flow_precision": "fp32",
+    "appearance_precision": "fp32",
 }
 
 

@@ -256,6 +256,9 @@ class FunFlow6DConfig:
             the device multiplies it natively, else float32; see
             :func:`~poseflow.flows.autocast_dtype`), ``"bf16"``, ``"fp16"`` or ``"fp32"``
             (the same poses on every machine; checkpoints written before the field read so).
+        appearance_precision: what the appearance encoder computes an image's features in,
+            when it is a network (the learned descriptor, DINOv2): the same names as
+            ``flow_precision``; the objects' view features and the training set's stay float32.
         num_hypotheses: noise samples per instance; the pose with the best score is kept.
         pose_solver: ``"ransac"`` (RANSAC-Procrustes, paper) or ``"svd"`` (one Procrustes on all
             correspondences).
@@ -298,6 +301,7 @@ class FunFlow6DConfig:
     solver: str = "euler"
     steps: int = 50
     flow_precision: str = "auto"
+    appearance_precision: str = "auto"
     num_hypotheses: int = 1
     pose_solver: str = "ransac"
     ransac_iterations: int = 1000
@@ -327,6 +331,7 @@ class FunFlow6DConfig:
             ("solver", tuple(SAMPLERS), False),
             ("pose_solver", POSE_SOLVERS, False),
             ("flow_precision", (*PRECISIONS, "auto"), False),
+            ("appearance_precision", (*PRECISIONS, "auto"), False),
         ):
             check_name(name, getattr(self, name), allowed, takes_argument=takes_argument)
         if self.num_points < 8:
@@ -525,6 +530,7 @@ INFERENCE_FIELDS: tuple[str, ...] = (
     "solver",
     "steps",
     "flow_precision",
+    "appearance_precision",
     "num_hypotheses",
     "dense_points",
     "pose_solver",

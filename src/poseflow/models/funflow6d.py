@@ -105,6 +105,7 @@ class FunFlow6D(nn.Module, SeededEstimator):
         *,
         generator: torch.Generator | None = None,
         crop_jitter: float = 0.0,
+        appearance_precision: str = "fp32",
     ) -> Observation:
         """The target clouds of an image: :func:`~poseflow.models.observe.observe`.
 
@@ -114,6 +115,8 @@ class FunFlow6D(nn.Module, SeededEstimator):
             generator: seeds the dense-cloud cap and the farthest-point sampling; None: a
                 generator seeded 0.
             crop_jitter: training augmentation of the appearance crop; 0 at inference.
+            appearance_precision: what a network appearance encoder computes in (inference:
+                ``config.appearance_precision``; the training set's features: float32).
 
         Raises:
             ShapeError: inconsistent shapes, or ``K`` not 9 numbers.
@@ -128,7 +131,7 @@ class FunFlow6D(nn.Module, SeededEstimator):
             num_points=self.config.num_points, dense_points=self.config.dense_points,
             geometric_encoder=self.geometric_encoder, appearance_encoder=self.appearance_encoder,
             geometric_support_voxel=self.config.geometric_support_voxel,
-            generator=generator, crop_jitter=crop_jitter,
+            generator=generator, crop_jitter=crop_jitter, appearance_precision=appearance_precision,
         )  # fmt: skip
 
     def flow_inputs(self, obs: Observation, poses: torch.Tensor | None = None) -> FlowInputs:
@@ -183,7 +186,9 @@ class FunFlow6D(nn.Module, SeededEstimator):
         if generator is None:
             generator = torch.Generator(device=image.depth.device).manual_seed(0)
         with _evaluating(self):
-            obs = self.observe(image, generator=generator)
+            obs = self.observe(
+                image, generator=generator, appearance_precision=self.config.appearance_precision
+            )
             if obs.points.shape[0] == 0:
                 return no_proposals(image.depth.device)
             with stage("flow_inputs"):

@@ -213,10 +213,13 @@ class FunFlow6DNet(nn.Module):
                 cond = cond.repeat_interleave(num_samples, dim=0)
         repeat = functools.partial(torch.repeat_interleave, repeats=num_samples, dim=0)
         n = points.shape[1] // 2
-        # A frozen query needs no velocity; pinned (and not noise-conditioned) it is the same
-        # for all samples of an instance, which the DiT then runs once per instance.
-        frozen_query = bool(frozen_mask[:, :n].all()) and not bool(frozen_mask[:, n:].any())
-        shared = frozen_query and x_frozen is not None and not self.config.noise_conditioning
+        shortcuts = {}
+        if isinstance(self.dit, PointDiT):
+            # A frozen query needs no velocity; pinned (and not noise-conditioned) it is the
+            # same for all samples of an instance, which the DiT then runs once per instance.
+            frozen = bool(frozen_mask[:, :n].all()) and not bool(frozen_mask[:, n:].any())
+            shared = frozen and x_frozen is not None and not self.config.noise_conditioning
+            shortcuts = {"frozen_query": frozen, "query_repeats": num_samples if shared else 1}
         with stage("integration"), precision_autocast(precision, points.device):
             return sampler.sample(
                 timed("flow_net", self.dit),
@@ -226,8 +229,7 @@ class FunFlow6DNet(nn.Module):
                 condition=cond,
                 mask=None if inputs.mask is None else repeat(inputs.mask),
                 num_query=n,
-                frozen_query=frozen_query,
-                query_repeats=num_samples if shared else 1,
+                **shortcuts,
             )
 
     def forward(

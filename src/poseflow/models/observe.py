@@ -28,6 +28,7 @@ from poseflow.features import (
     encode_on_support,
     lift_target_features,
 )
+from poseflow.flows.precision import precision_autocast
 from poseflow.geometry.pointcloud import (
     backproject_depth,
     estimate_normals,
@@ -90,6 +91,7 @@ def observe(
     geometric_support_voxel: float = 0.0,
     generator: torch.Generator | None = None,
     crop_jitter: float = 0.0,
+    appearance_precision: str = "fp32",
 ) -> Observation:
     """Lift the masked depth of each instance to a cloud of ``N`` points with its features.
 
@@ -110,6 +112,8 @@ def observe(
         generator: seeds the dense-cloud cap and the start of the farthest-point sampling.
         crop_jitter: training augmentation of the appearance crop (see
             :func:`~poseflow.features.lifting.jitter_boxes`); 0 at inference.
+        appearance_precision: what an appearance encoder that is a network (``autocast``
+            True) computes in, as :func:`~poseflow.flows.autocast_dtype` names it.
 
     Returns:
         The :class:`Observation`; instances with fewer than :data:`MIN_POINTS` valid points are
@@ -147,9 +151,13 @@ def observe(
             if getattr(appearance_encoder, "in_channels", 3) > 3:
                 layers = depth_layers(depth.expand(len(masks), *depth.shape), masks, diameter)
                 image = torch.cat([image.expand(len(masks), *image.shape), layers], dim=1)
-            obs.appearance = _appearance_features(
-                obs, pixels, appearance_encoder, image, K, crop_jitter, generator
+            precision = (
+                appearance_precision if getattr(appearance_encoder, "autocast", False) else "fp32"
             )
+            with precision_autocast(precision, image.device):
+                obs.appearance = _appearance_features(
+                    obs, pixels, appearance_encoder, image, K, crop_jitter, generator
+                )
     return obs
 
 
