@@ -411,3 +411,18 @@ def test_cpu_inference_runs_the_mlp_in_chunks_with_the_same_values(monkeypatch):
         whole = m(x, t, condition=c, num_query=4)
     assert calls[:-1] == [204, 96] and calls[-1] == 300
     assert torch.equal(chunked, whole)
+
+
+def test_an_all_valid_mask_is_the_same_as_none():
+    from poseflow.flows.dit import _key_mask
+
+    m = model()
+    x, t, c = inputs(3, 8, seed=12)
+    every = torch.ones(3, 8, dtype=torch.bool)
+    assert _key_mask(every) is None and _key_mask(None) is None
+    some = every.clone()
+    some[1, 2] = False
+    assert _key_mask(some).shape == (3, 1, 1, 8)
+    with torch.no_grad():
+        for kw in ({"num_query": 4}, {"num_query": 4, "frozen_query": True}):
+            assert torch.equal(m(x, t, condition=c, mask=every, **kw), m(x, t, condition=c, **kw))
