@@ -1,4 +1,4 @@
-"""Forward time and peak memory of the trainable networks: PointDiT eager vs torch.compile.
+"""Forward time and peak memory of the trainable networks: PointDiT eager, compiled, shortcuts.
 
 One forward pass of the DiT velocity net on a batch of ``B`` instances of ``2N`` points each
 (``[Q ; T]``, ``num_query=N``), as in one Euler step of inference, for the ``paper`` preset at
@@ -15,7 +15,14 @@ Usage::
     python benchmarks/networks.py --sizes 256 --batch 2 --threads 1
 
 Prints one JSON line with every case and the compiled/eager speed-up, then the command that
-reproduces it. On a CPU the default run is long: about 22 minutes at one thread on a shared
+reproduces it. Mode ``shortcuts`` is the eager model as FunFlow6D samples it: the batch holds
+``--samples`` samples per instance sharing their query cloud (pinned), called with
+``frozen_query=True, query_repeats=--samples``; against ``eager`` on the same inputs::
+
+    python benchmarks/networks.py --preset small --sizes 64 --batch 48 --samples 12 \
+        --modes eager shortcuts --threads 1 --repeats 20
+
+On a CPU the default run is long: about 22 minutes at one thread on a shared
 2-core x86_64 machine (each case runs its forward once to warm up, then ``--repeats`` times).
 """
 
@@ -58,9 +65,18 @@ def run_case(args: argparse.Namespace) -> dict:
     g = torch.randn(2 * b, n, fusion_dim, generator=gen).to(device=device, dtype=dtype)
     s = torch.randn(2 * b, n, fusion_dim, generator=gen).to(device=device, dtype=dtype)
     mask = torch.ones(b, 2 * n, dtype=torch.bool, device=device)
+    # every instance's samples share the pinned query cloud, as FunFlow6D samples them
+    for value in (x, c):
+        value[:, :n] = value[:: args.samples, :n].repeat_interleave(args.samples, dim=0)
+    t = t[:: args.samples].repeat_interleave(args.samples)
+    shortcuts = (
+        {"frozen_query": True, "query_repeats": args.samples}
+        if args.case_mode == "shortcuts"
+        else {}
+    )
 
     def dit() -> torch.Tensor:
-        return net(x, t, condition=c, mask=mask, num_query=n)
+        return net(x, t, condition=c, mask=mask, num_query=n, **shortcuts)
 
     net = torch.compile(model) if args.case_mode == "compiled" else model
     if device.type == "cuda":
@@ -98,7 +114,13 @@ def main() -> None:
     parser.add_argument("--sizes", type=int, nargs="+", default=None, help="N per cloud")
     parser.add_argument("--batch", type=int, default=None, help="instances per batch (8)")
     parser.add_argument("--repeats", type=int, default=None, help="timed calls after warm-up")
-    parser.add_argument("--modes", nargs="+", default=["eager", "compiled"])
+    parser.add_argument("--samples", type=int, default=1, help="samples per instance (1)")
+    parser.add_argument(
+        "--modes",
+        nargs="+",
+        default=["eager", "compiled"],
+        choices=["eager", "compiled", "shortcuts"],
+    )
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     parser.add_argument("--dtype", default="float32", choices=["float32", "bfloat16"])
     parser.add_argument("--threads", type=int, default=None, help="torch CPU threads")
@@ -114,6 +136,8 @@ def main() -> None:
     args.sizes = args.sizes or [1024, 2048]
     args.batch = args.batch or 8
     args.repeats = args.repeats or 3
+    if args.samples < 1 or args.batch % args.samples:
+        parser.error(f"--samples must divide --batch ({args.batch}), got {args.samples}")
     if args.threads:
         torch.set_num_threads(args.threads)
 
@@ -131,12 +155,13 @@ def main() -> None:
                 cases.append({"N": n, "mode": mode, "error": lines[-1]})
             else:
                 cases.append(json.loads(out.stdout.strip().splitlines()[-1]))
-    speedups = {}
+    speedups: dict[str, dict[str, float]] = {}
     for n in args.sizes:
         by_mode = {c["mode"]: c for c in cases if c["N"] == n and "error" not in c}
-        if {"eager", "compiled"} <= by_mode.keys():
-            ratio = by_mode["eager"]["dit_forward_ms"] / by_mode["compiled"]["dit_forward_ms"]
-            speedups[str(n)] = round(ratio, 3)
+        for mode in ("compiled", "shortcuts"):
+            if {"eager", mode} <= by_mode.keys():
+                ratio = by_mode["eager"]["dit_forward_ms"] / by_mode[mode]["dit_forward_ms"]
+                speedups.setdefault(mode, {})[str(n)] = round(ratio, 3)
     with torch.device("meta"):
         params = sum(p.numel() for p in PointDiT.from_preset(args.preset).parameters())
     device = args.device
@@ -149,6 +174,7 @@ def main() -> None:
         "preset": args.preset,
         "dit_parameters": params,
         "batch": args.batch,
+        "samples_per_instance": args.samples,
         "dtype": args.dtype,
         "device": device,
         "device_name": device_name,
@@ -156,7 +182,7 @@ def main() -> None:
         "torch_threads": args.threads or torch.get_num_threads(),
         "torch": torch.__version__,
         "cases": cases,
-        "compiled_speedup": speedups,
+        "speedup_over_eager": speedups,
         "paper_dit_forward_ms_a100": 91.21,
     }
     report(result, __file__)
