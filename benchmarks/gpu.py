@@ -260,37 +260,21 @@ def refit_umap(
 
 
 @contextlib.contextmanager
-def autocast_networks(model: FunFlow6D, device_type: str, dtype: torch.dtype | None) -> Iterator:
+def autocast_networks(model: FunFlow6D, dtype: torch.dtype | None) -> Iterator:
     """Run ``model``'s networks in ``dtype``; geometry stays in float32.
 
-    The velocity network samples in the model's ``flow_precision`` (``"fp32"`` for
-    ``dtype=None``, ``"bf16"`` for bfloat16); a DINOv2 appearance encoder runs under autocast
-    (its method wrapped on the instance for the block). Dense SIFT, a fixed filter bank, stays in
-    float32 (under autocast it returns bfloat16 features, which observation cannot store).
+    The velocity network samples in the model's ``flow_precision`` and a network appearance
+    encoder (DINOv2, the learned descriptor) computes in its ``appearance_precision``, both set
+    to ``"fp32"`` for ``dtype=None``, ``"bf16"`` for bfloat16; dense SIFT, a fixed filter bank,
+    stays in float32.
     """
     config = model.config
-    names = {None: "fp32", torch.bfloat16: "bf16", torch.float16: "fp16"}
-    model.config = config.with_inference(flow_precision=names[dtype])
-    wrapped = []
-    if dtype is not None and isinstance(model.appearance_encoder, DINOv2Encoder):
-        wrapped.append((model.appearance_encoder, "encode"))
-    for owner, name in wrapped:
-        setattr(owner, name, _autocast(getattr(owner, name), device_type, dtype))
+    name = {None: "fp32", torch.bfloat16: "bf16", torch.float16: "fp16"}[dtype]
+    model.config = config.with_inference(flow_precision=name, appearance_precision=name)
     try:
         yield
     finally:
         model.config = config
-        for owner, name in wrapped:
-            delattr(owner, name)  # the instance attribute goes; the method shows again
-
-
-def _autocast(fn: Callable[..., Any], device_type: str, dtype: torch.dtype) -> Callable[..., Any]:
-    @functools.wraps(fn)
-    def call(*args: Any, **kwargs: Any) -> Any:
-        with torch.autocast(device_type, dtype=dtype):
-            return fn(*args, **kwargs)
-
-    return call
 
 
 # --- the fusion's attention alone -------------------------------------------------------------
@@ -551,7 +535,7 @@ def run(
     result["fusion_kernels"] = fusion_kernels(paper, 2 * scale.instances, device, repeats)
     result["paper_scale"] = {}
     for precision, dtype in PRECISIONS.items():
-        with autocast_networks(paper, device.type, dtype):
+        with autocast_networks(paper, dtype):
             rows = benchmark_settings(
                 paper, root, paper_samplers, max_images=info["images"], warmup=warmup, seed=seed,
                 evaluate=False, out_dir=out / "paper" / precision,
@@ -563,7 +547,7 @@ def run(
     load_prepared_objects(demo, root, object_cache_dir(DEMO_CHECKPOINT, root), device)
     result["small_model"] = {"samplers": small_samplers, "settings": {}}
     for precision, dtype in PRECISIONS.items():
-        with autocast_networks(demo, device.type, dtype):
+        with autocast_networks(demo, dtype):
             rows = benchmark_settings(
                 demo, root, small_samplers, max_images=info["images"], warmup=warmup, seed=seed,
                 evaluate=False, out_dir=out / "small" / precision,

@@ -76,16 +76,20 @@ def test_fusion_table_names_the_kernel_of_every_case(gpu, tiny_model):
 
 
 def test_networks_run_in_the_precision_and_the_model_is_restored(gpu, tiny_model):
-    seen = []
-    hook = tiny_model.net.dit.register_forward_pre_hook(
-        lambda module, args: seen.append(torch.is_autocast_enabled("cpu"))
-    )
+    from poseflow.models.observe import observe
+
+    seen = {"dit": [], "encoder": []}
     encoder, config = tiny_model.appearance_encoder, tiny_model.config
+    hooks = [
+        module.register_forward_pre_hook(
+            lambda module, args, key=key: seen[key].append(torch.is_autocast_enabled("cpu"))
+        )
+        for key, module in (("dit", tiny_model.net.dit), ("encoder", encoder.model))
+    ]
     try:
-        with gpu.autocast_networks(tiny_model, "cpu", torch.bfloat16):
-            assert tiny_model.config.flow_precision == "bf16" and "encode" in vars(encoder)
-            features = encoder.encode(torch.rand(1, 3, 28, 28))
-            assert not torch.is_autocast_enabled("cpu")  # only inside the wrapped calls
+        with gpu.autocast_networks(tiny_model, torch.bfloat16):
+            assert tiny_model.config.flow_precision == "bf16"
+            assert tiny_model.config.appearance_precision == "bf16"
             inputs = _inputs(tiny_model)
             frozen = torch.zeros(inputs.mask.shape, dtype=torch.bool)
             frozen[:, : inputs.mask.shape[1] // 2] = True  # the query half
@@ -93,14 +97,32 @@ def test_networks_run_in_the_precision_and_the_model_is_restored(gpu, tiny_model
                 inputs, get_sampler("euler", steps=2), frozen_mask=frozen,
                 precision=tiny_model.config.flow_precision,
             )  # fmt: skip
+            obs = observe(
+                *_image(), [0.1], num_points=16, dense_points=256, appearance_encoder=encoder,
+                appearance_precision=tiny_model.config.appearance_precision,
+            )  # fmt: skip
+            assert not torch.is_autocast_enabled("cpu")  # only inside the networks' calls
     finally:
-        hook.remove()
-    assert features.dtype == torch.float32  # DINOv2 returns the images' dtype
-    assert seen and all(seen)
-    assert tiny_model.config == config and "encode" not in vars(encoder)
-    with gpu.autocast_networks(tiny_model, "cpu", None):
-        assert tiny_model.config.flow_precision == "fp32" and "encode" not in vars(encoder)
+        for hook in hooks:
+            hook.remove()
+    assert obs.appearance.dtype == torch.float32
+    assert seen["dit"] and all(seen["dit"]) and seen["encoder"] and all(seen["encoder"])
     assert tiny_model.config == config
+    with gpu.autocast_networks(tiny_model, None):
+        assert tiny_model.config.flow_precision == tiny_model.config.appearance_precision == "fp32"
+    assert tiny_model.config == config
+
+
+def _image():
+    """A 64 × 64 image with one square instance of object 1 at half a metre."""
+    from poseflow.data import ImageInstances
+
+    g = torch.Generator().manual_seed(1)
+    depth = torch.full((64, 64), 0.5) + 0.01 * torch.rand(64, 64, generator=g)
+    masks = torch.zeros(1, 64, 64, dtype=torch.bool)
+    masks[0, 16:48, 16:48] = True
+    K = torch.tensor([[80.0, 0, 31.5], [0, 80.0, 31.5], [0, 0, 1]])
+    return ImageInstances(torch.rand(3, 64, 64, generator=g), depth, K, masks, [1])
 
 
 def _inputs(model):
