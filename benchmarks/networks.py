@@ -14,7 +14,7 @@ Usage::
     python benchmarks/networks.py --quick          # tiny preset and sizes, for CI
     python benchmarks/networks.py --sizes 256 --batch 2 --threads 1
 
-Prints one JSON line with every case and the compiled/eager speed-up, then the command that
+Prints one JSON line with every case and each mode's speed-up over eager, then the command that
 reproduces it. Mode ``shortcuts`` is the eager model as FunFlow6D samples it: the batch holds
 ``--samples`` samples per instance sharing their query cloud (pinned), called with
 ``frozen_query=True, query_repeats=--samples``; against ``eager`` on the same inputs::

@@ -392,11 +392,12 @@ def test_dit_blocks_load_weights_saved_with_nn_gelu():
     ]
 
 
-def test_cpu_inference_runs_the_mlp_in_chunks_with_the_same_values(monkeypatch):
+@pytest.mark.parametrize("bf16", [False, True])
+def test_cpu_inference_runs_the_mlp_in_chunks_with_the_same_values(monkeypatch, bf16):
     import poseflow.flows.dit as dit_module
 
     m = model()
-    x, t, c = inputs(300, 10, seed=11)  # 300 rows of 10 tokens: more than one chunk
+    x, t, c = inputs(300, 10, seed=11)  # 300 rows of 10 tokens
     calls = []
     mlp_forward = m.blocks[0].mlp.forward
 
@@ -404,12 +405,14 @@ def test_cpu_inference_runs_the_mlp_in_chunks_with_the_same_values(monkeypatch):
         calls.append(y.shape[0])
         return mlp_forward(y)
 
+    # 2,048 tokens of the tiny preset's 64 hidden float32 values (half as many bytes in bfloat16)
+    monkeypatch.setattr(dit_module, "_MLP_CHUNK_BYTES", 2048 * 64 * 4)
     monkeypatch.setattr(m.blocks[0].mlp, "forward", counted)
-    with torch.no_grad():
+    with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
         chunked = m(x, t, condition=c, num_query=4)
-        monkeypatch.setattr(dit_module, "_MLP_CHUNK_TOKENS", 10**9)
+        monkeypatch.setattr(dit_module, "_MLP_CHUNK_BYTES", 10**12)
         whole = m(x, t, condition=c, num_query=4)
-    assert calls[:-1] == [204, 96] and calls[-1] == 300
+    assert calls[:-1] == ([300] if bf16 else [204, 96]) and calls[-1] == 300
     assert torch.equal(chunked, whole)
 
 

@@ -223,9 +223,9 @@ def _key_mask(mask: torch.Tensor | None) -> torch.Tensor | None:
     return key_padding_mask(mask)
 
 
-#: Tokens whose MLP runs at once in CPU inference (their hidden activations, 1-2 MB at the
-#: presets' widths, stay in the cache).
-_MLP_CHUNK_TOKENS = 2048
+#: Bytes of hidden MLP activations computed at once in CPU inference: a chunk of tokens whose
+#: hidden layer fits stays in the cache between the two products and the GELU.
+_MLP_CHUNK_BYTES = 1 << 20
 
 
 def _modulate(x: torch.Tensor, shift: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
@@ -331,12 +331,16 @@ class DiTBlock(nn.Module):
     def _mlp(self, y: torch.Tensor) -> torch.Tensor:
         """The MLP of tokens ``(B, L, E)``; in CPU inference a few rows at a time.
 
-        The hidden activations of :data:`_MLP_CHUNK_TOKENS` tokens stay in the cache between the
-        two products and the GELU (the same values: every row is computed alone anyway).
+        Each chunk's hidden activations, :data:`_MLP_CHUNK_BYTES` in the dtype the products
+        give (autocast's or ``y``'s), stay in the cache (the same values: every row is computed
+        alone anyway).
         """
         if y.device.type != "cpu" or torch.is_grad_enabled():
             return self.mlp(y)
-        rows = max(1, _MLP_CHUNK_TOKENS // max(1, y.shape[1]))
+        autocast = torch.is_autocast_enabled("cpu")
+        dtype = torch.get_autocast_dtype("cpu") if autocast else y.dtype
+        tokens = _MLP_CHUNK_BYTES // (self.mlp[0].out_features * dtype.itemsize)
+        rows = max(1, tokens // max(1, y.shape[1]))
         if y.shape[0] <= rows:
             return self.mlp(y)
         return torch.cat([self.mlp(part) for part in y.split(rows)])
