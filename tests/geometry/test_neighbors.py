@@ -241,3 +241,13 @@ def test_repeated_batch_items_share_a_tree_and_answer_as_their_own(seed, k, dtyp
         found = torch.isfinite(expected_dist)
         assert torch.equal(torch.isfinite(dist), found)
         assert (idx == expected_idx)[found].float().mean() > 0.999  # ties aside
+
+
+def test_neighbors_of_valid_points_with_an_all_valid_mask_equal_those_without_one():
+    g = torch.Generator().manual_seed(3)
+    ref = _cloud(g, 3, 700)
+    every = torch.ones(3, 700, dtype=torch.bool)
+    with_mask = NeighborIndex(ref, every).neighbors_of_valid_points(6)
+    without = NeighborIndex(ref).neighbors_of_valid_points(6)
+    assert torch.equal(with_mask[0], without[0]) and torch.equal(with_mask[1], without[1])
+    assert torch.equal(without[1][:, :, 0], torch.arange(700).expand(3, -1))  # itself first

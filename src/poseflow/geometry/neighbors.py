@@ -167,7 +167,8 @@ class NeighborIndex:
             raise ValueRangeError(f"k must be an integer >= 1, got {k!r}")
         ref, mask = self.reference, self.reference_mask
         B, M = ref.shape[:2]
-        if mask is None or ref.device.type != "cpu":  # one batched search is what the GPU wants
+        # one batched search where nothing is padded, and on a GPU (which wants one call)
+        if mask is None or ref.device.type != "cpu" or bool(mask.all()):
             dist, idx = self.query_unchecked(ref, k, None)
             if mask is not None:
                 dist = dist.masked_fill(~mask[..., None], torch.inf)
