@@ -13,7 +13,7 @@ from poseflow.data.bop import BOPDataset, BOPDataWarning
 from poseflow.data.objects import ObjectModel
 from poseflow.data.synthetic import generate_dataset
 from poseflow.errors import ValueRangeError
-from poseflow.eval.evaluate import evaluate_bop, gt_results, load_eval_models
+from poseflow.eval.evaluate import closest_results, evaluate_bop, gt_results, load_eval_models
 from poseflow.eval.recall import Target
 from poseflow.eval.results import PoseResults, write_results
 
@@ -187,3 +187,48 @@ def test_translations_in_metres_are_reported(dataset, tmp_path):
     with pytest.warns(BOPDataWarning, match="was t written in metres"):
         report = evaluate_bop(dataset, tmp_path / "m.csv", metrics=("mssd",))
     assert report["AR"] == 0.0
+
+
+def _shifted(res: PoseResults, which: torch.Tensor, by: float) -> PoseResults:
+    """``res`` with the rows ``which`` moved by ``by`` metres along x."""
+    poses = res.poses.clone()
+    poses[which, 0, 3] += by
+    return _with_poses(res, poses)
+
+
+def _groups(res: PoseResults, obj_id: int) -> int:
+    """How many images ``res`` has estimates of ``obj_id`` in."""
+    rows = res.obj_ids == obj_id
+    return len(set(zip(res.scene_ids[rows].tolist(), res.im_ids[rows].tolist())))
+
+
+def test_closest_results_takes_each_objects_better_estimator(dataset):
+    truth = gt_results(dataset)
+    box = truth.obj_ids == BOX
+    good_box = _shifted(truth, ~box, 0.03)  # the box right, the can 3 cm off
+    good_can = _shifted(truth, box, 0.03)
+    chosen, counts = closest_results(dataset, [good_box, good_can])
+    report = evaluate_bop(dataset, chosen, metrics=("mssd", "mspd"))
+    alone = [evaluate_bop(dataset, r, metrics=("mssd", "mspd"))["AR"] for r in (good_box, good_can)]
+    assert report["AR"] == 1.0 and max(alone) < 1.0
+    n_box, n_can = _groups(truth, BOX), _groups(truth, CAN)
+    assert counts == [n_box, n_can]
+    assert len(chosen) == len(truth) and bool((chosen.times == -1).all())
+
+
+def test_closest_results_ties_go_first_and_missing_rows_count_as_misses(dataset):
+    truth = gt_results(dataset)
+    _, counts = closest_results(dataset, [truth, truth])
+    assert counts[1] == 0
+    box = truth.obj_ids == BOX
+    only_cans = PoseResults(*(getattr(truth, f)[~box] for f in ("scene_ids", "im_ids",
+                            "obj_ids", "scores", "poses", "times")))  # fmt: skip
+    near = _shifted(truth, torch.ones_like(box), 0.002)  # every estimate 2 mm off
+    chosen, counts = closest_results(dataset, [only_cans, near])
+    assert counts == [_groups(truth, CAN), _groups(truth, BOX)]
+    assert int((chosen.obj_ids == BOX).sum()) == int(box.sum())
+
+
+def test_closest_results_needs_two(dataset):
+    with pytest.raises(ValueRangeError, match="two or more"):
+        closest_results(dataset, [gt_results(dataset)])

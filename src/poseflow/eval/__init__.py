@@ -3,7 +3,8 @@
 - pose errors :func:`vsd_from_depth`, :func:`mssd`, :func:`mspd` (vectorised over estimates) and
   symmetry sets discretised as the BOP toolkit does (:func:`symmetry_transforms`);
 - the recall protocol (:func:`assign`, :func:`match`) and the dataset-level
-  :func:`evaluate_bop` returning AR, AR_VSD, AR_MSSD, AR_MSPD, per object and per threshold;
+  :func:`evaluate_bop` returning AR, AR_VSD, AR_MSSD, AR_MSPD, per object and per threshold, and
+  :func:`closest_results`, the oracle choice among several results per target;
 - :func:`predict_dataset`, the loop that runs any estimator over a BOP split (ground-truth or
   detected masks) into results (:func:`predict_seeded`: reseeding its generator per image, the
   estimators' ``predict``), and :func:`estimate_frame` for one frame, written by
@@ -43,7 +44,14 @@ from poseflow.eval.errors import (
     project_points,
     vsd_from_depth,
 )
-from poseflow.eval.evaluate import METRICS, EvalModel, evaluate_bop, gt_results, load_eval_models
+from poseflow.eval.evaluate import (
+    METRICS,
+    EvalModel,
+    closest_results,
+    evaluate_bop,
+    gt_results,
+    load_eval_models,
+)
 from poseflow.eval.frame import FramePoses, estimate_frame, write_poses_json
 from poseflow.eval.inliers import InlierResult, correspondence_inliers, mutual_nearest_neighbors
 from poseflow.eval.overlay import (
@@ -129,6 +137,7 @@ __all__ = [
     "axis_angle_rotation",
     "backproject_rgbd",
     "build_scene",
+    "closest_results",
     "correspondence_inliers",
     "depth_to_distance",
     "discretize_continuous_symmetry",
