@@ -12,6 +12,9 @@ per image and object, FunFlow6D's or the baseline's estimates, whichever are clo
 (:func:`~poseflow.eval.closest_results`), the most a choice between the two could give, to read
 against the hybrid's.
 
+``--predict-args`` go to FunFlow6D and the hybrid whole; the baseline, which has no network, takes
+them without their ``--set`` of fields other than the verifier's (the verification stays alike).
+
 Everything is written under ``--work`` (default ``runs/unseen/DATASET_NAME``) and reused when
 run again, so a second run with other seeds or ``--predict-args`` only predicts and scores.
 
@@ -73,6 +76,18 @@ def _recipe(args: argparse.Namespace, dataset: Path, work: Path) -> Path:
             "--ema-decay", "0.995", "--device", "cpu", "--no-progress",
         ])  # fmt: skip
     return one_step / "model"
+
+
+def _baseline_args(extra: list[str]) -> list[str]:
+    """``extra`` without its ``--set`` of FunFlow6D's fields: the baseline has only a verifier."""
+    out, rest = [], iter(extra)
+    for arg in rest:
+        value = next(rest, "") if arg == "--set" else None
+        if value is None:
+            out.append(arg)
+        elif value.split("=")[0].split(".")[0] == "verifier":
+            out += [arg, value]
+    return out
 
 
 def _score(dataset: Path, csv: Path) -> dict:
@@ -161,9 +176,11 @@ def main() -> None:
                 tag = args.tag + ("1step" if args.distill_steps and method != "baseline" else "")
                 csv = csvs[method] = work / f"{method}{tag}-seed{seed}_{dataset.name}-test.csv"
                 command = ["predict", str(dataset), "--out", str(csv), "--seed", str(seed)]
-                command += ["--method", method, "--no-progress", *extra]
-                if method != "baseline":
-                    command += ["--model", str(model)]
+                command += ["--method", method, "--no-progress"]
+                if method == "baseline":
+                    command += _baseline_args(extra)
+                else:
+                    command += ["--model", str(model), *extra]
                 _run(command)
                 reports[method].append(_score(dataset, csv))
             if args.oracle:
