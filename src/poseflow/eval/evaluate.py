@@ -335,15 +335,16 @@ def closest_results(
             unmatched[g] -= 1
         error[j] += unmatched
     best = error.argmin(0).tolist()  # the first of equal minima
+    rows_of: list[dict[tuple[int, int, int], list[int]]] = [defaultdict(list) for _ in sets]
+    for j, r in enumerate(sets):
+        keys = zip(r.scene_ids.tolist(), r.im_ids.tolist(), r.obj_ids.tolist())
+        for e, key in enumerate(keys):
+            rows_of[j][key].append(e)
     parts = []
-    for (s, i, o), j in zip(count, best):
-        r = sets[j]
-        rows = (r.scene_ids == s) & (r.im_ids == i) & (r.obj_ids == o)
-        parts.append(
-            PoseResults.from_columns(
-                r.scene_ids[rows], r.im_ids[rows], r.obj_ids[rows], r.scores[rows], r.poses[rows]
-            )
-        )
+    for key, j in zip(count, best):
+        r, rows = sets[j], torch.tensor(rows_of[j].get(key, []), dtype=torch.long)
+        columns = (r.scene_ids, r.im_ids, r.obj_ids, r.scores, r.poses)
+        parts.append(PoseResults.from_columns(*(c[rows] for c in columns)))
     counts = [best.count(j) for j in range(len(sets))]
     return PoseResults.concat(parts), counts
 
