@@ -322,18 +322,15 @@ def closest_results(
     count: dict[tuple[int, int, int], int] = defaultdict(int)
     for t in tgts:
         count[(t.scene_id, t.im_id, t.obj_id)] += t.inst_count
-    error = torch.zeros(len(sets), len(count), dtype=torch.float64)
     group = {key: g for g, key in enumerate(count)}
+    # every target a miss (1) until an assigned estimate replaces its 1 by its capped MSSD
+    error = torch.tensor(list(count.values()), dtype=torch.float64).repeat(len(sets), 1)
     for j, res in enumerate(sets):
         a = assign(tgts, scenes.gt_objs, res.scene_ids, res.im_ids, res.obj_ids, res.scores)
         pairs = _Pairs(a, res, scenes)
         errs = _mssd_errors(pairs, models).clamp(max=1.0)
-        unmatched = torch.tensor([float(n) for n in count.values()], dtype=torch.float64)
         for (s, i), o, e in zip(pairs.image, pairs.obj.tolist(), errs.tolist()):
-            g = group[(s, i, o)]
-            error[j, g] += e
-            unmatched[g] -= 1
-        error[j] += unmatched
+            error[j, group[(s, i, o)]] += e - 1.0
     best = error.argmin(0).tolist()  # the first of equal minima
     rows_of: list[dict[tuple[int, int, int], list[int]]] = [defaultdict(list) for _ in sets]
     for j, r in enumerate(sets):
