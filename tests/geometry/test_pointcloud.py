@@ -485,6 +485,25 @@ def test_cloud_diameter_exact(seed, N) -> None:
         assert math.isclose(d[b].item(), ref.item(), rel_tol=1e-12, abs_tol=1e-12)
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("shape", ["sphere", "flat", "line"])
+def test_cloud_diameter_exact_on_large_and_degenerate_clouds(shape, dtype) -> None:
+    """Hull pruning on a cloud whose points are nearly all extreme, and the flat fallbacks."""
+    g = torch.Generator().manual_seed(3)
+    pts = torch.randn(1, 3000, 3, generator=g, dtype=torch.float64)
+    if shape == "sphere":  # every point is on the hull: nothing prunes before it
+        pts = pts / pts.norm(dim=-1, keepdim=True)
+    elif shape == "flat":  # no 3-D hull
+        pts[..., 2] = 0.5
+    else:
+        pts = pts[..., :1] * torch.tensor([1.0, 2.0, -0.5], dtype=torch.float64)
+    pts = pts.to(dtype)
+    ref = torch.pdist(pts[0].double()).max().item()
+    assert math.isclose(
+        cloud_diameter(pts)[0].item(), ref, rel_tol=1e-6 if dtype == torch.float32 else 1e-12
+    )
+
+
 def test_bad_input() -> None:
     K = torch.eye(3)
     with pytest.raises(ShapeError):

@@ -9,6 +9,7 @@ normals (:mod:`poseflow.geometry.normals`).
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from poseflow._checks import check_mask, check_tensor
@@ -89,7 +90,8 @@ def cloud_diameter(
     """Largest distance between two valid points of each cloud (exact).
 
     Points that cannot be an end of a longer pair than a cheap lower bound are pruned first
-    (a point ``p`` with ``|p - c| + max_q |q - c| < bound`` for the centroid ``c``), then the
+    (a point ``p`` with ``|p - c| + max_q |q - c| < bound`` for the centroid ``c``), then those
+    inside the convex hull of the rest (the ends of a longest pair lie on it), then the
     remaining pairs are checked in chunks of ``chunk`` rows.
 
     Args:
@@ -120,9 +122,27 @@ def cloud_diameter(
         r = (p - c).norm(dim=1)
         a = p[(p - p[r.argmax()]).norm(dim=1).argmax()]
         bound = (p - a).norm(dim=1).max()
-        cand = p[r >= bound - r.max()]
+        cand = _hull_points(p[r >= bound - r.max()])
         best = bound
         for s in range(0, cand.shape[0], chunk):
             best = torch.maximum(best, torch.cdist(cand[s : s + chunk], cand).max())
         out[b] = best.to(points.dtype)
     return out
+
+
+def _hull_points(points: torch.Tensor) -> torch.Tensor:
+    """The points ``(M, 3)`` of ``points`` ``(P, 3)`` on their convex hull, or all of them.
+
+    Qhull's vertices and the points it found coplanar with a facet; every point when the cloud
+    is small or flat (no full-dimensional hull).
+    """
+    if points.shape[0] < 64:
+        return points
+    from scipy.spatial import ConvexHull, QhullError
+
+    try:
+        hull = ConvexHull(points.cpu().numpy(), qhull_options="Qc")
+    except (QhullError, ValueError):
+        return points
+    keep = np.union1d(hull.vertices, hull.coplanar[:, 0])
+    return points[torch.from_numpy(keep).to(points.device)]
