@@ -336,8 +336,13 @@ def test_hybrid_predicts_with_the_model_and_the_baseline(run_dir, dataset, tmp_p
     assert len(results) >= 3 and (results.scores > 0).all()
     report = json.loads(timing.read_text())
     assert report["method"] == "hybrid" and report["config"]["verifier"] is not None
+    verifier = report["config"]["verifier"]
+    assert verifier["coarse_crop_size"] == verifier["crop_size"]  # every candidate on the full grid
     for name in ("integration", "geometric_encoder", "ransac", "icp", "verification"):
         assert report["stages_ms"][name] > 0, name
+    coarse = ["--set", "verifier.coarse_crop_size=16", "--max-images", "1"]
+    assert main([*argv, *coarse, "--out", str(csv), "--timing", str(timing), "--no-progress"]) == 0
+    assert json.loads(timing.read_text())["config"]["verifier"]["coarse_crop_size"] == 16
     assert main([*argv, "--out", str(csv), "--no-verify"]) == 2
     assert "chooses by verification" in capsys.readouterr().err
     with pytest.raises(SystemExit) as exc:

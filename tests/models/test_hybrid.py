@@ -13,7 +13,7 @@ from poseflow.errors import UnitsError, ValueRangeError
 from poseflow.eval.predict import PoseEstimate
 from poseflow.eval.timing import StageTimer
 from poseflow.geometry.se3 import rotation_angle_error, translation_error
-from poseflow.models import FunFlow6D, Hybrid, Proposals, keep_better
+from poseflow.models import FunFlow6D, Hybrid, Proposals, full_grid_ranking, keep_better
 
 
 @pytest.fixture(scope="module")
@@ -85,6 +85,17 @@ def test_the_hybrid_needs_verification_and_every_object(tiny_model, box):
         Hybrid(unverified, ClassicBaseline({1: box}, num_views=2, verifier=None))
     with pytest.raises(ValueRangeError, match=r"no model of objects \[1\]"):
         Hybrid(tiny_model, ClassicBaseline({2: box}, num_views=2, verifier=None))
+
+
+def test_full_grid_ranking_scores_every_candidate_at_the_full_crop(tiny_model):
+    cfg = tiny_model.config.with_inference(
+        {"verifier.crop_size": 48, "verifier.coarse_crop_size": 16}
+    )
+    ranked = full_grid_ranking(cfg)
+    assert ranked.verifier.coarse_crop_size == 48 == ranked.verifier.crop_size
+    assert ranked.replace(verifier=cfg.verifier) == cfg  # nothing else changes
+    with pytest.raises(ValueRangeError, match=r"needs config\.verifier"):
+        full_grid_ranking(cfg.replace(verifier=None))
 
 
 def test_a_funflow6d_estimate_without_a_generator_is_seeded(tiny_model, scene):

@@ -320,6 +320,10 @@ def _predict(
     if args.method != "baseline":
         args.model = str(resolve_model(args.model))
         model = load_model(args.model, device=device, inference=changes)
+        if args.method == "hybrid" and not _sets_coarse_grid(changes):
+            from poseflow.models import full_grid_ranking
+
+            model.config = full_grid_ranking(model.config)
     ds = BOPDataset(root, args.split)
     wanted = _targets_option(args, root)
     detections = _detections(args, ds, wanted) if args.detections is not None else None
@@ -391,6 +395,14 @@ def _share(
         ranks.threads,
     )
     return targets, images
+
+
+def _sets_coarse_grid(changes: dict[str, Any]) -> bool:
+    """Whether ``--set`` chose the verifier's coarse grid (the hybrid's default is the full)."""
+    verifier = changes.get("verifier")
+    return "verifier.coarse_crop_size" in changes or (
+        isinstance(verifier, dict) and "coarse_crop_size" in verifier
+    )
 
 
 def _objects(ds: Any, root: Path, targets: list[Any], progress: bool) -> dict[int, Any]:

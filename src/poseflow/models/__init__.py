@@ -10,7 +10,7 @@
 - :mod:`~poseflow.models.verification`: :func:`verify_estimate`, render-and-compare checking;
 - :mod:`~poseflow.models.funflow6d`: :class:`FunFlow6D`, which composes them;
 - :mod:`~poseflow.models.hybrid`: :class:`Hybrid`, FunFlow6D's and the classic baseline's poses
-  chosen among by one verification.
+  chosen among by one verification, and :func:`full_grid_ranking`, its verifier setting.
 """
 
 from poseflow.models.config import (
@@ -24,7 +24,7 @@ from poseflow.models.config import (
     apply_overrides,
 )
 from poseflow.models.funflow6d import FunFlow6D
-from poseflow.models.hybrid import Hybrid
+from poseflow.models.hybrid import Hybrid, full_grid_ranking
 from poseflow.models.inputs import TRAINING_FIELDS, FlowInputs, reduce_appearance
 from poseflow.models.network import FunFlow6DNet, NetInputs
 from poseflow.models.objects import (
@@ -67,6 +67,7 @@ __all__ = [
     "apply_overrides",
     "augment",
     "build_training_set",
+    "full_grid_ranking",
     "keep_better",
     "load_prepared_object",
     "object_fingerprint",

@@ -13,6 +13,10 @@ candidates, refined, tested and searched, and the pose the verifier scores highe
 (:func:`~poseflow.models.verification.keep_better`). The two pipelines share the image, the
 observed clouds, the verifier's prepared objects and one batch of its renderings and ICP.
 
+The hybrid spends more time for accuracy than FunFlow6D alone: :func:`full_grid_ranking` (what
+``poseflow predict --method hybrid`` applies) scores every candidate on the verifier's full grid
+rather than its coarse one, where a thin deciding part (a mug's handle) is a pixel or two wide.
+
 Ranking both estimators' poses as candidates of one incumbent was measured too and is worse where
 the flow's best-ranked hypothesis is a wrong turn: the baseline's pose then never gets its own
 near-symmetric candidates (``benchmarks/LOG.md``).
@@ -30,10 +34,30 @@ from poseflow.baselines import ClassicBaseline
 from poseflow.data.frame import ImageInstances
 from poseflow.errors import ValueRangeError
 from poseflow.eval.predict import PoseEstimate, SeededEstimator
+from poseflow.models.config import FunFlow6DConfig
 from poseflow.models.funflow6d import FunFlow6D
 from poseflow.models.verification import keep_better
 
-__all__ = ["Hybrid"]
+__all__ = ["Hybrid", "full_grid_ranking"]
+
+
+def full_grid_ranking(config: FunFlow6DConfig) -> FunFlow6DConfig:
+    """``config`` with its verifier's coarse grid as fine as its full one.
+
+    Every hypothesis and candidate is then scored at ``crop_size`` (about 10 % more time per
+    image for the hybrid). Set it before :meth:`FunFlow6D.prepare_objects
+    <poseflow.models.FunFlow6D.prepare_objects>`, which builds the verifier.
+
+    Raises:
+        ValueRangeError: ``config`` has no verifier.
+
+    Example:
+        >>> full_grid_ranking(FunFlow6DConfig.recipe("learned_small")).verifier.coarse_crop_size
+        64
+    """
+    if config.verifier is None:
+        raise ValueRangeError("full-grid ranking needs config.verifier")
+    return config.with_inference({"verifier.coarse_crop_size": config.verifier.crop_size})
 
 
 class Hybrid(SeededEstimator):
