@@ -10,7 +10,9 @@ excluded; plus the detector's reported time when the detections file gives one, 
 challenge counts it). ``--method baseline`` runs the
 classic FPFH/RANSAC/ICP baseline (:class:`poseflow.baselines.ClassicBaseline`) instead and needs
 no model; ``--method hybrid`` (:class:`poseflow.models.Hybrid`) pools the model's hypotheses and
-the baseline's pose of each instance into one verification. ``--timing`` writes the per-stage
+the baseline's pose of each instance into one verification, every candidate scored on the
+verifier's full grid (:func:`poseflow.models.full_grid_ranking`, unless ``--set`` names
+``verifier.coarse_crop_size``). ``--timing`` writes the per-stage
 breakdown of :class:`poseflow.eval.timing.StageTimer`, in wall-clock time or, with
 ``--clock cpu``, in the process's CPU time.
 
