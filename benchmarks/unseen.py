@@ -19,7 +19,8 @@ Everything is written under ``--work`` (default ``runs/unseen/DATASET_NAME``) an
 run again, so a second run with other seeds or ``--predict-args`` only predicts and scores.
 
 Run ``python benchmarks/unseen.py ../shared/devbench`` (about 30 minutes on one CPU core:
-synth, training at the README recipe, then 1-2 s per image and estimator). ``--quick`` (CI)
+the README recipe's synth of 1,600 images and training take about 20, then 0.3-1.2 s per image
+and estimator). ``--quick`` (CI)
 generates a two-image test split of the demo objects as the "user's dataset" and trains a few
 steps on four generated images (with ``--oracle`` when both estimators run): it checks that the
 recipe runs, not its accuracy.
@@ -118,7 +119,7 @@ def main() -> None:
     parser.add_argument("dataset", nargs="?", help="BOP dataset folder (models/ in mm, test/)")
     parser.add_argument("--work", default=None, help="output folder (default runs/unseen/NAME)")
     parser.add_argument("--config", default=str(REPO / "configs" / "learned_small.json"))
-    parser.add_argument("--train-images", type=int, default=400)
+    parser.add_argument("--train-images", type=int, default=1600)
     parser.add_argument("--steps", type=int, default=5000)
     parser.add_argument(
         "--distill-steps",
