@@ -20,10 +20,9 @@ run again, so a second run with other seeds or ``--predict-args`` only predicts 
 
 Run ``python benchmarks/unseen.py ../shared/devbench`` (about 30 minutes on one CPU core:
 the README recipe's synth of 1,600 images and training take about 20, then 0.3-1.2 s per image
-and estimator). ``--quick`` (CI)
-generates a two-image test split of the demo objects as the "user's dataset" and trains a few
-steps on four generated images (with ``--oracle`` when both estimators run): it checks that the
-recipe runs, not its accuracy.
+and estimator). ``--quick`` (CI) generates a two-image test split of the demo objects as the
+"user's dataset" and trains a few steps on four generated images (with ``--oracle`` when both
+estimators run): it checks that the recipe runs, not its accuracy.
 """
 
 from __future__ import annotations
