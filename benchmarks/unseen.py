@@ -18,9 +18,9 @@ them without their ``--set`` of fields other than the verifier's (the verificati
 Everything is written under ``--work`` (default ``runs/unseen/DATASET_NAME``) and reused when
 run again, so a second run with other seeds or ``--predict-args`` only predicts and scores.
 
-Run ``python benchmarks/unseen.py ../shared/devbench`` (about 30 minutes on one CPU core:
-the README recipe's synth of 1,600 images and training take about 20, then 0.3-1.2 s per image
-and estimator). ``--quick`` (CI) generates a two-image test split of the demo objects as the
+Run ``python benchmarks/unseen.py ../shared/devbench`` (about an hour on one CPU core: the
+README recipe's synth of 3,200 images and training take about 45 minutes, then 0.3-1.2 s per
+image and estimator). ``--quick`` (CI) generates a two-image test split of the demo objects as the
 "user's dataset" and trains a few steps on four generated images (with ``--oracle`` when both
 estimators run): it checks that the recipe runs, not its accuracy.
 """
@@ -118,8 +118,8 @@ def main() -> None:
     parser.add_argument("dataset", nargs="?", help="BOP dataset folder (models/ in mm, test/)")
     parser.add_argument("--work", default=None, help="output folder (default runs/unseen/NAME)")
     parser.add_argument("--config", default=str(REPO / "configs" / "learned_small.json"))
-    parser.add_argument("--train-images", type=int, default=1600)
-    parser.add_argument("--steps", type=int, default=5000)
+    parser.add_argument("--train-images", type=int, default=3200)
+    parser.add_argument("--steps", type=int, default=10000)
     parser.add_argument(
         "--distill-steps",
         type=int,
