@@ -14,10 +14,12 @@ the same clouds, the ceiling. Two feature stages are scored:
 - ``raw``: the encoder's features before the reducer.
 
 Encoders: ``dsift`` (poseflow's default, ``query_pooling="select"``), the learned descriptor with
-its own ``"mean"`` pooling and with ``"select"``. The same generator seed gives every encoder the
-same target points. Prints a table per ``N``, one JSON line and the command. Run
-``python benchmarks/descriptor_inliers.py [DATASET] [--learned FOLDER]``; ``--quick`` (CI) scores
-two images with ``N = 64`` and four query views.
+its own ``"mean"`` pooling and with ``"select"``, and with ``--surface FOLDER`` a surface
+embedding of the dataset's objects (:mod:`poseflow.features.surface_training`; the query's
+features are its keys, the reducer keeps its width when under 64). The same generator seed gives
+every encoder the same target points. Prints a table per ``N``, one JSON line and the command.
+Run ``python benchmarks/descriptor_inliers.py [DATASET] [--learned FOLDER] [--surface
+FOLDER]``; ``--quick`` (CI) scores two images with ``N = 64`` and four query views.
 """
 
 from __future__ import annotations
@@ -38,13 +40,14 @@ from poseflow.data.object_folder import load_object_models
 from poseflow.eval.inliers import correspondence_inliers
 from poseflow.features.learned import SHIPPED_DESCRIPTOR_DIR, LearnedAppearanceEncoder
 from poseflow.models import FunFlow6D, FunFlow6DConfig
+from poseflow.models.components import build_appearance_encoder
 
 DEVBENCH = Path("/work/shared/devbench")
 THRESHOLDS = (0.10, 0.05)
-ENCODERS = ("dsift", "learned/mean", "learned/select")
+ENCODERS = ("dsift", "learned/mean", "learned/select", "surface")
 
 
-def _encoders(learned: Path | None) -> list[tuple[str, str, str | None]]:
+def _encoders(learned: Path | None, surface: Path | None) -> list[tuple[str, str, str | None]]:
     """``(label, appearance_encoder name, query_pooling override)`` of each scored encoder."""
     out: list[tuple[str, str, str | None]] = [("dsift", "dsift", None)]
     if learned is not None:
@@ -52,6 +55,8 @@ def _encoders(learned: Path | None) -> list[tuple[str, str, str | None]]:
             ("learned/mean", f"learned:{learned}", "mean"),
             ("learned/select", f"learned:{learned}", "select"),
         ]
+    if surface is not None:
+        out.append(("surface", f"surface:{surface}", None))
     return out
 
 
@@ -84,6 +89,7 @@ def measure(
         appearance_encoder=name,
         geometric_encoder="none",
         verifier=None,
+        feature_dim=min(64, build_appearance_encoder(name, crop_size=crop_size).dim),
     )
     model = FunFlow6D(cfg)
     if pooling is not None and isinstance(model.appearance_encoder, LearnedAppearanceEncoder):
@@ -144,6 +150,11 @@ def main() -> None:
         default=None,
         help="learned descriptor folder (default: the shipped weights, when present)",
     )
+    parser.add_argument(
+        "--surface",
+        default=None,
+        help="also a surface embedding of its objects (poseflow.features.surface_training)",
+    )
     parser.add_argument("--points", type=int, nargs="+", default=[64, 256], help="N values")
     parser.add_argument("--crop-size", type=int, default=96)
     parser.add_argument("--query-views", type=int, default=12)
@@ -168,12 +179,14 @@ def main() -> None:
     ds = BOPDataset(root, "test")
     images = _images(ds, args.max_images)
     obj_set = sorted({o for v in images.values() for o in v})
-    encoders = [e for e in _encoders(learned) if e[0] in args.encoders]
+    surface = Path(args.surface) if args.surface else None
+    encoders = [e for e in _encoders(learned, surface) if e[0] in args.encoders]
     report: dict = {
         "benchmark": "descriptor_inliers",
         "dataset": root.name,
         "images": len(images),
         "learned": str(learned) if learned else None,
+        "surface": str(surface) if surface else None,
         "crop_size": args.crop_size,
         "query_views": args.query_views,
         "results": {},

@@ -89,7 +89,7 @@ def test_mappings_are_read_as_the_typed_parts():
         ("pose_solver", "icp", "ransac, svd"),
         ("anchor", "free", "pinned, noise"),
         ("geometric_encoder", "fcgf", "fpfh, gedi, none"),
-        ("appearance_encoder", "clip:vit", "dsift, dinov2, learned, none"),
+        ("appearance_encoder", "clip:vit", "dsift, dinov2, learned, surface, none"),
         ("dit_preset", "huge", ", ".join(PRESETS)),
         ("time_sampler", "beta", "uniform"),
     ],

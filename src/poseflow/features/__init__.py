@@ -11,7 +11,9 @@ model ``Q`` and of the observed target ``T``.
 - appearance encoders Θ (:class:`AppearanceEncoder`): :class:`DINOv2Encoder` (transformers),
   :class:`DenseSIFTEncoder` (weight-free default), :class:`LearnedAppearanceEncoder` (poseflow's
   own descriptor network, trained on generated renders by
-  :mod:`poseflow.features.descriptor_training`);
+  :mod:`poseflow.features.descriptor_training`), :class:`SurfaceEmbeddingEncoder` (queries of
+  RGB-D crops against per-object surface keys, learned from renders of the user's objects by
+  :mod:`poseflow.features.surface_training`);
 - lifting: :func:`lift_target_features` (crop around the barycentre), :func:`lift_query_features`
   (multi-view renderings → :class:`QueryFeatureBank`), cached per object by :class:`FeatureCache`;
 - reduction (:class:`Reducer`): :class:`UMAPReducer` (umap-learn or, on CUDA, TorchDR fit; fast
@@ -60,6 +62,13 @@ from poseflow.features.reducers import (
     UMAPReducer,
     load_reducer,
 )
+from poseflow.features.surface import (
+    SurfaceEmbedding,
+    SurfaceEmbeddingEncoder,
+    SurfaceKeys,
+    load_surface_embedding,
+    save_surface_embedding,
+)
 
 __all__ = [
     "DINOV2_MODELS",
@@ -79,6 +88,9 @@ __all__ = [
     "PCAReducer",
     "QueryFeatureBank",
     "Reducer",
+    "SurfaceEmbedding",
+    "SurfaceEmbeddingEncoder",
+    "SurfaceKeys",
     "TorchScriptEncoder",
     "UMAPReducer",
     "cached_query_features",
@@ -91,8 +103,10 @@ __all__ = [
     "lift_target_features",
     "load_descriptor",
     "load_reducer",
+    "load_surface_embedding",
     "sample_features",
     "save_descriptor",
+    "save_surface_embedding",
     "upsample_features",
     "viewpoint_poses",
 ]

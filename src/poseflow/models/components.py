@@ -20,6 +20,7 @@ from poseflow.features import (
     LearnedAppearanceEncoder,
     PCAReducer,
     Reducer,
+    SurfaceEmbeddingEncoder,
     UMAPReducer,
 )
 
@@ -36,8 +37,8 @@ __all__ = [
 #: Kinds of :func:`build_geometric_encoder` (``"gedi"`` is written ``"gedi:PATH"``).
 GEOMETRIC_ENCODERS: tuple[str, ...] = ("fpfh", "gedi", "none")
 #: Kinds of :func:`build_appearance_encoder` (``"dinov2"`` takes ``":NAME_OR_PATH"``,
-#: ``"learned"`` an optional ``":FOLDER"``).
-APPEARANCE_ENCODERS: tuple[str, ...] = ("dsift", "dinov2", "learned", "none")
+#: ``"learned"`` an optional ``":FOLDER"``, ``"surface"`` a ``":FOLDER"``).
+APPEARANCE_ENCODERS: tuple[str, ...] = ("dsift", "dinov2", "learned", "surface", "none")
 #: Names of :func:`build_reducer`.
 REDUCERS: tuple[str, ...] = ("umap", "pca", "identity")
 
@@ -93,14 +94,17 @@ def build_geometric_encoder(name: str, *, radii: tuple[float, ...]) -> Geometric
 
 
 def build_appearance_encoder(name: str, *, crop_size: int) -> AppearanceEncoder | None:
-    """``"dsift"``, ``"dinov2:NAME_OR_PATH"``, ``"learned[:FOLDER]"`` or ``"none"`` (None).
+    """An appearance encoder by name (``"none"``: None).
 
+    ``"dsift"``, ``"dinov2:NAME_OR_PATH"``, ``"learned[:FOLDER]"`` or ``"surface:FOLDER"``:
     ``"learned"`` is the descriptor shipped with the package, ``"learned:FOLDER"`` one made by
-    ``python -m poseflow.features.descriptor_training --out FOLDER``.
+    ``python -m poseflow.features.descriptor_training --out FOLDER``; ``"surface:FOLDER"`` a
+    surface embedding of the user's objects made by ``python -m
+    poseflow.features.surface_training TRAIN_DATASET --out FOLDER``.
 
     Raises:
-        ValueRangeError: an unknown name.
-        MissingWeightsError: ``"learned"`` weights that are not there.
+        ValueRangeError: an unknown name, or ``"surface"`` without a folder.
+        MissingWeightsError: ``"learned"`` or ``"surface"`` weights that are not there.
 
     Example:
         >>> build_appearance_encoder("dsift", crop_size=64).dim
@@ -113,6 +117,13 @@ def build_appearance_encoder(name: str, *, crop_size: int) -> AppearanceEncoder 
         return DINOv2Encoder(weights or "vits14", input_size=crop_size)
     if kind == "learned":
         return LearnedAppearanceEncoder(weights or None, input_size=crop_size)
+    if kind == "surface":
+        if not weights:
+            raise ValueRangeError(
+                "appearance_encoder 'surface' needs its folder: 'surface:FOLDER', made by "
+                "`python -m poseflow.features.surface_training TRAIN_DATASET --out FOLDER`"
+            )
+        return SurfaceEmbeddingEncoder(weights, input_size=crop_size)
     return None
 
 

@@ -212,6 +212,7 @@ def prepare_object(
     *,
     geometric_encoder: GeometricEncoder | None,
     appearance_encoder: AppearanceEncoder | None,
+    obj_id: int | None = None,
 ) -> PreparedObject:
     """Sample the query cloud of one object, describe it and fit its reducer.
 
@@ -220,7 +221,10 @@ def prepare_object(
         config: the model configuration (``num_points``, ``query_views``, ``reducer``,
             ``feature_dim``).
         geometric_encoder: the frozen geometric encoder, or None.
-        appearance_encoder: the frozen appearance encoder, or None.
+        appearance_encoder: the frozen appearance encoder, or None. One with a ``query_bank``
+            method (a :class:`~poseflow.features.SurfaceEmbeddingEncoder`) describes the query
+            points itself, given ``obj_id``; the others from renderings of the mesh.
+        obj_id: the object's id (needed by encoders with a ``query_bank``).
 
     Returns:
         The :class:`PreparedObject` (on the CPU, float32).
@@ -235,9 +239,15 @@ def prepare_object(
         geometric = _describe_query(model, points, normals, config, geometric_encoder)
     bank, reducer = None, None
     if appearance_encoder is not None:
-        bank = lift_query_features(
-            appearance_encoder, model, points, model.diameter, num_views=config.query_views
-        )
+        query_bank = getattr(appearance_encoder, "query_bank", None)
+        if query_bank is not None:
+            if obj_id is None:
+                raise ValueRangeError(f"{appearance_encoder!r} needs the object's id")
+            bank = query_bank(obj_id, points, model.diameter)
+        else:
+            bank = lift_query_features(
+                appearance_encoder, model, points, model.diameter, num_views=config.query_views
+            )
         reducer = build_reducer(config.reducer, n_components=config.feature_dim)
         reducer.fit(_bank_rows(bank, max_rows=_REDUCER_FIT_ROWS))
     return PreparedObject(
@@ -317,6 +327,7 @@ def prepare_objects(
                 config,
                 geometric_encoder=geometric_encoder,
                 appearance_encoder=appearance_encoder,
+                obj_id=obj_id,
             )
             if cache_dir is not None:
                 write_entry(
