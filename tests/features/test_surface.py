@@ -184,8 +184,10 @@ def test_trained_embedding_conditions_funflow6d(dataset, tmp_path) -> None:
         num_points=32, crop_size=48, appearance_encoder=f"surface:{folder}", feature_dim=16,
         dit_preset="tiny", verifier=None,
     )  # fmt: skip
-    model = FunFlow6D(cfg)
     objects = load_object_models(dataset, num_points=256)
+    with pytest.raises(ValueRangeError, match="set feature_dim to at most 16"):
+        FunFlow6D(cfg.replace(feature_dim=32)).prepare_objects(objects, progress=False)
+    model = FunFlow6D(cfg)
     model.prepare_objects(objects, progress=False)
     for o, prepared in model.objects.items():
         keys = model.appearance_encoder.model.keys_of(o, prepared.points)

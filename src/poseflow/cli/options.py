@@ -70,7 +70,8 @@ def add_config_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument(
         "--appearance-encoder",
         default=None,
-        help="dsift, dinov2:NAME_OR_PATH or none (appearance_encoder)",
+        help="dsift, dinov2:NAME_OR_PATH, learned[:FOLDER], surface:FOLDER or none "
+        "(appearance_encoder)",
     )
     group.add_argument("--reducer", default=None, help="umap, pca or identity")
     group.add_argument("--fusion", default=None, help="gated, cross, concat_mlp or sum")

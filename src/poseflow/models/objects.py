@@ -248,6 +248,11 @@ def prepare_object(
             bank = lift_query_features(
                 appearance_encoder, model, points, model.diameter, num_views=config.query_views
             )
+        if config.reducer != "identity" and config.feature_dim > bank.dim:
+            raise ValueRangeError(
+                f"feature_dim={config.feature_dim} exceeds the {bank.dim} channels of "
+                f"{appearance_encoder!r}: set feature_dim to at most {bank.dim}"
+            )
         reducer = build_reducer(config.reducer, n_components=config.feature_dim)
         reducer.fit(_bank_rows(bank, max_rows=_REDUCER_FIT_ROWS))
     return PreparedObject(
