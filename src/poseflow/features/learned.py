@@ -336,17 +336,65 @@ def save_descriptor(net: DescriptorNet, out: str | Path, **config: Any) -> Path:
         ...     load_descriptor(d)[1]["dim"]
         4
     """
+    meta = {"version": _VERSION, **net.config(), **config}
+    return _write_folder(net, out, DESCRIPTOR_FORMAT, meta)
+
+
+def _write_folder(net: nn.Module, out: str | Path, fmt: str, meta: dict[str, Any]) -> Path:
+    """Write ``model.safetensors`` (float32) and ``config.json`` (``meta`` tagged ``fmt``)."""
     from safetensors.torch import save_file
 
     folder = Path(out)
     folder.mkdir(parents=True, exist_ok=True)
     state = {k: v.detach().cpu().float().contiguous() for k, v in net.state_dict().items()}
-    meta = {"format": DESCRIPTOR_FORMAT, "version": _VERSION, **net.config(), **config}
-    text = json.dumps(meta, indent=2, sort_keys=True) + "\n"
-    metadata = {"format": DESCRIPTOR_FORMAT}
-    atomic_write(folder / _WEIGHTS, lambda tmp: save_file(state, tmp, metadata=metadata))
+    text = json.dumps({"format": fmt, **meta}, indent=2, sort_keys=True) + "\n"
+    atomic_write(folder / _WEIGHTS, lambda tmp: save_file(state, tmp, metadata={"format": fmt}))
     atomic_write(folder / _CONFIG, lambda tmp: tmp.write_text(text))
     return folder
+
+
+def _read_config(folder: Path, fmt: str, what: str) -> dict[str, Any]:
+    """A folder's ``config.json``, checked to be of format ``fmt`` and a readable version.
+
+    Raises:
+        CheckpointError: not JSON, another format (``what`` names the expected one), or newer.
+    """
+    try:
+        cfg = json.loads((folder / _CONFIG).read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise CheckpointError(f"{folder / _CONFIG} is not valid JSON: {err}") from err
+    if not isinstance(cfg, dict) or cfg.get("format") != fmt:
+        raise CheckpointError(
+            f"{folder / _CONFIG} is not a {what} configuration "
+            f"(format {cfg.get('format') if isinstance(cfg, dict) else None!r}, expected {fmt!r})"
+        )
+    if int(cfg.get("version", 0)) > _VERSION:
+        raise CheckpointError(
+            f"{folder / _CONFIG} has version {cfg['version']}; this poseflow reads up to "
+            f"{_VERSION}: upgrade poseflow"
+        )
+    return cfg
+
+
+def _load_weights(net: nn.Module, folder: Path) -> None:
+    """Load ``folder/model.safetensors`` into ``net`` strictly.
+
+    Raises:
+        CheckpointError: the file cannot be read or does not fit ``net``.
+    """
+    from safetensors import SafetensorError
+    from safetensors.torch import load_file
+
+    try:
+        state = load_file(str(folder / _WEIGHTS))
+    except (OSError, SafetensorError) as err:
+        raise CheckpointError(f"{folder / _WEIGHTS} cannot be read: {err}") from err
+    try:
+        net.load_state_dict(state, strict=True)
+    except RuntimeError as err:
+        raise CheckpointError(
+            f"{folder / _WEIGHTS} does not fit {folder / _CONFIG}: {str(err).splitlines()[0]}"
+        ) from err
 
 
 def load_descriptor(folder: str | Path) -> tuple[DescriptorNet, dict[str, Any]]:
@@ -374,21 +422,7 @@ def load_descriptor(folder: str | Path) -> tuple[DescriptorNet, dict[str, Any]]:
             raise MissingWeightsError(
                 f"learned descriptor folder {folder} lacks {name}; {_HOW_TO_MAKE}"
             )
-    try:
-        cfg = json.loads((folder / _CONFIG).read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
-        raise CheckpointError(f"{folder / _CONFIG} is not valid JSON: {err}") from err
-    if not isinstance(cfg, dict) or cfg.get("format") != DESCRIPTOR_FORMAT:
-        raise CheckpointError(
-            f"{folder / _CONFIG} is not a learned descriptor configuration "
-            f"(format {cfg.get('format') if isinstance(cfg, dict) else None!r}, "
-            f"expected {DESCRIPTOR_FORMAT!r})"
-        )
-    if int(cfg.get("version", 0)) > _VERSION:
-        raise CheckpointError(
-            f"{folder / _CONFIG} has version {cfg['version']}; this poseflow reads up to "
-            f"{_VERSION}: upgrade poseflow"
-        )
+    cfg = _read_config(folder, DESCRIPTOR_FORMAT, "learned descriptor")
     try:
         net = DescriptorNet(
             widths=cfg["widths"],
@@ -398,17 +432,5 @@ def load_descriptor(folder: str | Path) -> tuple[DescriptorNet, dict[str, Any]]:
         )
     except (KeyError, TypeError, ValueError) as err:
         raise CheckpointError(f"{folder / _CONFIG} has bad network sizes: {err!r}") from err
-    from safetensors import SafetensorError
-    from safetensors.torch import load_file
-
-    try:
-        state = load_file(str(folder / _WEIGHTS))
-    except (OSError, SafetensorError) as err:
-        raise CheckpointError(f"{folder / _WEIGHTS} cannot be read: {err}") from err
-    try:
-        net.load_state_dict(state, strict=True)
-    except RuntimeError as err:
-        raise CheckpointError(
-            f"{folder / _WEIGHTS} does not fit {folder / _CONFIG}: {str(err).splitlines()[0]}"
-        ) from err
+    _load_weights(net, folder)
     return net.eval(), cfg

@@ -22,7 +22,6 @@ Shape letters: B images, G descriptor channels, P points, H × W image.
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -32,11 +31,20 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from poseflow._cache import atomic_write
 from poseflow._checks import check_tensor
 from poseflow.errors import CheckpointError, MissingWeightsError, ValueRangeError
 from poseflow.features.appearance import network_input
-from poseflow.features.learned import DEPTH_CHANNELS, DescriptorNet, _weights_key
+from poseflow.features.learned import (
+    _CONFIG,
+    _VERSION,
+    _WEIGHTS,
+    DEPTH_CHANNELS,
+    DescriptorNet,
+    _load_weights,
+    _read_config,
+    _weights_key,
+    _write_folder,
+)
 from poseflow.features.lifting import QueryFeatureBank
 
 __all__ = [
@@ -50,9 +58,6 @@ __all__ = [
 
 #: The ``format`` tag of a surface embedding folder's ``config.json``.
 SURFACE_FORMAT = "poseflow-surface-embedding"
-_VERSION = 1
-_WEIGHTS = "model.safetensors"
-_CONFIG = "config.json"
 _HOW_TO_MAKE = (
     "make one with `python -m poseflow.features.surface_training TRAIN_DATASET --out DIR` "
     "and pass appearance_encoder='surface:DIR'"
@@ -306,18 +311,8 @@ def save_surface_embedding(model: SurfaceEmbedding, out: str | Path, **config: A
         ...     load_surface_embedding(d)[0].diameters
         {1: 0.2}
     """
-    from safetensors.torch import save_file
-
-    folder = Path(out)
-    folder.mkdir(parents=True, exist_ok=True)
-    state = {k: v.detach().cpu().float().contiguous() for k, v in model.state_dict().items()}
-    meta = {"format": SURFACE_FORMAT, "version": _VERSION, **model.config(), **config}
-    text = json.dumps(meta, indent=2, sort_keys=True) + "\n"
-    atomic_write(
-        folder / _WEIGHTS, lambda tmp: save_file(state, tmp, metadata={"format": SURFACE_FORMAT})
-    )
-    atomic_write(folder / _CONFIG, lambda tmp: tmp.write_text(text))
-    return folder
+    meta = {"version": _VERSION, **model.config(), **config}
+    return _write_folder(model, out, SURFACE_FORMAT, meta)
 
 
 def load_surface_embedding(folder: str | Path) -> tuple[SurfaceEmbedding, dict[str, Any]]:
@@ -335,17 +330,7 @@ def load_surface_embedding(folder: str | Path) -> tuple[SurfaceEmbedding, dict[s
     for path in (folder, folder / _CONFIG, folder / _WEIGHTS):
         if not path.exists():
             raise MissingWeightsError(f"surface embedding: no {path}; {_HOW_TO_MAKE}")
-    try:
-        cfg = json.loads((folder / _CONFIG).read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
-        raise CheckpointError(f"{folder / _CONFIG} is not valid JSON: {err}") from err
-    if not isinstance(cfg, dict) or cfg.get("format") != SURFACE_FORMAT:
-        raise CheckpointError(f"{folder / _CONFIG} is not a surface embedding configuration")
-    if int(cfg.get("version", 0)) > _VERSION:
-        raise CheckpointError(
-            f"{folder / _CONFIG} has version {cfg['version']}; this poseflow reads up to "
-            f"{_VERSION}: upgrade poseflow"
-        )
+    cfg = _read_config(folder, SURFACE_FORMAT, "surface embedding")
     try:
         model = SurfaceEmbedding(
             {int(o): float(d) for o, d in cfg["diameters"].items()},
@@ -357,17 +342,5 @@ def load_surface_embedding(folder: str | Path) -> tuple[SurfaceEmbedding, dict[s
         )
     except (KeyError, TypeError, ValueError, AttributeError) as err:
         raise CheckpointError(f"{folder / _CONFIG} has bad sizes: {err!r}") from err
-    from safetensors import SafetensorError
-    from safetensors.torch import load_file
-
-    try:
-        state = load_file(str(folder / _WEIGHTS))
-    except (OSError, SafetensorError) as err:
-        raise CheckpointError(f"{folder / _WEIGHTS} cannot be read: {err}") from err
-    try:
-        model.load_state_dict(state, strict=True)
-    except RuntimeError as err:
-        raise CheckpointError(
-            f"{folder / _WEIGHTS} does not fit {folder / _CONFIG}: {str(err).splitlines()[0]}"
-        ) from err
+    _load_weights(model, folder)
     return model.eval(), cfg
