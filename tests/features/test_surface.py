@@ -4,13 +4,15 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 
 import pytest
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from poseflow.data import generate_dataset
+from poseflow.data import ImageInstances, generate_dataset
+from poseflow.data.bop import BOPDataset
 from poseflow.data.object_folder import load_object_models
 from poseflow.errors import CheckpointError, MissingWeightsError, ValueRangeError
 from poseflow.features import (
@@ -18,12 +20,16 @@ from poseflow.features import (
     SurfaceEmbeddingEncoder,
     SurfaceKeys,
     load_surface_embedding,
+    match_surface,
     save_surface_embedding,
 )
 from poseflow.features.appearance import AppearanceEncoder
 from poseflow.features.surface_training import surface_crops, surface_loss, train_surface_embedding
 from poseflow.models import FunFlow6D, FunFlow6DConfig
 from poseflow.models.components import build_appearance_encoder
+from poseflow.models.objects import select_objects
+from poseflow.models.proposals import flow_proposals, surface_match_positions
+from poseflow.verify import VerifierConfig
 
 TINY = {"dim": 8, "widths": (8, 16, 16), "key_width": 16, "frequencies": 3}
 
@@ -53,6 +59,27 @@ def test_keys_are_unit_per_object_and_follow_the_dtype(seed, dtype) -> None:
     assert not torch.allclose(k1, k2)  # one MLP per object
     with pytest.raises(ValueRangeError, match="no surface keys for object 3"):
         keys(3, pts)
+
+
+@given(
+    seed=st.integers(0, 2**16),
+    dtype=st.sampled_from([torch.float32, torch.float64]),
+    scale=st.floats(0.1, 10.0),
+)
+@settings(max_examples=20, deadline=None)
+def test_match_surface_finds_each_query_its_own_key_and_skips_padding(seed, dtype, scale) -> None:
+    g = torch.Generator().manual_seed(seed)
+    keys = torch.nn.functional.normalize(torch.randn(2, 12, 16, generator=g, dtype=dtype), dim=-1)
+    true = torch.randint(0, 12, (2, 5), generator=g)
+    queries = scale * (keys.gather(1, true[..., None].expand(-1, -1, 16)))
+    queries = queries + 1e-3 * scale * torch.randn(queries.shape, generator=g, dtype=dtype)
+    index, sim = match_surface(queries, keys)
+    assert torch.equal(index, true) and sim.dtype == dtype
+    assert bool((sim <= 1 + 1e-6).all()) and bool((sim > 0.99).all())
+    key_mask = torch.ones(2, 12, dtype=torch.bool)
+    key_mask[0, true[0, 0]] = False  # the true key of the first query is padding
+    index, _ = match_surface(queries, keys, key_mask)
+    assert bool(key_mask.gather(1, index).all()) and torch.equal(index[1], true[1])
 
 
 def test_bad_sizes_are_clear_errors() -> None:
@@ -162,13 +189,13 @@ def test_encoder_queries_and_keys(tmp_path, device, dtype) -> None:
         maps.norm(dim=1), torch.ones(2, 8, 8, device=device, dtype=dtype), atol=1e-4, rtol=0
     )
     pts = torch.rand(6, 3) * 0.05
-    bank = enc.query_bank(1, pts, 0.1)
-    assert bank.features.shape == (6, 1, 8) and bool(bank.visible.all())
-    torch.testing.assert_close(bank.pooled(), enc.model.keys_of(1, pts.to(device)).cpu())
+    keys = enc.point_keys(1, pts, 0.1)
+    assert keys.shape == (6, 8) and keys.dtype == torch.float32 and keys.device.type == "cpu"
+    torch.testing.assert_close(keys, enc.model.keys_of(1, pts.to(device)).cpu())
     with pytest.raises(ValueRangeError, match="no keys for object 2"):
-        enc.query_bank(2, pts, 0.1)
+        enc.point_keys(2, pts, 0.1)
     with pytest.raises(ValueRangeError, match="another mesh or mesh scale"):
-        enc.query_bank(1, pts, 0.2)
+        enc.point_keys(1, pts, 0.2)
     with pytest.raises(ValueRangeError, match="needs its folder"):
         build_appearance_encoder("surface", crop_size=32)
 
@@ -192,3 +219,42 @@ def test_trained_embedding_conditions_funflow6d(dataset, tmp_path) -> None:
     for o, prepared in model.objects.items():
         keys = model.appearance_encoder.model.keys_of(o, prepared.points)
         torch.testing.assert_close(prepared.bank.pooled(), keys)
+    for o, prepared in model.objects.items():
+        torch.testing.assert_close(
+            prepared.dense_keys, model.appearance_encoder.model.keys_of(o, prepared.dense_points)
+        )
+    cached = FunFlow6D(cfg)
+    for _ in range(2):  # the second reads the cache, keys included
+        cached.prepare_objects(objects, cache_dir=tmp_path / "cache", progress=False)
+        for o, prepared in cached.objects.items():
+            torch.testing.assert_close(prepared.dense_keys, model.objects[o].dense_keys)
+
+    scene = BOPDataset(dataset, "test").scene(BOPDataset(dataset, "test").scene_ids[0])
+    im_id = scene.im_ids[0]
+    gts = scene.gt_of(im_id)
+    masks = torch.stack([scene.load_mask(im_id, k, visible=True) for k in range(len(gts))])
+    image = ImageInstances(
+        scene.load_rgb_image(im_id), scene.load_depth_image(im_id),
+        torch.as_tensor(scene.camera[im_id].K, dtype=torch.float32), masks,
+        [gt.obj_id for gt in gts],
+    )  # fmt: skip
+    obs = model.observe(image)
+    inputs = model.flow_inputs(obs)
+    prepared = select_objects(model.objects, obs.obj_ids)
+    matched = surface_match_positions(obs, prepared, inputs.scale)
+    assert matched.shape == obs.points.shape
+    for b, o in enumerate(prepared):  # every position is the best-keyed dense point
+        queries = torch.nn.functional.normalize(obs.appearance[b], dim=-1)
+        best = (queries @ o.dense_keys.T).argmax(1)
+        torch.testing.assert_close(matched[b] * inputs.scale[b], o.dense_points[best])
+    ranked = cfg.replace(verifier=VerifierConfig(), num_hypotheses=2)
+    rows = {}
+    for match in (True, False):
+        out = flow_proposals(
+            model.net, inputs, obs, model.objects, ranked.replace(match_hypothesis=match),
+            torch.Generator().manual_seed(0),
+        )  # fmt: skip
+        rows[match] = out.others.shape[1]
+    assert rows == {True: 2, False: 1}  # the match is one more ranked hypothesis
+    with pytest.raises(ValueRangeError, match="need a surface embedding"):
+        surface_match_positions(replace(obs, appearance=None), prepared, inputs.scale)

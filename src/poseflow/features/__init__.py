@@ -13,7 +13,8 @@ model ``Q`` and of the observed target ``T``.
   own descriptor network, trained on generated renders by
   :mod:`poseflow.features.descriptor_training`), :class:`SurfaceEmbeddingEncoder` (queries of
   RGB-D crops against per-object surface keys, learned from renders of the user's objects by
-  :mod:`poseflow.features.surface_training`);
+  :mod:`poseflow.features.surface_training`; :func:`match_surface` pairs observed points with the
+  surface points they show);
 - lifting: :func:`lift_target_features` (crop around the barycentre), :func:`lift_query_features`
   (multi-view renderings → :class:`QueryFeatureBank`), cached per object by :class:`FeatureCache`;
 - reduction (:class:`Reducer`): :class:`UMAPReducer` (umap-learn or, on CUDA, TorchDR fit; fast
@@ -67,6 +68,7 @@ from poseflow.features.surface import (
     SurfaceEmbeddingEncoder,
     SurfaceKeys,
     load_surface_embedding,
+    match_surface,
     save_surface_embedding,
 )
 
@@ -104,6 +106,7 @@ __all__ = [
     "load_descriptor",
     "load_reducer",
     "load_surface_embedding",
+    "match_surface",
     "sample_features",
     "save_descriptor",
     "save_surface_embedding",

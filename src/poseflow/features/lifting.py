@@ -221,6 +221,27 @@ class QueryFeatureBank:
     poses: torch.Tensor
     rolls: int = 1
 
+    @classmethod
+    def one_view(cls, points: torch.Tensor, features: torch.Tensor) -> QueryFeatureBank:
+        """A bank of features ``(N, G)`` that describe points ``(N, 3)`` without views.
+
+        For encoders that describe surface points directly (a surface embedding's keys): one
+        view that sees every point, at the identity pose; float32 on the CPU.
+
+        Example:
+            >>> bank = QueryFeatureBank.one_view(torch.zeros(4, 3), torch.ones(4, 2))
+            >>> bank.features.shape, bool(bank.visible.all())
+            (torch.Size([4, 1, 2]), True)
+        """
+        check_tensor(points, "points", ("N", 3))
+        check_tensor(features, "features", ("N", "G"))
+        return cls(
+            points.detach().clone().cpu().float(),
+            features.detach().cpu().float()[:, None],
+            torch.ones(points.shape[0], 1, dtype=torch.bool),
+            torch.eye(4)[None],
+        )
+
     @property
     def dim(self) -> int:
         """The feature size ``G``."""

@@ -11,13 +11,14 @@ directly, and the query network learns the object's own shading, texture and rel
 
 :class:`SurfaceEmbeddingEncoder` is the trained embedding as FunFlow6D's appearance encoder
 (``appearance_encoder="surface:FOLDER"``): ``encode`` gives the query maps of target crops and
-``query_bank`` the keys of an object's query points. Matching two RGB-D observations of a known
-object needs only the query maps of both (:func:`~poseflow.features.sample_features`).
+``point_keys`` the keys of an object's surface points; :func:`match_surface` finds each observed
+point's best key, the surface point it shows. Matching two RGB-D observations of a known object
+needs only the query maps of both (:func:`~poseflow.features.sample_features`).
 
 A folder holds ``model.safetensors`` and ``config.json`` (no pickle), written by
 :func:`save_surface_embedding` and read by :func:`load_surface_embedding`.
 
-Shape letters: B images, G descriptor channels, P points, H × W image.
+Shape letters: B images or instances, G descriptor channels, P or M points, N queries, H × W image.
 """
 
 from __future__ import annotations
@@ -45,7 +46,6 @@ from poseflow.features.learned import (
     _weights_key,
     _write_folder,
 )
-from poseflow.features.lifting import QueryFeatureBank
 
 __all__ = [
     "SURFACE_FORMAT",
@@ -53,6 +53,7 @@ __all__ = [
     "SurfaceEmbeddingEncoder",
     "SurfaceKeys",
     "load_surface_embedding",
+    "match_surface",
     "save_surface_embedding",
 ]
 
@@ -259,13 +260,16 @@ class SurfaceEmbeddingEncoder:
         return self.model.query(x).to(device=images.device, dtype=images.dtype)
 
     @torch.no_grad()
-    def query_bank(self, obj_id: int, points: torch.Tensor, diameter: float) -> QueryFeatureBank:
-        """The keys of an object's query points as a one-view bank.
+    def point_keys(self, obj_id: int, points: torch.Tensor, diameter: float) -> torch.Tensor:
+        """The keys of an object's surface points, the descriptors their pixels are matched to.
 
         Args:
             obj_id: the object.
-            points: its query points ``(N, 3)``, metres, model frame.
-            diameter: its diameter in metres (checked against the trained one).
+            points: surface points ``(P, 3)``, metres, model frame.
+            diameter: the object's diameter in metres (checked against the trained one).
+
+        Returns:
+            Unit keys ``(P, G)``, float32 on the CPU.
 
         Raises:
             ValueRangeError: an object the embedding was not trained for, or of another size.
@@ -283,13 +287,37 @@ class SurfaceEmbeddingEncoder:
             )
         param = next(self.model.parameters())
         keys = self.model.keys_of(obj_id, points.to(device=param.device, dtype=param.dtype))
-        n = points.shape[0]
-        return QueryFeatureBank(
-            points.detach().clone().cpu().float(),
-            keys.cpu().float()[:, None],
-            torch.ones(n, 1, dtype=torch.bool),
-            torch.eye(4)[None],
-        )
+        return keys.cpu().float()
+
+
+def match_surface(
+    queries: torch.Tensor, keys: torch.Tensor, key_mask: torch.Tensor | None = None
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each query's best-matching key by cosine similarity.
+
+    Args:
+        queries: descriptors of observed points ``(B, N, G)`` (e.g. query maps sampled at the
+            pixels of a target cloud; normalised here).
+        keys: unit keys of surface points ``(B, M, G)``
+            (:meth:`SurfaceEmbeddingEncoder.point_keys`).
+        key_mask: valid keys ``(B, M)`` (padding of objects with fewer points), or None.
+
+    Returns:
+        ``(index (B, N), similarity (B, N))``: the best key of every query and its cosine.
+
+    Example:
+        >>> keys = F.normalize(torch.randn(1, 6, 4), dim=-1)
+        >>> index, sim = match_surface(2 * keys[:, [3, 0]], keys)
+        >>> index.tolist(), [round(v, 4) for v in sim[0].tolist()]
+        ([[3, 0]], [1.0, 1.0])
+    """
+    check_tensor(queries, "queries", ("B", "N", "G"))
+    check_tensor(keys, "keys", ("B", "M", "G"))
+    sim = F.normalize(queries.to(keys.dtype), dim=-1) @ keys.transpose(1, 2)
+    if key_mask is not None:
+        sim = sim.masked_fill(~key_mask[:, None, :], -2.0)  # below any cosine
+    similarity, index = sim.max(dim=-1)
+    return index, similarity
 
 
 def save_surface_embedding(model: SurfaceEmbedding, out: str | Path, **config: Any) -> Path:

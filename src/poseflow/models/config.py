@@ -260,6 +260,12 @@ class FunFlow6DConfig:
             when it is a network (the learned descriptor, DINOv2): the same names as
             ``flow_precision``; the objects' view features and the training set's stay float32.
         num_hypotheses: noise samples per instance; the pose with the best score is kept.
+        match_hypothesis: with a surface embedding as the appearance encoder
+            (``"surface:FOLDER"``, which describes every surface point), one more hypothesis
+            per instance: each target point paired with the dense surface point whose key its
+            descriptor matches best, solved and verified like a flow sample
+            (:func:`~poseflow.models.proposals.surface_match_positions`). No effect with other
+            encoders.
         pose_solver: ``"ransac"`` (RANSAC-Procrustes, paper) or ``"svd"`` (one Procrustes on all
             correspondences).
         ransac_iterations: RANSAC hypotheses (paper: 1,000).
@@ -303,6 +309,7 @@ class FunFlow6DConfig:
     flow_precision: str = "auto"
     appearance_precision: str = "auto"
     num_hypotheses: int = 1
+    match_hypothesis: bool = True
     pose_solver: str = "ransac"
     ransac_iterations: int = 1000
     ransac_distance: float = 0.05
@@ -532,6 +539,7 @@ INFERENCE_FIELDS: tuple[str, ...] = (
     "flow_precision",
     "appearance_precision",
     "num_hypotheses",
+    "match_hypothesis",
     "dense_points",
     "pose_solver",
     "ransac_iterations",

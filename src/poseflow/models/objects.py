@@ -74,6 +74,9 @@ class PreparedObject:
         geometric: ``Φ(Q)`` ``(N, Dg)``, or None without a geometric encoder.
         bank: the multi-view appearance bank of ``Q``, or None without an appearance encoder.
         reducer: the reducer fitted on the query's appearance features, or None.
+        dense_keys: the appearance encoder's keys of ``dense_points`` ``(Nd, G)`` when it
+            describes surface points itself (a surface embedding, whose matches give a pose
+            hypothesis: :func:`~poseflow.models.proposals.surface_match_positions`), else None.
     """
 
     points: torch.Tensor
@@ -83,6 +86,7 @@ class PreparedObject:
     geometric: torch.Tensor | None
     bank: QueryFeatureBank | None
     reducer: Reducer | None
+    dense_keys: torch.Tensor | None = None
 
     def save(self, folder: str | Path, *, fingerprint: Mapping[str, Any]) -> Path:
         """Write the object to ``folder`` (safetensors + JSON + reducer), tagged ``fingerprint``."""
@@ -99,6 +103,8 @@ class PreparedObject:
             tensors["geometric"] = self.geometric
         if self.bank is not None:
             tensors.update({f"bank.{k}": v for k, v in self.bank.state().items()})
+        if self.dense_keys is not None:
+            tensors["dense_keys"] = self.dense_keys
         if self.reducer is not None:
             self.reducer.save(folder / "reducer")
         tensors = {k: v.contiguous() for k, v in tensors.items()}
@@ -129,6 +135,7 @@ class PreparedObject:
             geometric=t.get("geometric"),
             bank=QueryFeatureBank.from_state(bank_state) if bank_state else None,
             reducer=load_reducer(folder / "reducer") if (folder / "reducer").exists() else None,
+            dense_keys=t.get("dense_keys"),
         )
 
 
@@ -151,6 +158,8 @@ def object_fingerprint(config: FunFlow6DConfig) -> dict[str, Any]:
     }
     if config.geometric_support_voxel:  # absent when 0, so that older caches stay valid
         out["geometric_support_voxel"] = config.geometric_support_voxel
+    if config.appearance_encoder.startswith("surface"):  # entries with the dense points' keys
+        out["dense_keys"] = True
     return out
 
 
@@ -221,10 +230,11 @@ def prepare_object(
         config: the model configuration (``num_points``, ``query_views``, ``reducer``,
             ``feature_dim``).
         geometric_encoder: the frozen geometric encoder, or None.
-        appearance_encoder: the frozen appearance encoder, or None. One with a ``query_bank``
-            method (a :class:`~poseflow.features.SurfaceEmbeddingEncoder`) describes the query
-            points itself, given ``obj_id``; the others from renderings of the mesh.
-        obj_id: the object's id (needed by encoders with a ``query_bank``).
+        appearance_encoder: the frozen appearance encoder, or None. One with a ``point_keys``
+            method (a :class:`~poseflow.features.SurfaceEmbeddingEncoder`) describes the dense
+            surface points itself, given ``obj_id`` (the query points' keys are then their
+            one-view bank); the others describe the query points from renderings of the mesh.
+        obj_id: the object's id (needed by encoders with ``point_keys``).
 
     Returns:
         The :class:`PreparedObject` (on the CPU, float32).
@@ -237,13 +247,14 @@ def prepare_object(
     geometric = None
     if geometric_encoder is not None:
         geometric = _describe_query(model, points, normals, config, geometric_encoder)
-    bank, reducer = None, None
+    bank, reducer, dense_keys = None, None, None
     if appearance_encoder is not None:
-        query_bank = getattr(appearance_encoder, "query_bank", None)
-        if query_bank is not None:
+        point_keys = getattr(appearance_encoder, "point_keys", None)
+        if point_keys is not None:
             if obj_id is None:
                 raise ValueRangeError(f"{appearance_encoder!r} needs the object's id")
-            bank = query_bank(obj_id, points, model.diameter)
+            dense_keys = point_keys(obj_id, dense, model.diameter)
+            bank = QueryFeatureBank.one_view(points, dense_keys[idx[0]])
         else:
             bank = lift_query_features(
                 appearance_encoder, model, points, model.diameter, num_views=config.query_views
@@ -263,6 +274,7 @@ def prepare_object(
         geometric=geometric,
         bank=bank,
         reducer=reducer,
+        dense_keys=dense_keys,
     )
 
 

@@ -4,18 +4,25 @@
 of ``B·H`` samples), solves every sample for a pose (:func:`~poseflow.models.pose.solve_pose`),
 keeps the best by the solver's score as the incumbent and, when the verifier ranks hypotheses,
 the others as its candidates: the :class:`~poseflow.models.verification.Proposals` that
-:meth:`FunFlow6D.verify <poseflow.models.FunFlow6D.verify>` checks.
+:meth:`FunFlow6D.verify <poseflow.models.FunFlow6D.verify>` checks. With a surface embedding as
+the appearance encoder, its own matches (:func:`surface_match_positions`) are one more
+hypothesis of each instance, solved alongside the flow's: the embedding and the flow fail on
+different instances, and the verifier tells which pose explains the image.
 
-Shape letters: ``B`` instances, ``H`` hypotheses per instance, ``N`` points per cloud.
+Shape letters: ``B`` instances, ``H`` hypotheses per instance, ``N`` points per cloud, ``Nd``
+dense surface points.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 
 import torch
 
+from poseflow.errors import ValueRangeError
 from poseflow.eval.predict import PoseEstimate, invalidate_implausible
+from poseflow.eval.timing import stage
+from poseflow.features import match_surface
 from poseflow.flows import get_sampler
 from poseflow.models.config import FunFlow6DConfig
 from poseflow.models.inputs import FlowInputs
@@ -25,13 +32,52 @@ from poseflow.models.observe import Observation
 from poseflow.models.pose import select_hypotheses, solve_pose
 from poseflow.models.verification import Proposals, other_hypotheses
 
-__all__ = ["flow_proposals", "no_proposals"]
+__all__ = ["flow_proposals", "no_proposals", "surface_match_positions"]
 
 
 def no_proposals(device: torch.device | str | None = None) -> Proposals:
     """The proposals of an image without instances (``B = 0``)."""
     est = PoseEstimate.empty(device=device)
     return Proposals(est, est.poses[:, None][:, :0], est.valid[:, None][:, :0])
+
+
+def surface_match_positions(
+    obs: Observation, objects: Sequence[PreparedObject], scale: torch.Tensor
+) -> torch.Tensor:
+    """Each target point's canonical position by the surface embedding's best key match.
+
+    Args:
+        obs: the observation; its ``appearance`` ``(B, N, G)`` are the embedding's queries.
+        objects: the prepared object of every instance (``B``), with their ``dense_keys``.
+        scale: the half diameter ``s`` of every instance's object ``(B,)``.
+
+    Returns:
+        ``(B, N, 3)``: the dense surface point (model frame) whose key matches each target
+        point best, divided by ``s`` (the flow's ``T̂ / s``).
+
+    Raises:
+        ValueRangeError: the observation has no appearance features or an object has no keys
+            (its appearance encoder is not a surface embedding).
+    """
+    if obs.appearance is None or any(o.dense_keys is None for o in objects):
+        raise ValueRangeError(
+            "surface matches need a surface embedding as the appearance encoder "
+            "(appearance_encoder='surface:FOLDER')"
+        )
+    dev, dt = scale.device, scale.dtype
+    size = max(len(o.dense_keys) for o in objects)  # type: ignore[arg-type]
+    B = len(objects)
+    keys = torch.zeros(B, size, obs.appearance.shape[-1], device=dev)
+    points = torch.zeros(B, size, 3, dtype=dt, device=dev)
+    key_mask = torch.zeros(B, size, dtype=torch.bool, device=dev)
+    for b, o in enumerate(objects):
+        n = len(o.dense_keys)  # type: ignore[arg-type]
+        keys[b, :n] = o.dense_keys.to(dev)  # type: ignore[union-attr]
+        points[b, :n] = o.dense_points.to(dev, dt)
+        key_mask[b, :n] = True
+    index, _ = match_surface(obs.appearance.to(dev), keys, key_mask)
+    matched = torch.gather(points, 1, index[..., None].expand(-1, -1, 3))
+    return matched / scale[:, None, None]
 
 
 def flow_proposals(
@@ -43,6 +89,10 @@ def flow_proposals(
     generator: torch.Generator,
 ) -> Proposals:
     """Sample ``H = config.num_hypotheses`` flows per instance and solve each for a pose.
+
+    With ``config.match_hypothesis`` and a surface embedding's keys on the objects, the
+    embedding's matches (:func:`surface_match_positions`) are solved as an ``H+1``-th
+    hypothesis of each instance.
 
     Args:
         net: the velocity net.
@@ -57,7 +107,8 @@ def flow_proposals(
     Returns:
         :class:`~poseflow.models.verification.Proposals` of the ``B`` instances: the best
         hypothesis each (a pose behind the camera flagged invalid), the others ``(B, H-1, 4, 4)``
-        when ranked, and the observation's cleaned clouds for the verifier's ICP.
+        (``(B, H, 4, 4)`` with the match hypothesis) when ranked, and the observation's cleaned
+        clouds for the verifier's ICP.
     """
     H = config.num_hypotheses
     x_1 = net.sample(
@@ -69,15 +120,26 @@ def flow_proposals(
         num_samples=H,
         precision=config.flow_precision,
     )
-    rep = inputs.repeat_interleave(H)
+    B, n = inputs.points.shape[0], inputs.points.shape[1] // 2
+    predicted = x_1[:, n:].reshape(B, H, n, 3)
+    prepared = select_objects(objects, inputs.obj_ids)
+    if (
+        config.match_hypothesis
+        and obs.appearance is not None
+        and all(o.dense_keys is not None for o in prepared)
+    ):
+        with stage("matching"):
+            matched = surface_match_positions(obs, prepared, inputs.scale)
+        predicted = torch.cat([predicted, matched[:, None].to(predicted)], 1)
+    rows = predicted.shape[1]  # hypotheses per instance
+    rep = inputs.repeat_interleave(rows)
     dense = [o.dense_points for o in select_objects(objects, rep.obj_ids)]
-    n = rep.points.shape[1] // 2
-    solved = solve_pose(rep, x_1[:, n:], dense, config, generator=generator)
-    est = select_hypotheses(*solved, obs.valid, H)
+    solved = solve_pose(rep, predicted.flatten(0, 1), dense, config, generator=generator)
+    est = select_hypotheses(*solved, obs.valid, rows)
     est = invalidate_implausible(est)  # nothing behind the camera is verified
-    rank = config.verifier is not None and config.verifier.rank_hypotheses and H > 1
+    rank = config.verifier is not None and config.verifier.rank_hypotheses and rows > 1
     if rank:
-        others, others_mask = other_hypotheses(*solved, H)
+        others, others_mask = other_hypotheses(*solved, rows)
     else:
         others, others_mask = est.poses[:, None][:, :0], est.valid[:, None][:, :0]
     return Proposals(est, others, others_mask, obs.cloud, obs.cloud_mask, rank=rank)
