@@ -20,28 +20,41 @@ run again, so a second run with other seeds or ``--predict-args`` only predicts 
 
 Run ``python benchmarks/unseen.py ../shared/devbench`` (about an hour on one CPU core: the
 README recipe's synth of 3,200 images and training take about 45 minutes, then 0.3-1.2 s per
-image and estimator). ``--quick`` (CI) generates a two-image test split of the demo objects as the
-"user's dataset" and trains a few steps on four generated images (with ``--oracle`` when both
-estimators run): it checks that the recipe runs, not its accuracy.
+image and estimator). ``--surface-steps N`` learns a surface embedding of the dataset's objects
+on the synth images first (:func:`~poseflow.features.surface_training.train_surface_embedding`)
+and trains FunFlow6D on it; ``--threads`` sets the recipe's threads (synth processes, training
+threads). Each step of the recipe prints its minutes.
+
+``--quick`` (CI) generates a two-image test split of the demo objects as the "user's dataset"
+and trains a few steps on four generated images (with ``--oracle`` when both estimators run): it
+checks that the recipe runs, not its accuracy.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import statistics
 import sys
 import tempfile
+import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import torch
 
+from poseflow import num_threads
+from poseflow._threads import default_num_threads
 from poseflow.cli import main as poseflow
 from poseflow.eval import closest_results, write_results
+from poseflow.features.surface_training import train_surface_embedding
 
 REPO = Path(__file__).resolve().parents[1]
 METRICS = ("AR", "AR_VSD", "AR_MSSD", "AR_MSPD")
 METHODS = ("funflow6d", "baseline", "hybrid")
+#: Channels of the recipe's surface embedding (its reducer keeps them all).
+SURFACE_DIM = 32
 
 
 def _run(command: list[str]) -> None:
@@ -51,21 +64,40 @@ def _run(command: list[str]) -> None:
 
 
 def _recipe(args: argparse.Namespace, dataset: Path, work: Path) -> Path:
-    """Synthesise training images of the dataset's models and train; returns the model folder."""
-    train_data, run = work / "train_data", work / "run"
+    """Synthesise training images, learn a surface embedding (``--surface-steps``) and train.
+
+    Returns the model folder; prints each step's minutes.
+    """
+    train_data, run, surface = work / "train_data", work / "run", work / "surface"
+    threads = [] if args.threads is None else ["--threads", str(args.threads)]
     if not (train_data / "train").is_dir():
-        _run([
-            "synth", str(train_data), "--objects", str(dataset / "models"),
-            "--mesh-scale", str(args.mesh_scale), "--train", str(args.train_images),
-            "--test", "0", "--seed", str(args.synth_seed), "--no-progress",
-        ])  # fmt: skip
+        with _minutes("synth"):
+            _run([
+                "synth", str(train_data), "--objects", str(dataset / "models"),
+                "--mesh-scale", str(args.mesh_scale), "--train", str(args.train_images),
+                "--test", "0", "--seed", str(args.synth_seed), "--no-progress",
+                *threads,
+            ])  # fmt: skip
+    train_args = args.train_args.split()
+    if args.surface_steps:
+        if not (surface / "model.safetensors").is_file():
+            with _minutes("surface embedding"), num_threads(args.threads or default_num_threads()):
+                train_surface_embedding(
+                    train_data, surface, steps=args.surface_steps, progress=False
+                )
+        encoder = f"surface:{surface.resolve()}"
+        train_args = [
+            "--appearance-encoder", encoder, "--set", f"feature_dim={SURFACE_DIM}", *train_args
+        ]  # fmt: skip
     model = run / "model"
     if not (model / "model.safetensors").is_file():
-        _run([
-            "train", str(train_data), "--out", str(run), "--config", str(args.config),
-            "--steps", str(args.steps), "--batch-size", "16", "--lr", "1e-3",
-            "--ema-decay", "0.995", "--device", "cpu", "--no-progress", *args.train_args.split(),
-        ])  # fmt: skip
+        with _minutes("train (features and network)"):
+            _run([
+                "train", str(train_data), "--out", str(run), "--config", str(args.config),
+                "--steps", str(args.steps), "--batch-size", "16", "--lr", "1e-3",
+                "--ema-decay", "0.995", "--device", "cpu", "--no-progress",
+                *threads, *train_args,
+            ])  # fmt: skip
     if not args.distill_steps:
         return model
     one_step = work / "run_1step"
@@ -76,6 +108,14 @@ def _recipe(args: argparse.Namespace, dataset: Path, work: Path) -> Path:
             "--ema-decay", "0.995", "--device", "cpu", "--no-progress",
         ])  # fmt: skip
     return one_step / "model"
+
+
+@contextlib.contextmanager
+def _minutes(step: str) -> Iterator[None]:
+    """Print the wall-clock minutes of one step of the recipe."""
+    start = time.perf_counter()
+    yield
+    print(f"recipe: {step} took {(time.perf_counter() - start) / 60:.1f} min", flush=True)
 
 
 def _baseline_args(extra: list[str]) -> list[str]:
@@ -128,6 +168,20 @@ def main() -> None:
         "its results are tagged 1step (--train-args apply to the teacher only)",
     )
     parser.add_argument("--distill-lr", type=float, default=2e-4)
+    parser.add_argument(
+        "--surface-steps",
+        type=int,
+        default=0,
+        help="learn a surface embedding of the dataset's objects on the synth images in this many "
+        "steps first and train FunFlow6D on it (0: the shipped descriptor)",
+    )
+    parser.add_argument(
+        "--threads",
+        type=int,
+        default=None,
+        help="CPU threads of the recipe's synth (processes) and training (default: "
+        "$OMP_NUM_THREADS if set, else 1)",
+    )
     parser.add_argument("--mesh-scale", type=float, default=0.001, help="model units to metres")
     parser.add_argument("--synth-seed", type=int, default=1)
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="predict seeds")
@@ -157,6 +211,7 @@ def main() -> None:
                   "--width", "320", "--height", "240", "--no-progress"])  # fmt: skip
             args.train_images, args.steps, args.seeds = 4, 20, [0]
             args.distill_steps = min(args.distill_steps, 5)
+            args.surface_steps = min(args.surface_steps, 5)
             args.oracle = {"funflow6d", "baseline"} <= set(args.methods)  # runs it too
             work = Path(tmp) / "work"
         elif args.dataset is None:
