@@ -18,12 +18,12 @@ them without their ``--set`` of fields other than the verifier's (the verificati
 Everything is written under ``--work`` (default ``runs/unseen/DATASET_NAME``) and reused when
 run again, so a second run with other seeds or ``--predict-args`` only predicts and scores.
 
-Run ``python benchmarks/unseen.py ../shared/devbench`` (about an hour on one CPU core: the
-README recipe's synth of 3,200 images and training take about 45 minutes, then 0.3-1.2 s per
-image and estimator). ``--surface-steps N`` learns a surface embedding of the dataset's objects
-on the synth images first (:func:`~poseflow.features.surface_training.train_surface_embedding`)
-and trains FunFlow6D on it; ``--threads`` sets the recipe's threads (synth processes, training
-threads). Each step of the recipe prints its minutes.
+Run ``python benchmarks/unseen.py ../shared/devbench --threads 2`` (the README recipe's synth of
+3,200 images, the surface embedding and the training took 39 minutes on an idle 2-core machine,
+then 0.3-1.7 s per image and estimator). The recipe learns a surface embedding of the dataset's
+objects on the synth images (:func:`~poseflow.features.surface_training.train_surface_embedding`,
+``--surface-steps``; 0 keeps the shipped descriptor) and trains FunFlow6D on it; ``--threads``
+sets the recipe's threads (synth processes, training threads). Each step prints its minutes.
 
 ``--quick`` (CI) generates a two-image test split of the demo objects as the "user's dataset"
 and trains a few steps on four generated images (with ``--oracle`` when both estimators run): it
@@ -171,9 +171,9 @@ def main() -> None:
     parser.add_argument(
         "--surface-steps",
         type=int,
-        default=0,
-        help="learn a surface embedding of the dataset's objects on the synth images in this many "
-        "steps first and train FunFlow6D on it (0: the shipped descriptor)",
+        default=10000,
+        help="steps of the surface embedding of the dataset's objects, learned on the synth images "
+        "before FunFlow6D is trained on it (0: train on the shipped descriptor)",
     )
     parser.add_argument(
         "--threads",
