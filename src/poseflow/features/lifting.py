@@ -86,6 +86,9 @@ def lift_target_features(
     Returns:
         Features ``(B, M, G)`` in the images' dtype, zero on padded rows.
 
+    Raises:
+        ValueRangeError: NaN or inf in the crop of an instance.
+
     Example:
         >>> from poseflow.features.appearance import DenseSIFTEncoder
         >>> K = torch.tensor([[100.0, 0, 32], [0, 100.0, 32], [0, 0, 1]])
@@ -96,7 +99,7 @@ def lift_target_features(
         torch.Size([1, 50, 128])
     """
     channels = getattr(encoder, "in_channels", 3)
-    sizes = check_tensor(images, "images", ("B", channels, "H", "W"), finite=True)
+    sizes = check_tensor(images, "images", ("B", channels, "H", "W"))
     check_tensor(points, "points", ("B", "M", 3), sizes=sizes)
     if mask is None:
         mask = torch.ones(points.shape[:2], dtype=torch.bool, device=points.device)
@@ -107,6 +110,8 @@ def lift_target_features(
         box = jitter_boxes(box, jitter, generator=generator)
     size = encoder.input_size
     crops = crop_resize(images, box.to(images.dtype), size)
+    if not bool(torch.isfinite(crops).all()):  # what the encoder reads, not the whole images
+        raise ValueRangeError("images contain NaN or inf where an instance is cropped")
     uv = project_points(points, K, mask) if pixels is None else pixels
     crop_uv = pixels_to_crop(uv, box, size).to(crops.dtype)
     out = features_at(encoder, crops, crop_uv)

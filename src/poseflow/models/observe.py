@@ -247,7 +247,9 @@ def _appearance_features(
     if bool(v.any()):
         appearance[v] = lift_target_features(
             encoder,
-            image[v] if image.dim() == 4 else image.expand(int(v.sum()), *image.shape),
+            (image if bool(v.all()) else image[v])  # no copy of the full images when all are valid
+            if image.dim() == 4
+            else image.expand(int(v.sum()), *image.shape),
             obs.points[v],
             K,
             obs.mask[v],
