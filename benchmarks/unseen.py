@@ -83,7 +83,7 @@ def _recipe(args: argparse.Namespace, dataset: Path, work: Path) -> Path:
         if not (surface / "model.safetensors").is_file():
             with _minutes("surface embedding"), num_threads(args.threads or default_num_threads()):
                 train_surface_embedding(
-                    train_data, surface, steps=args.surface_steps, progress=False
+                    train_data, surface, steps=args.surface_steps, dim=SURFACE_DIM, progress=False
                 )
         encoder = f"surface:{surface.resolve()}"
         train_args = [

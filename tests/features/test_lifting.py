@@ -7,7 +7,7 @@ import torch.nn.functional as F
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from poseflow.errors import DegenerateInputError
+from poseflow.errors import DegenerateInputError, ValueRangeError
 from poseflow.features.cache import FeatureCache, cached_query_features
 from poseflow.features.lifting import (
     QueryFeatureBank,
@@ -88,6 +88,15 @@ def test_lift_target_features_reads_point_colours() -> None:
     assert torch.allclose(feats[0, :, :2], want, atol=2e-3)
     with_pixels = lift_target_features(ColourEncoder(), image, pts, K, pixels=pix)
     assert torch.allclose(with_pixels, feats, atol=1e-5)
+    # NaN outside the instance's crop (pixels 60-100 x 40-70 plus margin) is never read ...
+    far = image.clone()
+    far[0, :, :, :10] = float("nan")
+    torch.testing.assert_close(lift_target_features(ColourEncoder(), far, pts, K), feats)
+    # ... inside it is a clear error
+    near = image.clone()
+    near[0, 1, 55, 80] = float("nan")
+    with pytest.raises(ValueRangeError, match="where an instance is cropped"):
+        lift_target_features(ColourEncoder(), near, pts, K)
 
 
 def test_lift_query_features_recovers_the_albedo() -> None:

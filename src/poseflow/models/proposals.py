@@ -18,6 +18,7 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 
 import torch
+from torch.nn.utils.rnn import pad_sequence
 
 from poseflow.errors import ValueRangeError
 from poseflow.eval.predict import PoseEstimate, invalidate_implausible
@@ -29,10 +30,10 @@ from poseflow.models.inputs import FlowInputs
 from poseflow.models.network import FunFlow6DNet
 from poseflow.models.objects import PreparedObject, select_objects
 from poseflow.models.observe import Observation
-from poseflow.models.pose import select_hypotheses, solve_pose
+from poseflow.models.pose import dense_targets, select_hypotheses, solve_pose
 from poseflow.models.verification import Proposals, other_hypotheses
 
-__all__ = ["flow_proposals", "no_proposals", "surface_match_positions"]
+__all__ = ["flow_proposals", "has_surface_keys", "no_proposals", "surface_match_positions"]
 
 
 def no_proposals(device: torch.device | str | None = None) -> Proposals:
@@ -59,25 +60,20 @@ def surface_match_positions(
         ValueRangeError: the observation has no appearance features or an object has no keys
             (its appearance encoder is not a surface embedding).
     """
-    if obs.appearance is None or any(o.dense_keys is None for o in objects):
+    if not has_surface_keys(obs, objects):
         raise ValueRangeError(
             "surface matches need a surface embedding as the appearance encoder "
             "(appearance_encoder='surface:FOLDER')"
         )
-    dev, dt = scale.device, scale.dtype
-    size = max(len(o.dense_keys) for o in objects)  # type: ignore[arg-type]
-    B = len(objects)
-    keys = torch.zeros(B, size, obs.appearance.shape[-1], device=dev)
-    points = torch.zeros(B, size, 3, dtype=dt, device=dev)
-    key_mask = torch.zeros(B, size, dtype=torch.bool, device=dev)
-    for b, o in enumerate(objects):
-        n = len(o.dense_keys)  # type: ignore[arg-type]
-        keys[b, :n] = o.dense_keys.to(dev)  # type: ignore[union-attr]
-        points[b, :n] = o.dense_points.to(dev, dt)
-        key_mask[b, :n] = True
-    index, _ = match_surface(obs.appearance.to(dev), keys, key_mask)
-    matched = torch.gather(points, 1, index[..., None].expand(-1, -1, 3))
-    return matched / scale[:, None, None]
+    points, key_mask = dense_targets([o.dense_points for o in objects], scale)
+    keys = pad_sequence([o.dense_keys for o in objects], batch_first=True)  # type: ignore[misc]
+    index, _ = match_surface(obs.appearance, keys.to(scale.device), key_mask)  # type: ignore[arg-type]
+    return torch.gather(points, 1, index[..., None].expand(-1, -1, 3))
+
+
+def has_surface_keys(obs: Observation, objects: Sequence[PreparedObject]) -> bool:
+    """Whether every instance can be matched to its object's surface keys (a surface embedding)."""
+    return obs.appearance is not None and all(o.dense_keys is not None for o in objects)
 
 
 def flow_proposals(
@@ -123,17 +119,13 @@ def flow_proposals(
     B, n = inputs.points.shape[0], inputs.points.shape[1] // 2
     predicted = x_1[:, n:].reshape(B, H, n, 3)
     prepared = select_objects(objects, inputs.obj_ids)
-    if (
-        config.match_hypothesis
-        and obs.appearance is not None
-        and all(o.dense_keys is not None for o in prepared)
-    ):
+    if config.match_hypothesis and has_surface_keys(obs, prepared):
         with stage("matching"):
             matched = surface_match_positions(obs, prepared, inputs.scale)
         predicted = torch.cat([predicted, matched[:, None].to(predicted)], 1)
     rows = predicted.shape[1]  # hypotheses per instance
     rep = inputs.repeat_interleave(rows)
-    dense = [o.dense_points for o in select_objects(objects, rep.obj_ids)]
+    dense = [o.dense_points for o in prepared for _ in range(rows)]
     solved = solve_pose(rep, predicted.flatten(0, 1), dense, config, generator=generator)
     est = select_hypotheses(*solved, obs.valid, rows)
     est = invalidate_implausible(est)  # nothing behind the camera is verified
