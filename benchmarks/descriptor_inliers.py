@@ -11,6 +11,10 @@ the same clouds, the ceiling. Two feature stages are scored:
 
 - ``conditioning``: what the flow network is fed (``FlowInputs.semantic``: the query pooled as the
   encoder asks, then the object's PCA reducer), as ``benchmarks/diagnose.py`` scores it;
+- ``symmetric``: the same features, a match confirmed by any one symmetric equivalent of the
+  ground truth (the object's ``models_info.json`` symmetries; the equivalent that confirms the
+  most counts, :func:`~poseflow.eval.correspondence_inliers` with ``equivalents``), which is what
+  a symmetric object's pose needs; equal to ``conditioning`` for asymmetric objects;
 - ``raw``: the encoder's features before the reducer.
 
 Encoders: ``dsift`` (poseflow's default, ``query_pooling="select"``), the learned descriptor with
@@ -41,9 +45,11 @@ from poseflow.eval.inliers import correspondence_inliers
 from poseflow.features.learned import SHIPPED_DESCRIPTOR_DIR, LearnedAppearanceEncoder
 from poseflow.models import FunFlow6D, FunFlow6DConfig
 from poseflow.models.components import build_appearance_encoder
+from poseflow.models.inputs import equivalent_maps
 
 DEVBENCH = Path("/work/shared/devbench")
 THRESHOLDS = (0.10, 0.05)
+STAGES = ("conditioning", "symmetric", "raw")
 ENCODERS = ("dsift", "learned/mean", "learned/select", "surface")
 
 
@@ -97,8 +103,7 @@ def measure(
     prepare_s, _ = clocked(lambda: model.prepare_objects(objects, progress=False))
     ds = BOPDataset(root, "test")
     g = torch.Generator().manual_seed(seed)
-    res: dict = {s: {th: defaultdict(list) for th in THRESHOLDS} for s in ("conditioning", "raw",
-                                                                           "ceiling")}  # fmt: skip
+    res: dict = {s: {th: defaultdict(list) for th in THRESHOLDS} for s in (*STAGES, "ceiling")}
     observe_s = 0.0
     for (s, i), wanted in sorted(images.items()):
         obj_ids, masks, gt, *image = target_instances(ds.scene(s), i, wanted)
@@ -122,20 +127,32 @@ def measure(
                 raw_q.append(bank.pooled())
         feats = {
             "conditioning": (inputs.semantic[:, :n], inputs.semantic[:, n:]),
+            "symmetric": (inputs.semantic[:, :n], inputs.semantic[:, n:]),
             "raw": (torch.stack(raw_q).to(obs.appearance), obs.appearance),
             "ceiling": (inputs.x_1[:, :n], inputs.x_1[:, n:]),
         }
+        maps = _equivalents([objects[o] for o in obj_ids]).to(inputs.x_1)
         for stage, (fq, ft) in feats.items():
             for th in THRESHOLDS:
                 r = correspondence_inliers(
                     fq, ft, inputs.points[:, :n], inputs.x_1[:, n:], torch.full((B,), 2.0), th,
                     t_mask=inputs.mask[:, n:],
                     metric="euclidean" if stage == "ceiling" else "cosine",
+                    equivalents=maps if stage == "symmetric" else None,
                 )  # fmt: skip
                 for b, o in enumerate(obj_ids):
                     if bool(obs.valid[b]):
                         res[stage][th][o].append(float(r.num_inliers[b]))
     return {"inliers": res, "prepare_s": prepare_s, "observe_s": observe_s}
+
+
+def _equivalents(objects: list) -> torch.Tensor:
+    """``(B, K, 3, 4)``: each object's maps to its symmetric equivalents, identity-padded."""
+    maps = [equivalent_maps(o.symmetries.double(), o.diameter / 2) for o in objects]
+    out = torch.eye(3, 4, dtype=torch.float64).repeat(len(maps), max(map(len, maps)), 1, 1)
+    for b, m in enumerate(maps):
+        out[b, : len(m)] = m
+    return out
 
 
 def _mean(v: list[float]) -> float:
@@ -222,7 +239,7 @@ def _summary(per_n: dict, obj_set: list[int]) -> dict:
             "prepare_s": round(out["prepare_s"], 1),
             "observe_s": round(out["observe_s"], 1),
         }
-        for stage in ("conditioning", "raw"):
+        for stage in STAGES:
             for th in THRESHOLDS:
                 entry[f"{stage}@{th}"] = means(out["inliers"][stage][th])
         summary["encoders"][label] = entry
@@ -235,7 +252,7 @@ def _print_summary(N: int, summary: dict, per_n: dict, obj_set: list[int]) -> No
     instances = sum(len(ceiling[THRESHOLDS[0]][o]) for o in obj_set)
     print(f"\nN = {N}: mean mutual-NN inliers per instance ({instances} instances)")
     cols = [str(o) for o in obj_set] + ["all"]
-    for stage in ("conditioning", "raw"):
+    for stage in STAGES:
         for th in THRESHOLDS:
             print(f"\n{stage}, within {th:.0%} of the diameter")
             print(f"{'':<16}" + "".join(f"{c:>8}" for c in cols))

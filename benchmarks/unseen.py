@@ -83,7 +83,8 @@ def _recipe(args: argparse.Namespace, dataset: Path, work: Path) -> Path:
         if not (surface / "model.safetensors").is_file():
             with _minutes("surface embedding"), num_threads(args.threads or default_num_threads()):
                 train_surface_embedding(
-                    train_data, surface, steps=args.surface_steps, dim=SURFACE_DIM, progress=False
+                    train_data, surface, steps=args.surface_steps, dim=SURFACE_DIM,
+                    max_images=args.surface_images or None, progress=False,
                 )
         encoder = f"surface:{surface.resolve()}"
         train_args = [
@@ -96,7 +97,7 @@ def _recipe(args: argparse.Namespace, dataset: Path, work: Path) -> Path:
                 "train", str(train_data), "--out", str(run), "--config", str(args.config),
                 "--steps", str(args.steps), "--batch-size", "16", "--lr", "1e-3",
                 "--ema-decay", "0.995", "--device", "cpu", "--no-progress",
-                *threads, *train_args,
+                *train_args,
             ])  # fmt: skip
     if not args.distill_steps:
         return model
@@ -176,11 +177,17 @@ def main() -> None:
         "before FunFlow6D is trained on it (0: train on the shipped descriptor)",
     )
     parser.add_argument(
+        "--surface-images",
+        type=int,
+        default=1600,
+        help="synth images the surface embedding learns from (0: all)",
+    )
+    parser.add_argument(
         "--threads",
         type=int,
         default=None,
-        help="CPU threads of the recipe's synth (processes) and training (default: "
-        "$OMP_NUM_THREADS if set, else 1)",
+        help="CPU threads of the recipe's synth (processes) and surface embedding (default: "
+        "$OMP_NUM_THREADS if set, else 1); FunFlow6D's small network trains on one",
     )
     parser.add_argument("--mesh-scale", type=float, default=0.001, help="model units to metres")
     parser.add_argument("--synth-seed", type=int, default=1)

@@ -7,6 +7,8 @@ from hypothesis import strategies as st
 
 from poseflow.errors import ShapeError, ValueRangeError
 from poseflow.eval.inliers import correspondence_inliers, mutual_nearest_neighbors
+from poseflow.geometry.se3 import random_rotation
+from poseflow.models.inputs import equivalent_maps
 
 
 def _brute_mnn(a: torch.Tensor, b: torch.Tensor) -> list[int]:
@@ -69,6 +71,37 @@ def test_batched_with_masks_equals_loop(device: torch.device, dtype: torch.dtype
     assert bool((res.match[~tm] == -1).all())
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(2, 30))
+def test_equivalents_count_the_best_single_symmetric_truth(
+    seed: int, n: int, dtype: torch.dtype
+) -> None:
+    """Matches one symmetric truth confirms count with it, never mixed; the identity alone
+    changes nothing."""
+    g = torch.Generator().manual_seed(seed)
+    q = torch.rand(n, 3, generator=g, dtype=torch.float64) * 2 - 1
+    feats = torch.randn(n, 16, generator=g, dtype=torch.float64)
+    sym = torch.eye(4, dtype=torch.float64)
+    sym[:3, :3] = random_rotation(1, generator=g, dtype=torch.float64)[0]
+    sym[:3, 3] = torch.rand(3, generator=g, dtype=torch.float64)
+    half = n // 2  # the first half seen through the symmetry, the rest as annotated
+    seen = q[:half] @ sym[:3, :3].T + sym[:3, 3]
+    t_canon = torch.cat((seen, q[half:]))
+    maps = equivalent_maps(torch.stack((torch.eye(4, dtype=torch.float64), sym)), 1.0)
+    th = 1e-2
+    args = (feats.to(dtype), feats.to(dtype), q.to(dtype), t_canon.to(dtype), 1.0, th)
+    plain = correspondence_inliers(*args)
+    same = correspondence_inliers(*args, equivalents=maps[:1].to(dtype))
+    both = correspondence_inliers(*args, equivalents=maps.to(dtype))
+    back = (q[half:] - sym[:3, 3]) @ sym[:3, :3]  # the rest through the inverse symmetry
+    by_identity = n - half + int(((seen - q[:half]).norm(dim=-1) < th).sum())
+    by_symmetry = half + int(((back - q[half:]).norm(dim=-1) < th).sum())
+    assert int(plain.num_inliers) == by_identity
+    assert torch.equal(same.inlier, plain.inlier)
+    assert int(both.num_inliers) == max(by_identity, by_symmetry)
+    assert int(both.num_matches) == n
+
+
 def test_cosine_metric_ignores_scale() -> None:
     q = torch.rand(5, 3, generator=torch.Generator().manual_seed(0))
     f = torch.randn(5, 6, generator=torch.Generator().manual_seed(1))
@@ -86,3 +119,5 @@ def test_bad_input_raises() -> None:
         correspondence_inliers(f, f, p, p, 1.0, metric="l1")
     with pytest.raises(ValueRangeError):
         correspondence_inliers(f, torch.full((2, 4), float("nan")), p, p, 1.0)
+    with pytest.raises(ShapeError):
+        correspondence_inliers(f, f, p, p, 1.0, equivalents=torch.zeros(2, 3, 3))

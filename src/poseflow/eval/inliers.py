@@ -3,7 +3,9 @@
 Correspondences between the object model ``Q`` and the observed target ``T`` are the mutual
 nearest neighbours in feature space; a correspondence is an inlier when its two points lie within
 ``threshold × diameter`` (3 % in the paper) once the target is brought into the model's canonical
-frame by the ground-truth pose. The paper reports the average number of inliers.
+frame by the ground-truth pose. The paper reports the average number of inliers. For a symmetric
+object every symmetric equivalent of the ground truth is as true: with ``equivalents`` the count
+is that of the equivalent pose that confirms the most correspondences (one pose for all of them).
 """
 
 from __future__ import annotations
@@ -118,6 +120,7 @@ def correspondence_inliers(
     q_mask: torch.Tensor | None = None,
     t_mask: torch.Tensor | None = None,
     metric: str = "euclidean",
+    equivalents: torch.Tensor | None = None,
 ) -> InlierResult:
     """Count the mutual-nearest-neighbour correspondences that the ground truth confirms.
 
@@ -132,6 +135,10 @@ def correspondence_inliers(
         q_mask: valid query points ``(B, N)``, or None.
         t_mask: valid target points ``(B, M)``, or None.
         metric: feature distance, ``"euclidean"`` (default) or ``"cosine"``.
+        equivalents: maps ``[R | b]`` of the target's canonical points to their symmetric
+            equivalents ``(B, K, 3, 4)`` or ``(K, 3, 4)``, the identity among them
+            (:func:`~poseflow.models.inputs.equivalent_maps`, identity-padded); the inliers are
+            those of the map that confirms the most. None: the ground truth as given.
 
     Returns:
         An :class:`InlierResult`; for unbatched input every field loses its leading dimension.
@@ -154,12 +161,18 @@ def correspondence_inliers(
         )
         q_mask = None if q_mask is None else q_mask.unsqueeze(0)
         t_mask = None if t_mask is None else t_mask.unsqueeze(0)
+        equivalents = None if equivalents is None else equivalents.unsqueeze(0)
     sizes = check_tensor(feat_q, "feat_q", ("B", "N", "D"), finite=True)
     check_tensor(feat_t, "feat_t", ("B", "M", "D"), finite=True, sizes=sizes)
     check_tensor(q_points, "q_points", ("B", "N", 3), finite=True, sizes=sizes)
     check_tensor(t_points_canonical, "t_points_canonical", ("B", "M", 3), finite=True, sizes=sizes)
     check_same(("q_points", q_points), ("t_points_canonical", t_points_canonical))
     check_same(("feat_q", feat_q), ("q_points", q_points), dtype=False)
+    if equivalents is None:
+        equivalents = torch.eye(3, 4, dtype=q_points.dtype, device=q_points.device)[None, None]
+        equivalents = equivalents.expand(sizes["B"], 1, 3, 4)
+    check_tensor(equivalents, "equivalents", ("B", "K", 3, 4), finite=True, sizes=sizes)
+    check_same(("q_points", q_points), ("equivalents", equivalents))
     if threshold <= 0:
         raise ValueRangeError(f"threshold must be positive, got {threshold}")
     if isinstance(diameter, torch.Tensor):
@@ -175,8 +188,13 @@ def correspondence_inliers(
     match = mutual_nearest_neighbors(feat_q, feat_t, mask_a=q_mask, mask_b=t_mask, metric=metric)
     matched = match >= 0
     partner = q_points.gather(1, match.clamp_min(0)[..., None].expand(-1, -1, 3))
-    dist = (partner - t_points_canonical).norm(dim=-1)
-    inlier = matched & (dist < threshold * diam[:, None])
+    # the target's canonical points under every equivalent ground truth (B, K, M, 3)
+    alt = t_points_canonical[:, None] @ equivalents[..., :3].transpose(-1, -2)
+    alt = alt + equivalents[..., None, :, 3]
+    dist = (partner[:, None] - alt).norm(dim=-1)
+    confirmed = matched[:, None] & (dist < threshold * diam[:, None, None])  # (B, K, M)
+    best = confirmed.sum(dim=2).argmax(dim=1)
+    inlier = confirmed[torch.arange(len(best), device=best.device), best]
     num_matches = matched.sum(dim=1)
     num_inliers = inlier.sum(dim=1)
     ratio = num_inliers.to(q_points.dtype) / num_matches.clamp_min(1).to(q_points.dtype)
