@@ -83,8 +83,12 @@ def _recipe(args: argparse.Namespace, dataset: Path, work: Path) -> Path:
         if not (surface / "model.safetensors").is_file():
             with _minutes("surface embedding"), num_threads(args.threads or default_num_threads()):
                 train_surface_embedding(
-                    train_data, surface, steps=args.surface_steps, dim=SURFACE_DIM,
-                    max_images=args.surface_images or None, progress=False,
+                    train_data,
+                    surface,
+                    steps=args.surface_steps,
+                    dim=SURFACE_DIM,
+                    max_images=args.surface_images or None,
+                    progress=False,
                 )
         encoder = f"surface:{surface.resolve()}"
         train_args = [
