@@ -111,10 +111,14 @@ def init_distributed(
 def destroy_distributed() -> None:
     """Tear down the default process group if one is active (call once at the end of a script).
 
+    Every rank waits for the others first, so that none closes its connections while another
+    still uses them (gloo aborts a rank whose peer went away mid-teardown).
+
     Example:
         >>> destroy_distributed()  # no group: nothing to do
     """
     if dist.is_available() and dist.is_initialized():
+        dist.barrier()
         dist.destroy_process_group()
 
 
