@@ -43,6 +43,7 @@ from poseflow.data.bop import BOPDataset
 from poseflow.data.object_folder import load_object_models
 from poseflow.eval.inliers import correspondence_inliers
 from poseflow.features.learned import SHIPPED_DESCRIPTOR_DIR, LearnedAppearanceEncoder
+from poseflow.flows import pad_maps
 from poseflow.models import FunFlow6D, FunFlow6DConfig
 from poseflow.models.components import build_appearance_encoder
 from poseflow.models.inputs import equivalent_maps
@@ -131,7 +132,10 @@ def measure(
             "raw": (torch.stack(raw_q).to(obs.appearance), obs.appearance),
             "ceiling": (inputs.x_1[:, :n], inputs.x_1[:, n:]),
         }
-        maps = _equivalents([objects[o] for o in obj_ids]).to(inputs.x_1)
+        maps = pad_maps(
+            [equivalent_maps(objects[o].symmetries, objects[o].diameter / 2) for o in obj_ids],
+            dtype=inputs.x_1.dtype,
+        )
         for stage, (fq, ft) in feats.items():
             for th in THRESHOLDS:
                 r = correspondence_inliers(
@@ -144,15 +148,6 @@ def measure(
                     if bool(obs.valid[b]):
                         res[stage][th][o].append(float(r.num_inliers[b]))
     return {"inliers": res, "prepare_s": prepare_s, "observe_s": observe_s}
-
-
-def _equivalents(objects: list) -> torch.Tensor:
-    """``(B, K, 3, 4)``: each object's maps to its symmetric equivalents, identity-padded."""
-    maps = [equivalent_maps(o.symmetries.double(), o.diameter / 2) for o in objects]
-    out = torch.eye(3, 4, dtype=torch.float64).repeat(len(maps), max(map(len, maps)), 1, 1)
-    for b, m in enumerate(maps):
-        out[b, : len(m)] = m
-    return out
 
 
 def _mean(v: list[float]) -> float:

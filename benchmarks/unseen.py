@@ -22,8 +22,9 @@ Run ``python benchmarks/unseen.py ../shared/devbench --threads 2`` (the README r
 3,200 images, the surface embedding and the training took 39 minutes on an idle 2-core machine,
 then 0.3-1.7 s per image and estimator). The recipe learns a surface embedding of the dataset's
 objects on the synth images (:func:`~poseflow.features.surface_training.train_surface_embedding`,
-``--surface-steps``; 0 keeps the shipped descriptor) and trains FunFlow6D on it; ``--threads``
-sets the recipe's threads (synth processes, training threads). Each step prints its minutes.
+``--surface-steps``, ``--surface-images``; 0 steps keeps the shipped descriptor) and trains
+FunFlow6D on it; ``--threads`` sets the synth's processes and the embedding's threads (the small
+flow network trains on one). Each step prints its minutes.
 
 ``--quick`` (CI) generates a two-image test split of the demo objects as the "user's dataset"
 and trains a few steps on four generated images (with ``--oracle`` when both estimators run): it

@@ -32,7 +32,12 @@ from poseflow.flows.dit import (
     sinusoidal_time_embedding,
 )
 from poseflow.flows.ema import EMA
-from poseflow.flows.equivalents import apply_equivalents, identity_maps, nearest_equivalent
+from poseflow.flows.equivalents import (
+    apply_equivalents,
+    identity_maps,
+    nearest_equivalent,
+    pad_maps,
+)
 from poseflow.flows.loss import cfm_loss
 from poseflow.flows.objective import CFMObjective, DistillationObjective, FlowBatch, StepRandom
 from poseflow.flows.path import LinearPath, PathSample
@@ -113,6 +118,7 @@ __all__ = [
     "native_bfloat16",
     "nearest_equivalent",
     "nerf_embedding",
+    "pad_maps",
     "precision_autocast",
     "prune_checkpoints",
     "sample",

@@ -15,12 +15,14 @@ pads with the identity, which changes nothing (an equivalent repeated is not a n
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import torch
 
 from poseflow._checks import check_mask, check_same, check_tensor
 from poseflow.errors import ShapeError
 
-__all__ = ["apply_equivalents", "identity_maps", "nearest_equivalent"]
+__all__ = ["apply_equivalents", "identity_maps", "nearest_equivalent", "pad_maps"]
 
 
 def identity_maps(
@@ -36,6 +38,25 @@ def identity_maps(
     """
     eye = torch.eye(channels, channels + 1, dtype=dtype)
     return eye.expand(batch, count, channels, channels + 1).clone()
+
+
+def pad_maps(maps: Sequence[torch.Tensor], *, dtype: torch.dtype) -> torch.Tensor:
+    """Stack each sample's maps ``(K_i, C, C + 1)`` into ``(B, max K_i, C, C + 1)``.
+
+    Samples with fewer maps are padded with the identity.
+
+    Example:
+        >>> eye = identity_maps(1, 1, 3)[0]  # (1, 3, 4)
+        >>> flip = torch.tensor([[[1.0, 0, 0, 0], [0, -1, 0, 0], [0, 0, -1, 0]]])
+        >>> out = pad_maps([eye, torch.cat([eye, flip])], dtype=torch.float64)
+        >>> out.shape, torch.equal(out[0, 1], out[0, 0])
+        (torch.Size([2, 2, 3, 4]), True)
+    """
+    channels = maps[0].shape[-2]
+    out = identity_maps(len(maps), max(len(m) for m in maps), channels, dtype=dtype)
+    for b, m in enumerate(maps):
+        out[b, : len(m)] = m.to(dtype)
+    return out
 
 
 def apply_equivalents(

@@ -25,7 +25,7 @@ from poseflow.flows import (
     DistillationObjective,
     TrainConfig,
     get_sampler,
-    identity_maps,
+    pad_maps,
 )
 from poseflow.models.funflow6d import FunFlow6D
 from poseflow.models.inputs import OPTIONAL_TRAINING_FIELDS, TRAINING_FIELDS, equivalent_maps
@@ -195,16 +195,8 @@ def build_training_set(
         raise DegenerateInputError(f"{root}/{split} holds no usable instance of a prepared object")
     tensors = {k: torch.cat(v) for k, v in parts.items()}
     if maps and max(len(m) for m in maps) > 1:
-        tensors["equivalents"] = _padded_maps(maps, dtype=tensors["x_1"].dtype)
+        tensors["equivalents"] = pad_maps(maps, dtype=tensors["x_1"].dtype)
     return FlowTrainingSet(tensors)
-
-
-def _padded_maps(maps: list[torch.Tensor], *, dtype: torch.dtype) -> torch.Tensor:
-    """Stack ``(S_i, 3, 4)`` maps into ``(I, K, 3, 4)``, padding with the identity."""
-    out = identity_maps(len(maps), max(len(m) for m in maps), 3, dtype=dtype)
-    for i, m in enumerate(maps):
-        out[i, : len(m)] = m.to(dtype)
-    return out
 
 
 def train(
