@@ -129,6 +129,10 @@ class DiTOverrides:
         return config_from_dict(cls, data)
 
 
+#: Condition channels of :attr:`NetOptions.soft_match`: a position and its confidence.
+SOFT_MATCH_CHANNELS = 4
+
+
 @dataclass(frozen=True, kw_only=True)
 class NetOptions:
     """The free sizes of the trainable network (the rest follows from the method's choices).
@@ -139,6 +143,10 @@ class NetOptions:
         posenc_dim: positional channels ``d_P``.
         posenc_frequencies: octaves of the sinusoidal embedding of each attribute.
         dit: changes to the DiT preset (a mapping is read with :meth:`DiTOverrides.from_dict`).
+        soft_match: each target point's condition also holds the query position its semantic
+            descriptor matches, softly (attention of the target's descriptors over the query's,
+            through a learned projection and temperature trained with the flow), and the
+            attention's peak as its confidence; a query point holds its own position and 1.
     """
 
     fusion_heads: int = 4
@@ -146,6 +154,7 @@ class NetOptions:
     posenc_dim: int = 64
     posenc_frequencies: int = 6
     dit: DiTOverrides = field(default_factory=DiTOverrides)
+    soft_match: bool = False
 
     def __post_init__(self) -> None:
         """Read a mapping ``dit``; validate the types and sizes."""
@@ -204,8 +213,11 @@ class NetConfig(NetOptions):
         self.dit_config()
 
     def dit_config(self) -> PointDiTConfig:
-        """The DiT's configuration: the preset, the overrides and ``cond_dim = D + d_P``."""
-        return self.dit.resolve(self.dit_preset, cond_dim=self.feature_dim + self.posenc_dim)
+        """The DiT's configuration: the preset, the overrides and ``cond_dim = D + d_P (+ 4)``."""
+        extra = SOFT_MATCH_CHANNELS if self.soft_match else 0
+        return self.dit.resolve(
+            self.dit_preset, cond_dim=self.feature_dim + self.posenc_dim + extra
+        )
 
 
 @dataclass(frozen=True, kw_only=True)
