@@ -200,13 +200,15 @@ def test_soft_match_finds_the_query_point_a_target_copies(seed, dtype):
         net.match_log_scale.fill_(math.log(200.0))  # a sharp softmax
     inputs, _ = _inputs(n=5, seed=seed)
     inputs = NetInputs(**{k: v.to(dtype) for k, v in inputs.net_kwargs().items()})
+    basis = torch.linalg.qr(torch.randn(5, 5, generator=g, dtype=torch.float64))[0].to(dtype)
     order = torch.randperm(5, generator=g)
-    inputs.semantic[:, 5:] = inputs.semantic[:, order]  # target i shows query point order[i]
+    inputs.semantic[:, :5] = basis  # orthogonal query descriptors
+    inputs.semantic[:, 5:] = basis[order]  # target i shows query point order[i]
     out = net.soft_match(inputs)
     assert out.shape == (2, 10, 4) and out.dtype == dtype
     assert torch.equal(out[:, :5, :3], inputs.points[:, :5]) and (out[:, :5, 3] == 1).all()
-    tol = 1e-3 if dtype == torch.float32 else 1e-6
-    assert torch.allclose(out[:, 5:, :3], inputs.points[:, order], atol=tol * 100)
+    tol = 1e-5 if dtype == torch.float32 else 1e-12
+    assert torch.allclose(out[:, 5:, :3], inputs.points[:, order], atol=tol)
     assert (out[:, 5:, 3] > 0.9).all()
 
 
