@@ -192,7 +192,9 @@ def test_the_shipped_checkpoint_keeps_its_settings_under_the_new_names():
     new = config.to_dict()
     assert new["ransac_distance"] == raw["ransac_threshold"]
     assert new["icp_distances"] == raw["icp_thresholds"]
-    assert new["verifier"] == {**raw["verifier"], "rank_hypotheses": raw["verify_hypotheses"]}
+    # the verifier's options added since (the polish) keep their defaults
+    old_verifier = {**raw["verifier"], "rank_hypotheses": raw["verify_hypotheses"]}
+    assert new["verifier"] == {**VerifierConfig().to_dict(), **old_verifier}
     renamed = ("ransac_threshold", "icp_thresholds", "verification", "verify_hypotheses")
     for key, value in raw.items():
         if key == "net":  # the network's options added since keep their defaults

@@ -64,14 +64,20 @@ class _Oracle(torch.nn.Module):
 
 
 @pytest.mark.parametrize("solver", ["ransac", "svd"])
-def test_perfect_flow_gives_the_ground_truth_pose(tiny_model, scene, solver):
-    model = FunFlow6D(tiny_model.config.replace(pose_solver=solver))
-    model.objects, model.verifier = tiny_model.objects, tiny_model.verifier
+@pytest.mark.parametrize("polish", [0, 4])
+def test_perfect_flow_gives_the_ground_truth_pose(tiny_model, scene, solver, polish):
+    verifier = dataclasses.replace(tiny_model.config.verifier, polish_levels=polish)
+    model = FunFlow6D(tiny_model.config.replace(pose_solver=solver, verifier=verifier))
+    model.objects = tiny_model.objects
+    model.verifier.objects = tiny_model.verifier.objects
     obs = model.observe(two_boxes(scene))
     model.net.dit = _Oracle(model.flow_inputs(obs, scene["poses"]).x_1)
     est = model.estimate(scene["rgb"], scene["depth"], scene["K"], scene["masks"], [1, 1])
     assert est.valid.all() and (est.scores > 0.5).all()
-    assert (rotation_angle_error(est.poses, scene["poses"]) < 1.0).all()
+    # ICP's fit of the depth is finer than a pixel of the verifier's 64-pixel grid (about 3 mm
+    # on these boxes), where the polish places a pose
+    limit = 1.0 if polish == 0 else 2.0
+    assert (rotation_angle_error(est.poses, scene["poses"]) < limit).all()
     assert (translation_error(est.poses, scene["poses"]) < 0.002).all()
 
 

@@ -9,7 +9,9 @@ object's near-symmetries, found once per object from its geometry, refines them 
 replaces the estimate only when a candidate beats it by more than the score's own spread. A pose
 that still scores low (``search_below``) is searched over every orientation
 (:meth:`PoseVerifier.search`): turned by the flips and quarter turns of the object's box
-(:func:`box_turns`), the best turns refined by ICP and tested in the same way.
+(:func:`box_turns`), the best turns refined by ICP and tested in the same way. The chosen pose is
+finally polished by a pattern search of its score (:meth:`PoseScorer.polish`), which places
+what ICP on the depth leaves a few pixels off: a thin part, a print, a handle.
 
 The parts: :func:`prepare_verifier_object` prepares what the verifier keeps per object
 (:class:`VerifierObject`, cached on disk by :func:`cached_verifier_object`); :class:`PoseScorer`

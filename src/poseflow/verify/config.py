@@ -17,8 +17,8 @@ __all__ = ["VerifierConfig"]
 
 #: The int fields of :class:`VerifierConfig` by their least value.
 _INT_MINIMA: dict[int, tuple[str, ...]] = {
-    0: ("max_candidates", "rank_top_k", "refine_top_k"),
-    1: ("block_size", "search_top_k", "icp_iterations"),
+    0: ("max_candidates", "rank_top_k", "refine_top_k", "polish_levels"),
+    1: ("block_size", "search_top_k", "icp_iterations", "polish_moves"),
     2: ("turn_steps",),
     3: ("appearance_window", "max_observed_points"),
     8: ("crop_size", "coarse_crop_size"),
@@ -98,6 +98,14 @@ class VerifierConfig:
         icp_relative_rmse: a scale of ICP stops once its inlier RMSE changes by less than this
             (a fraction of the diameter) and its inlier count no longer changes.
         max_observed_points: the observed cloud is thinned to at most this many points for ICP.
+        polish_levels: step sizes of the final pattern search of the chosen poses' full-grid
+            score (:meth:`~poseflow.verify.PoseScorer.polish`), each half the previous; 0
+            polishes nothing.
+        polish_moves: moves of a pose per step size, at most.
+        polish_rotation: the first turns of the search, in degrees, about the camera's axes
+            through the model's origin.
+        polish_translation: the first shifts of the search along the camera's axes, a fraction
+            of the diameter.
 
     The refinement's defaults (20 iterations per scale on 600 observed points) are measured
     against fewer in ``benchmarks/LOG.md``.
@@ -132,6 +140,10 @@ class VerifierConfig:
     icp_iterations: int = 20
     icp_relative_rmse: float = 1e-4
     max_observed_points: int = 600
+    polish_levels: int = 4
+    polish_moves: int = 3
+    polish_rotation: float = 4.0
+    polish_translation: float = 0.02
 
     def __post_init__(self) -> None:
         check_field_types(self)
@@ -160,6 +172,8 @@ class VerifierConfig:
             "contrast_reference",
             "self_overlap_distance",
             "icp_relative_rmse",
+            "polish_rotation",
+            "polish_translation",
         )
         for name in positive:
             value = getattr(self, name)

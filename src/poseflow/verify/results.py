@@ -34,8 +34,9 @@ class Verification:
     Attributes:
         poses: the chosen poses ``(B, 4, 4)``: the estimate where it was kept (ICP-refined with
             ``refine_estimate``, else unchanged), else the ICP-refined candidate or searched turn
-            that beat it.
-        scores: the chosen hypothesis's total score clipped to ``[0, 1]`` ``(B,)`` (0 where
+            that beat it; polished (:meth:`~poseflow.verify.PoseScorer.polish`) where the
+            verifier's ``polish_levels`` is not 0, so then not equal to ``hypotheses[chosen]``.
+        scores: the chosen pose's total score clipped to ``[0, 1]`` ``(B,)`` (0 where
             invalid), for ranking estimates.
         valid: ``(B,)`` bool, whether the chosen hypothesis could be scored.
         chosen: ``(B,)`` int64, the index of the chosen hypothesis in ``hypotheses`` (0: the

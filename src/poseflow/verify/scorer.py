@@ -25,7 +25,7 @@ from poseflow.data.frame import ImageInstances
 from poseflow.data.objects import ObjectModel
 from poseflow.errors import ShapeError, ValueRangeError
 from poseflow.geometry.pointcloud import backproject_depth, remove_statistical_outliers
-from poseflow.geometry.se3 import inverse_transform
+from poseflow.geometry.se3 import axis_angle_to_rotation, inverse_transform
 from poseflow.registration.icp import multi_scale_icp
 from poseflow.verify.config import VerifierConfig
 from poseflow.verify.objects import VerifierObject, cached_verifier_object, verifier_fingerprint
@@ -36,7 +36,7 @@ from poseflow.verify.render import (
     render_points,
 )
 from poseflow.verify.results import Hypotheses
-from poseflow.verify.score import VerifierScore, score_renderings
+from poseflow.verify.score import VerifierScore, score_renderings, select_significant
 
 __all__ = ["PoseScorer"]
 
@@ -223,6 +223,102 @@ class PoseScorer:
         T[..., :3, 3] = T[..., :3, 3] * scale
         ok = result.valid.reshape(B, H)[..., None, None]
         return torch.where(ok, inverse_transform(T), hypotheses)
+
+    def polish(
+        self, image: ImageInstances, poses: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Refine poses by a pattern search of their total score on the full grid.
+
+        ICP fits the observed depth and leaves what the depth alone does not fix: a thin part
+        a few pixels off its mask, a printed box slid along its axis, a handle turned by a few
+        degrees. Each pose moves to the best of its 12 steps (turns of ``polish_rotation``
+        degrees either way about the camera's axes through the model's origin, shifts of
+        ``polish_translation`` of the diameter either way along them) while that raises its
+        total score, at most ``polish_moves`` times; then the steps are halved, for
+        ``polish_levels`` sizes. Every step of every instance is scored in one rendering, on
+        the crop of the pose polished. The polished pose is kept only where it beats the pose
+        by the verifier's significance test (:func:`~poseflow.verify.select_significant`), as a
+        candidate must: on a plateau of the score (a pose already right to the pixel) the
+        search would otherwise drift with the rendering's noise.
+
+        Args:
+            image: the colour image ``(3, Hi, Wi)`` (or None), depth in metres ``(Hi, Wi)``,
+                intrinsics ``(3, 3)``, and the ``B`` instances' masks ``(B, Hi, Wi)`` bool and
+                object ids ``(B,)``, all prepared.
+            poses: model-to-camera poses ``(B, 4, 4)``.
+
+        Returns:
+            ``(poses, total)``: the polished poses ``(B, 4, 4)`` (the given ones where the
+            polish was not significant) and their total scores ``(B,)`` on that crop (``-inf``
+            where a pose cannot be scored; it is returned unchanged).
+
+        Raises:
+            ShapeError: wrong shapes, devices or dtypes.
+            ValueRangeError: an object that was not prepared.
+
+        Example:
+            >>> import open3d as o3d
+            >>> from poseflow.data import ImageInstances, ObjectModel
+            >>> from poseflow.render import Renderer
+            >>> box = o3d.geometry.TriangleMesh.create_box(0.1, 0.06, 0.03)
+            >>> model = ObjectModel.from_mesh(box.translate((-0.05, -0.03, -0.015)), num_points=64)
+            >>> scorer = PoseScorer(VerifierConfig(num_points=2048))
+            >>> _ = scorer.prepare(1, model)
+            >>> K = torch.tensor([[300.0, 0, 80], [0, 300.0, 60], [0, 0, 1]])
+            >>> pose = torch.eye(4); pose[2, 3] = 0.4
+            >>> out = Renderer([model.mesh]).render(pose[None], K, 160, 120)
+            >>> image = ImageInstances(None, out.depth, K, out.masks_full, [1])
+            >>> off = pose.clone(); off[0, 3] = 0.006  # 6 mm to the side
+            >>> polished, total = scorer.polish(image, off[None])
+            >>> bool((polished[0, :3, 3] - pose[:3, 3]).norm() < 0.003)
+            True
+        """
+        sizes = check_tensor(poses, "poses", ("B", 4, 4), finite=True)
+        rgb, depth, K, masks, obj_ids = image
+        check_mask(masks, "masks", ("B", None, None), sizes)
+        B = sizes["B"]
+        cfg = self.config
+        if B == 0:
+            return poses.clone(), poses.new_zeros(0)
+        objects = self._objects(obj_ids, B)
+        Kd = K.to(poses.dtype)
+        boxes = self.crop_boxes(poses, obj_ids, Kd, masks)
+        crops = crop_observation(depth, masks, boxes, cfg.crop_size, rgb)
+        kw = {"dtype": poses.dtype, "device": poses.device}
+        diameter = torch.tensor([o.diameter for o in objects], **kw)
+        eye = torch.eye(3, **kw)
+        directions = torch.cat((eye, -eye))  # (6, 3)
+        current = poses.clone()
+        angle, shift = math.radians(cfg.polish_rotation), cfg.polish_translation
+        for _ in range(cfg.polish_levels):
+            moving = torch.ones(B, dtype=torch.bool, device=poses.device)
+            for _ in range(cfg.polish_moves):
+                turned = current[:, None].repeat(1, 13, 1, 1)  # the pose, then its 12 steps
+                turned[:, 1:7, :3, :3] = (
+                    axis_angle_to_rotation(angle * directions) @ current[:, None, :3, :3]
+                )
+                turned[:, 7:, :3, 3] += shift * diameter[:, None, None] * directions
+                score = self._compare(
+                    objects, turned, moving[:, None].expand(B, 13), crops, Kd, boxes
+                )
+                total = torch.where(score.valid, score.total, -torch.inf)
+                step = total[:, 1:].argmax(1) + 1
+                gain = total.gather(1, step[:, None])[:, 0]
+                moving &= gain > total[:, 0]
+                rows = moving.nonzero()[:, 0]
+                current[rows] = turned[rows, step[rows]]
+                if not len(rows):
+                    break
+            angle, shift = angle / 2, shift / 2
+        # kept only where it explains the image significantly better, as a candidate must
+        both = torch.stack((poses, current), dim=1)
+        score = self._compare(objects, both, None, crops, Kd, boxes)
+        index, _ = select_significant(score, significance=cfg.significance)
+        total = torch.where(score.valid, score.total, -torch.inf)
+        kept = index == 1
+        return torch.where(kept[:, None, None], current, poses), total[:, 1].where(
+            kept, total[:, 0]
+        )
 
     def _thin(
         self, observed: torch.Tensor, mask: torch.Tensor | None

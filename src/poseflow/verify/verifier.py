@@ -4,7 +4,8 @@ One contest (``PoseVerifier._contest``) serves all three: the hypotheses of each
 are scored on a coarse grid of the crop their first places, the first and the best others are
 kept, refined by ICP and scored on the full grid. :meth:`~PoseVerifier.verify` and
 :meth:`~PoseVerifier.search` then keep the first unless another beats it significantly,
-:meth:`~PoseVerifier.rank_hypotheses` takes the best.
+:meth:`~PoseVerifier.rank_hypotheses` takes the best. :meth:`~PoseVerifier.verify` finally
+polishes its choice (:meth:`~poseflow.verify.PoseScorer.polish`).
 
 Every method takes the instances of one image as an :class:`~poseflow.data.ImageInstances`.
 
@@ -117,7 +118,8 @@ class PoseVerifier(PoseScorer):
     estimate) refined by ICP of the observed cloud onto the model (:meth:`refine`) and scored again
     on the full grid, and the estimate is kept unless a candidate beats it by more than the score's
     own spread (:func:`~poseflow.verify.select_significant`); a chosen pose that still scores below
-    ``search_below`` is then searched over all orientations by the same contest (:meth:`search`).
+    ``search_below`` is then searched over all orientations by the same contest (:meth:`search`),
+    and the chosen poses are polished on the full grid's score (:meth:`polish`).
     :meth:`rank_hypotheses` runs it to rank an estimator's hypotheses. Each step is a public method
     of :class:`~poseflow.verify.PoseScorer`, so the verifier also scores hypotheses from anywhere.
 
@@ -153,7 +155,7 @@ class PoseVerifier(PoseScorer):
         extra_mask: torch.Tensor | None = None,
         estimated: torch.Tensor | None = None,
     ) -> Verification:
-        """Check each estimate against its near-symmetric candidates and keep the best.
+        """Check each estimate against its near-symmetric candidates, keep the best, polish it.
 
         Args:
             image: the colour image ``(3, Hi, Wi)`` (or None: depth and silhouette only), depth
@@ -412,19 +414,24 @@ class PoseVerifier(PoseScorer):
         k = min(cfg.refine_top_k, hyp.poses.shape[1] - 1)
         contest = self._contest(image, hyp.poses, hyp.mask, k=k, refine_first=cfg.refine_estimate)
         out = contest.verification(cfg.significance)
-        if cfg.search_below <= 0:
-            return out
-        # the instances still scoring low are searched; their turns follow as search_top_k more
-        # columns (invalid, the pose repeated, where an instance was not searched), scored on a
-        # crop centred on the pose searched around, their statistics against it
-        H = out.hypotheses.shape[1]
-        merged = out.widened(cfg.search_top_k)
-        rows = (out.valid & (out.scores < cfg.search_below)).nonzero()[:, 0]
-        if len(rows):
-            found = self._searched(*contest.image.take(rows, out.poses))
-            # the others keep their pose and its score on the first crop
-            merged.scatter(rows, found, column=H, skip=1, where=found.chosen > 0)
-        return merged
+        if cfg.search_below > 0:
+            # the instances still scoring low are searched; their turns follow as search_top_k
+            # more columns (invalid, the pose repeated, where an instance was not searched),
+            # scored on a crop centred on the pose searched around, their statistics against it
+            H = out.hypotheses.shape[1]
+            searched = out.widened(cfg.search_top_k)
+            rows = (out.valid & (out.scores < cfg.search_below)).nonzero()[:, 0]
+            if len(rows):
+                found = self._searched(*contest.image.take(rows, out.poses))
+                # the others keep their pose and its score on the first crop
+                searched.scatter(rows, found, column=H, skip=1, where=found.chosen > 0)
+            out = searched
+        rows = out.valid.nonzero()[:, 0]
+        if cfg.polish_levels and len(rows):
+            polished, total = self.polish(*contest.image.take(rows, out.poses))
+            out.poses[rows] = polished
+            out.scores[rows] = total.clamp(0, 1)
+        return out
 
     def _searched(self, image: _Image, poses: torch.Tensor) -> Verification:
         """:meth:`search` of ``B > 0`` poses ``(B, 4, 4)``."""
