@@ -3,7 +3,8 @@
 :class:`PoseScorer` holds the verifier's prepared objects and does each step of a verification on
 its own: :meth:`~PoseScorer.expand` an estimate with its near-symmetric candidates,
 :meth:`~PoseScorer.refine` hypotheses by ICP, :meth:`~PoseScorer.score` them by rendering and
-comparing on the crop of :meth:`~PoseScorer.crop_boxes`. :class:`~poseflow.verify.PoseVerifier`
+comparing on the crop of :meth:`~PoseScorer.crop_boxes`, :meth:`~PoseScorer.polish` a pose on
+that score. :class:`~poseflow.verify.PoseVerifier`
 runs them as one contest.
 
 Shape letters: B instances of one image, H hypotheses per instance, N model points, M observed
@@ -69,6 +70,10 @@ class PoseScorer:
         >>> score = scorer.score(image, torch.stack((pose, wrong))[None])
         >>> score.total[0, 0] > score.total[0, 1]
         tensor(True)
+        >>> off = pose.clone(); off[0, 3] = 0.01  # 1 cm off
+        >>> polished, total = scorer.polish(image, off[None])
+        >>> bool((polished[0, :3, 3] - pose[:3, 3]).norm() < 0.002)
+        True
     """
 
     def __init__(self, config: VerifierConfig | None = None, *, seed: int = 0) -> None:
@@ -256,22 +261,7 @@ class PoseScorer:
             ShapeError: wrong shapes, devices or dtypes.
             ValueRangeError: an object that was not prepared.
 
-        Example:
-            >>> import open3d as o3d
-            >>> from poseflow.data import ImageInstances, ObjectModel
-            >>> from poseflow.render import Renderer
-            >>> box = o3d.geometry.TriangleMesh.create_box(0.1, 0.06, 0.03)
-            >>> model = ObjectModel.from_mesh(box.translate((-0.05, -0.03, -0.015)), num_points=64)
-            >>> scorer = PoseScorer(VerifierConfig(num_points=2048))
-            >>> _ = scorer.prepare(1, model)
-            >>> K = torch.tensor([[300.0, 0, 80], [0, 300.0, 60], [0, 0, 1]])
-            >>> pose = torch.eye(4); pose[2, 3] = 0.4
-            >>> out = Renderer([model.mesh]).render(pose[None], K, 160, 120)
-            >>> image = ImageInstances(None, out.depth, K, out.masks_full, [1])
-            >>> off = pose.clone(); off[0, 3] = 0.006  # 6 mm to the side
-            >>> polished, total = scorer.polish(image, off[None])
-            >>> bool((polished[0, :3, 3] - pose[:3, 3]).norm() < 0.003)
-            True
+        Example: see :class:`PoseScorer`'s, which polishes a pose 1 cm off.
         """
         sizes = check_tensor(poses, "poses", ("B", 4, 4), finite=True)
         rgb, depth, K, masks, obj_ids = image
