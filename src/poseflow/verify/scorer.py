@@ -4,8 +4,7 @@
 its own: :meth:`~PoseScorer.expand` an estimate with its near-symmetric candidates,
 :meth:`~PoseScorer.refine` hypotheses by ICP, :meth:`~PoseScorer.score` them by rendering and
 comparing on the crop of :meth:`~PoseScorer.crop_boxes`, :meth:`~PoseScorer.polish` a pose on
-that score. :class:`~poseflow.verify.PoseVerifier`
-runs them as one contest.
+that score. :class:`~poseflow.verify.PoseVerifier` runs them as one contest.
 
 Shape letters: B instances of one image, H hypotheses per instance, N model points, M observed
 points, Hi x Wi the image, S the crop side.
