@@ -3,16 +3,23 @@ from __future__ import annotations
 import pytest
 import torch
 
-from poseflow.baselines import BASELINE_VERIFIER, BaselineConfig, ClassicBaseline
+from poseflow.baselines import (
+    BASELINE_VERIFIER,
+    BaselineConfig,
+    ClassicBaseline,
+    verify_estimates,
+)
+from poseflow.data import ImageInstances
 from poseflow.data.demo_objects import demo_objects
 from poseflow.data.synthetic import generate_dataset
 from poseflow.errors import ShapeError, ValueRangeError
 from poseflow.eval.evaluate import evaluate_bop
+from poseflow.eval.predict import PoseEstimate
 from poseflow.eval.results import read_results, write_results
 from poseflow.eval.timing import StageTimer
 from poseflow.geometry.se3 import rotation_angle_error, translation_error
 from poseflow.render import Light, Renderer
-from poseflow.verify import VerifierConfig, axis_angle_matrix
+from poseflow.verify import PoseVerifier, VerifierConfig, axis_angle_matrix
 
 #: A verifier light enough for tests.
 LIGHT = VerifierConfig(num_points=2048, crop_size=48, coarse_crop_size=24, turn_steps=4)
@@ -168,6 +175,30 @@ def test_verification_picks_the_printed_side_of_a_labelled_box(labelled_box):
     # the score is the verifier's render-and-compare score, not ICP fitness
     assert 0 < float(verified.scores[0]) <= 1
     assert abs(float(verified.scores[0]) - float(plain.scores[0])) > 1e-3
+
+
+@pytest.mark.parametrize("polish", [0, 4])
+def test_a_kept_estimate_comes_back_polished_or_at_full_precision(labelled_box, polish):
+    K = torch.tensor([[320.0, 0, 79.5], [0, 320.0, 59.5], [0, 0, 1]])
+    pose = torch.eye(4, dtype=torch.float64)
+    pose[:3, :3] = axis_angle_matrix(torch.tensor([1.0, 0.3, 0.0]), torch.tensor(0.45)).double()
+    pose[2, 3] = 0.55
+    light = Light(direction=(0.3, -0.4, -1.0), ambient=0.4, diffuse=0.6)
+    out = Renderer([labelled_box.mesh]).render(pose[None].float(), K, 160, 120, light=light)
+    image = ImageInstances(out.rgb.permute(2, 0, 1), out.depth, K, out.masks_visible, [1])
+    off = pose.clone()
+    off[0, 3] += 0.006  # the baseline's verifier keeps its estimate unrefined (refine_estimate)
+    verifier = PoseVerifier(
+        VerifierConfig(**{**LIGHT.to_dict(), "refine_estimate": False, "polish_levels": polish})
+    )
+    verifier.prepare(1, labelled_box)
+    cloud, mask = verifier.observed_cloud(out.depth, K, out.masks_visible)
+    estimate = PoseEstimate(off[None], torch.ones(1, dtype=torch.float64), torch.tensor([True]))
+    verified = verify_estimates(verifier, image, estimate, [cloud[0][mask[0]]])
+    if polish:  # the polish is what comes back, not the estimate it started from
+        assert float(translation_error(verified.poses, pose[None])[0]) < 0.003
+    else:
+        assert torch.equal(verified.poses, estimate.poses)  # float64, as it was
 
 
 def test_baseline_with_verification_on_a_generated_scene(labelled_box, tmp_path):

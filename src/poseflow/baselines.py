@@ -568,7 +568,8 @@ def verify_estimates(
             replace(image, depth=image.depth.float(), K=image.K.float()),
             estimate.poses.float(), (observed, observed_mask), estimated=estimate.valid,
         )  # fmt: skip
-    # an estimate kept as it was: at its full precision
-    kept = (out.chosen == 0) & (not verifier.config.refine_estimate)
+    # an estimate kept as it was (neither refined nor polished): at its full precision
+    unchanged = (out.poses == out.hypotheses[:, 0]).flatten(1).all(1)
+    kept = (out.chosen == 0) & unchanged & (not verifier.config.refine_estimate)
     poses = torch.where(kept[:, None, None], estimate.poses, out.poses.to(estimate.poses.dtype))
     return PoseEstimate(poses, out.scores.to(estimate.scores.dtype), estimate.valid)
