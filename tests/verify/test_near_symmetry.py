@@ -16,6 +16,7 @@ from poseflow.geometry.se3 import random_rotation, rotation_angle_error
 from poseflow.render.mesh import TexturedMesh
 from poseflow.verify import (
     axis_angle_matrix,
+    box_slides,
     box_turns,
     near_symmetries,
     revolution_axis,
@@ -193,3 +194,47 @@ def test_box_turns_are_the_cube_groups_of_the_model_and_principal_frames(
 def test_box_turns_need_three_points() -> None:
     with pytest.raises(ValueRangeError, match="at least 3"):
         box_turns(torch.zeros(2, 3))
+
+
+@given(seed=st.integers(0, 2**31 - 1), double=st.booleans(), size=st.floats(0.02, 1.0))
+def test_box_slides_shift_along_the_principal_axes_by_fractions_of_the_extent(
+    seed: int, double: bool, size: float
+) -> None:
+    dtype = torch.float64 if double else torch.float32
+    g = torch.Generator().manual_seed(seed)
+    R0 = random_rotation(1, generator=g, dtype=torch.float64)[0]
+    extents = torch.tensor([3.0 * size, size, 1.7 * size], dtype=torch.float64)  # distinct
+    local = (torch.rand(600, 3, generator=g, dtype=torch.float64) - 0.5) * extents
+    points = (local @ R0.T + torch.randn(3, generator=g, dtype=torch.float64)).to(dtype)
+    T = box_slides(points, (0.25, 0.5))
+    assert T.dtype == dtype and T.shape == (12, 4, 4)
+    T = T.double()
+    eye = torch.eye(3, dtype=torch.float64).expand(12, 3, 3)
+    assert torch.equal(T[:, :3, :3], eye) and torch.equal(
+        T[:, 3], torch.eye(4)[3].double().expand(12, 4)
+    )
+    shift = T[:, :3, 3].reshape(3, 2, 2, 3)  # (axis, fraction, sign, xyz)
+    torch.testing.assert_close(shift[:, :, 0], -shift[:, :, 1])  # either way
+    torch.testing.assert_close(shift[:, 1], 2 * shift[:, 0], atol=1e-6 * size, rtol=1e-4)
+    # along the principal axes, largest extent first, by the extent of the points along them
+    centred = points.double() - points.double().mean(0)
+    directions = []
+    for a, axis in enumerate((0, 2, 1)):  # the sample's axes: near the box's (a few degrees)
+        step = shift[a, 1, 0]  # half the extent
+        direction = step / step.norm()
+        assert (direction @ R0[:, axis]).abs() > math.cos(math.radians(8))
+        along = centred @ direction
+        tol = 1e-6 if double else 1e-3
+        torch.testing.assert_close(step.norm(), (along.max() - along.min()) / 2, rtol=tol, atol=0)
+        directions.append(direction)
+    D = torch.stack(directions)
+    torch.testing.assert_close(D @ D.T, torch.eye(3, dtype=torch.float64), atol=1e-4, rtol=0)
+    assert box_slides(points, ()).shape == (0, 4, 4)
+
+
+def test_box_slides_check_their_arguments() -> None:
+    with pytest.raises(ValueRangeError, match="at least 3"):
+        box_slides(torch.zeros(2, 3))
+    for bad in ((0.0,), (1.5,), (-0.25,)):
+        with pytest.raises(ValueRangeError, match="fractions"):
+            box_slides(torch.randn(10, 3), bad)

@@ -9,7 +9,8 @@ object's near-symmetries, found once per object from its geometry, refines them 
 replaces the estimate only when a candidate beats it by more than the score's own spread. A pose
 that still scores low (``search_below``) is searched over every orientation
 (:meth:`PoseVerifier.search`): turned by the flips and quarter turns of the object's box
-(:func:`box_turns`), the best turns refined by ICP and tested in the same way. The chosen pose is
+(:func:`box_turns`) and slid along its axes (:func:`box_slides`, for an object seen only in
+part), the best of these refined by ICP and tested in the same way. The chosen pose is
 finally polished by a pattern search of its score (:meth:`PoseScorer.polish`), which places
 what ICP on the depth leaves a few pixels off: a thin part, a print, a handle.
 
@@ -76,6 +77,7 @@ from poseflow.verify.scorer import PoseScorer
 from poseflow.verify.symmetry import (
     NearSymmetries,
     axis_angle_matrix,
+    box_slides,
     box_turns,
     near_symmetries,
     revolution_axis,
@@ -96,6 +98,7 @@ __all__ = [
     "appearance_agreement",
     "axis_angle_matrix",
     "balance_colors",
+    "box_slides",
     "box_sum",
     "box_turns",
     "cached_verifier_object",

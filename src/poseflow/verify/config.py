@@ -83,13 +83,18 @@ class VerifierConfig:
             of the first, unrefined scoring.
         search_below: a valid instance whose chosen pose scores below this is searched globally
             (:meth:`~poseflow.verify.PoseVerifier.search`): the pose turned by the
-            :func:`~poseflow.verify.box_turns`, the best ``search_top_k`` of them refined by
+            :func:`~poseflow.verify.box_turns` and slid by ``search_slides``, the best
+            ``search_top_k`` of them refined by
             ICP, one replacing the pose where it clearly explains the image better (the same
             test as the candidates'); 0 searches nothing. A wrong pose (a bunny upside down)
             scores well below a right one, which rarely scores under 0.45 (the estimators'
             tenth percentile on devbench).
         search_top_k: turned poses of a searched instance refined by ICP and scored again, the
             best of their coarse scoring.
+        search_slides: a searched pose is also slid along each principal axis of its object by
+            these fractions of its extent, either way (:func:`~poseflow.verify.box_slides`):
+            an object seen only in part, placed centred on what is seen, is tried with the seen
+            part elsewhere along it; empty slides nothing.
         refine_estimate: refine the estimate by the same ICP as the candidates before they are
             compared, so that they compete on equal terms (an estimator's own refinement may
             have used fewer points); the estimate is then returned refined where it is kept.
@@ -135,6 +140,7 @@ class VerifierConfig:
     refine_top_k: int = 2
     search_below: float = 0.45
     search_top_k: int = 4
+    search_slides: tuple[float, ...] = (0.25, 0.5)
     refine_estimate: bool = True
     icp_distances: tuple[float, ...] = (0.1, 0.05, 0.02)
     icp_iterations: int = 20
@@ -195,6 +201,10 @@ class VerifierConfig:
             raise ValueRangeError(
                 f"min_candidate_angle must lie in [0, 180), got {self.min_candidate_angle}"
             )
+        slides = tuple(float(f) for f in self.search_slides)
+        if not all(0 < f <= 1 for f in slides):
+            raise ValueRangeError(f"search_slides must lie in (0, 1], got {self.search_slides}")
+        object.__setattr__(self, "search_slides", slides)
         distances = tuple(float(d) for d in self.icp_distances)
         if not distances or not all(math.isfinite(d) and d > 0 for d in distances):
             raise ValueRangeError(f"icp_distances must be positive, got {self.icp_distances}")

@@ -43,8 +43,9 @@ class Verification:
             estimate was kept).
         hypotheses: the finally scored hypotheses ``(B, H, 4, 4)``: the estimate (refined with
             ``refine_estimate``), then the refined candidates, then, with ``search_below`` on,
-            the ``search_top_k`` refined turns of :meth:`~poseflow.verify.PoseVerifier.search`
-            (invalid where the instance was not searched).
+            the ``search_top_k`` refined turns and, with ``search_slides``, as many refined
+            slides of :meth:`~poseflow.verify.PoseVerifier.search` (invalid where the instance
+            was not searched).
         score: their scores.
         statistic: each candidate's test statistic against the estimate ``(B, H)`` (a searched
             turn's against the pose it was turned from).

@@ -36,6 +36,7 @@ from poseflow.registration.icp import multi_scale_icp
 __all__ = [
     "NearSymmetries",
     "axis_angle_matrix",
+    "box_slides",
     "box_turns",
     "near_symmetries",
     "revolution_axis",
@@ -87,6 +88,49 @@ def axis_angle_matrix(axis: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
         raise DegenerateInputError("rotation axes must be non-zero")
     angle = torch.as_tensor(angle, dtype=axis.dtype, device=axis.device)
     return axis_angle_to_rotation(axis / norm * angle[..., None])
+
+
+def box_slides(points: torch.Tensor, fractions: tuple[float, ...] = (0.25, 0.5)) -> torch.Tensor:
+    """Shifts of an object along its principal axes: the other starts of a global search.
+
+    An object seen only in part (a bar half hidden behind another object) tends to be placed
+    centred on the part that is seen, and ICP cannot move it along a face that slides on
+    itself. Applied to a pose (``pose @ slides``), these shifts try the model at other places
+    along each of its principal axes: by each fraction of its extent along that axis, either
+    way (``±½`` puts the seen part at either end of the object).
+
+    Args:
+        points: surface points ``(N, 3)`` of the model, ``N >= 3``.
+        fractions: the shifts, fractions of the extent, each in ``(0, 1]``.
+
+    Returns:
+        Model-frame translations ``(6 · len(fractions), 4, 4)`` in the points' dtype: for each
+        principal axis (largest extent first) and fraction, the shift along it and against it.
+
+    Example:
+        >>> bar = torch.cartesian_prod(*[torch.tensor([-s, s]) for s in (0.1, 0.02, 0.01)])
+        >>> box_slides(bar, (0.5,))[0, :3, 3].abs()  # half its length along its long axis
+        tensor([0.1000, 0.0000, 0.0000])
+    """
+    check_tensor(points, "points", (None, 3), finite=True)
+    if points.shape[0] < 3:
+        raise ValueRangeError(f"box_slides needs at least 3 points, got {points.shape[0]}")
+    if not all(0 < f <= 1 for f in fractions):
+        raise ValueRangeError(f"the fractions must lie in (0, 1], got {fractions}")
+    cpu = points.detach().to("cpu", torch.float64)
+    centred = cpu - cpu.mean(0)
+    _, axes = torch.linalg.eigh(centred.T @ centred)  # columns, by increasing variance
+    extent = (centred @ axes).amax(0) - (centred @ axes).amin(0)  # (3,)
+    shifts = [
+        sign * f * extent[a] * axes[:, a]
+        for a in (2, 1, 0)
+        for f in fractions
+        for sign in (1.0, -1.0)
+    ]
+    T = torch.eye(4, dtype=torch.float64).repeat(len(shifts), 1, 1)
+    if shifts:
+        T[:, :3, 3] = torch.stack(shifts)
+    return T.to(dtype=points.dtype, device=points.device)
 
 
 def box_turns(points: torch.Tensor, *, min_angle: float = 5.0) -> torch.Tensor:

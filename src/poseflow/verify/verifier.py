@@ -15,6 +15,7 @@ points, Hi x Wi the image.
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass, replace
 
 import torch
@@ -25,7 +26,7 @@ from poseflow.geometry.se3 import rotation_angle_error
 from poseflow.verify.results import Hypotheses, Verification
 from poseflow.verify.score import VerifierScore
 from poseflow.verify.scorer import PoseScorer
-from poseflow.verify.symmetry import box_turns
+from poseflow.verify.symmetry import box_slides, box_turns
 
 __all__ = ["PoseVerifier"]
 
@@ -215,10 +216,13 @@ class PoseVerifier(PoseScorer):
 
         Each pose is turned by the :func:`~poseflow.verify.box_turns` of its object (the
         flips and quarter turns about its own and its principal axes, and the turns about the
-        boxes' diagonals), the turns are scored on the coarse grid, the best ``search_top_k``
-        refined by ICP, scored on the full grid and tested against the pose as :meth:`verify`'s
-        candidates are. A pose upside down, which no near-symmetry or hypothesis of the
-        estimator reaches, is then found by ICP from the turn nearest to the truth.
+        boxes' diagonals) and slid along its principal axes by ``search_slides`` of its extent
+        (:func:`~poseflow.verify.box_slides`); these are scored on the coarse grid, the best
+        ``search_top_k`` turns and as many slides refined by ICP, scored on the full grid and
+        tested against the pose as :meth:`verify`'s candidates are. A pose upside down, which
+        no near-symmetry or hypothesis of the estimator reaches, is then found by ICP from the
+        turn nearest to the truth; an object seen only in part and placed centred on what is
+        seen, by a slide.
         :meth:`verify` runs this on its chosen poses that score below ``search_below``.
 
         Args:
@@ -232,12 +236,13 @@ class PoseVerifier(PoseScorer):
 
         Returns:
             A :class:`~poseflow.verify.Verification` whose hypotheses are the pose, then
-            ``search_top_k`` refined turns (invalid where the object has fewer turns). The crops
-            are centred on ``poses``.
+            ``search_top_k`` refined turns (invalid where the object has fewer) and, with
+            ``search_slides``, ``search_top_k`` refined slides. The crops are centred on
+            ``poses``.
         """
         check_tensor(poses, "poses", ("B", 4, 4), finite=True)
         if poses.shape[0] == 0:
-            return self._unscored(poses[:, None].expand(0, 1 + self.config.search_top_k, 4, 4))
+            return self._unscored(poses[:, None].expand(0, 1 + self._search_width(), 4, 4))
         return self._searched(_Image.of(image, poses.dtype, observed), poses)
 
     def rank_hypotheses(
@@ -310,6 +315,7 @@ class PoseVerifier(PoseScorer):
         mask: torch.Tensor,
         *,
         k: int,
+        groups: tuple[int, ...] = (),
         refine_first: bool = False,
         ranking: bool = False,
     ) -> _Contest:
@@ -325,6 +331,9 @@ class PoseVerifier(PoseScorer):
             hypotheses: ``(B, H, 4, 4)``, the incumbent first.
             mask: ``(B, H)`` bool, False for padding.
             k: other hypotheses kept, ``k < H``.
+            groups: the sizes of consecutive groups of the other hypotheses (summing to
+                ``H - 1``), each of which contributes its best ``k`` (so that one kind of
+                start cannot crowd out another); empty: one group.
             refine_first: refine the incumbent by ICP too.
             ranking: rank them all: the best ``k`` of all hypotheses, the incumbent included,
                 are kept behind it (it leads unscored: the full grid's tolerances are scaled by
@@ -341,10 +350,15 @@ class PoseVerifier(PoseScorer):
             lifted = self.observed_cloud(image.depth, image.K, image.masks)
             image = replace(image, observed=lifted[0], observed_mask=lifted[1])
         start = 0 if ranking else 1
-        index = torch.zeros(len(hypotheses), 1 + k, dtype=torch.long, device=hypotheses.device)
+        bounds = list(itertools.accumulate(groups or (hypotheses.shape[1] - start,), initial=start))
+        index = torch.zeros(
+            len(hypotheses), 1 + k * (len(bounds) - 1), dtype=torch.long, device=hypotheses.device
+        )
         if k:
-            others = torch.where(coarse.valid[:, start:], coarse.total[:, start:], -torch.inf)
-            index[:, 1:] = others.topk(k, dim=-1).indices + start
+            ranked = torch.where(coarse.valid, coarse.total, -torch.inf)
+            index[:, 1:] = torch.cat([
+                ranked[:, a:b].topk(k, dim=-1).indices + a for a, b in itertools.pairwise(bounds)
+            ], dim=1)  # fmt: skip
         poses = hypotheses.gather(1, index[..., None, None].expand(-1, -1, 4, 4))
         kept = mask.gather(1, index)
         kept[:, 1:] &= coarse.valid.gather(1, index[:, 1:])
@@ -415,11 +429,11 @@ class PoseVerifier(PoseScorer):
         contest = self._contest(image, hyp.poses, hyp.mask, k=k, refine_first=cfg.refine_estimate)
         out = contest.verification(cfg.significance)
         if cfg.search_below > 0:
-            # the instances still scoring low are searched; their turns follow as search_top_k
+            # the instances still scoring low are searched; their turns and slides follow as
             # more columns (invalid, the pose repeated, where an instance was not searched),
             # scored on a crop centred on the pose searched around, their statistics against it
             H = out.hypotheses.shape[1]
-            searched = out.widened(cfg.search_top_k)
+            searched = out.widened(self._search_width())
             rows = (out.valid & (out.scores < cfg.search_below)).nonzero()[:, 0]
             if len(rows):
                 found = self._searched(*contest.image.take(rows, out.poses))
@@ -446,6 +460,23 @@ class PoseVerifier(PoseScorer):
             for t in (turns_of[id(o)] for o in objects)
         ])  # fmt: skip
         padded = torch.arange(width, device=poses.device) >= count[:, None]
-        hyp = torch.cat((poses[:, None], poses[:, None] @ turns), dim=1)
-        hyp_mask = torch.cat((torch.ones_like(padded[:, :1]), ~padded), dim=1)
-        return self._contest(image, hyp, hyp_mask, k=k).verification(self.config.significance)
+        hyp = [poses[:, None], poses[:, None] @ turns]
+        hyp_mask = [torch.ones_like(padded[:, :1]), ~padded]
+        groups: tuple[int, ...] = ()
+        if self.config.search_slides:  # (B, S, 4, 4), as many for every object
+            slides = torch.stack([box_slides(o.points, self.config.search_slides) for o in objects])
+            S = slides.shape[1]
+            slides = torch.cat((slides.to(poses), eye.expand(len(poses), max(k - S, 0), 4, 4)), 1)
+            hyp.append(poses[:, None] @ slides)
+            hyp_mask.append(
+                torch.arange(slides.shape[1], device=poses.device).expand(len(poses), -1) < S
+            )
+            groups = (width, slides.shape[1])
+        contest = self._contest(
+            image, torch.cat(hyp, dim=1), torch.cat(hyp_mask, dim=1), k=k, groups=groups
+        )
+        return contest.verification(self.config.significance)
+
+    def _search_width(self) -> int:
+        """The columns :meth:`search` adds: the best turns, then the best slides."""
+        return self.config.search_top_k * (2 if self.config.search_slides else 1)
