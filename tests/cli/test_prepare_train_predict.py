@@ -179,7 +179,12 @@ def test_changed_features_rebuild_the_training_set(run_dir, dataset, tmp_path, c
     text = capsys.readouterr().out
     assert "training set built" in text
     key = json.loads((out / "train_set.json").read_text())
-    assert key["copies"] == 2
+    assert key["copies"] == 2 and "occlusion" not in key  # keys without it are unchanged
+    assert main([*base, "--copies", "2", "--occlusion", "0.5"]) == 0
+    assert "training set built" in capsys.readouterr().out
+    assert json.loads((out / "train_set.json").read_text())["occlusion"] == 0.5
+    assert main([*base, "--occlusion", "1.5"]) == 2
+    assert "--occlusion must lie in [0, 1]" in capsys.readouterr().err
     assert not (out / "checkpoints").exists()  # --data-only trains nothing
 
 

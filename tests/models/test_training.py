@@ -27,6 +27,78 @@ def test_augment_perturbs_valid_depth_and_shrinks_masks():
 
 
 @given(
+    st.integers(0, 2**31 - 1),
+    st.floats(0.1, 1.0),
+    st.floats(0.0, 1.0),
+    st.integers(6, 20),
+    st.integers(6, 20),
+)
+def test_occlusion_cuts_a_mask_by_one_straight_edge(seed, low, width, h, w):
+    from scipy.ndimage import label
+
+    kept = (low, low + width * (1.0 - low))
+    masks = torch.zeros(2, 24, 24, dtype=torch.bool)
+    masks[0, 2 : 2 + h, 3 : 3 + w] = True  # a rectangle
+    yy, xx = torch.meshgrid(torch.arange(24), torch.arange(24), indexing="ij")
+    masks[1] = (yy - 12) ** 2 + (xx - 11) ** 2 <= 64  # a disc
+    g = torch.Generator().manual_seed(seed)
+    _, cut = augment(torch.ones(24, 24), masks, generator=g, max_erosion=0, mask_noise=0.0,
+                     occlusion=1.0, kept=kept)  # fmt: skip
+    for m, c in zip(masks, cut):
+        n = int(m.sum())
+        assert (c & ~m).sum() == 0  # a part of the mask
+        assert kept[0] * n - 1 <= int(c.sum()) <= kept[1] * n + 1
+        # what is kept of a convex mask is one piece on one side of a line (pixel centres)
+        assert label(c.numpy(), structure=[[1, 1, 1]] * 3)[1] == 1
+        assert _weakly_separable(c.nonzero().double().numpy(), (m & ~c).nonzero().double().numpy())
+    # a random choice of as many pixels is not cut by a line
+    pixels = masks[1].nonzero().double()
+    order = torch.randperm(len(pixels), generator=g)
+    half = len(pixels) // 2
+    assert not _weakly_separable(pixels[order[:half]].numpy(), pixels[order[half:]].numpy())
+
+
+def _weakly_separable(a, b) -> bool:
+    """Whether a line has the points ``a`` (n, 2) on one side and ``b`` on the other (or on it).
+
+    A direction ``d`` with ``max |d_i| = 1`` (one of four linear programs, one per fixed
+    coordinate and sign) and an offset ``c`` with ``d·a <= c - t`` and ``d·b >= c + t`` for a
+    margin ``t`` that is not negative.
+    """
+    from scipy.optimize import linprog
+
+    if len(a) == 0 or len(b) == 0:
+        return True
+    rows = [[*p, -1.0, 1.0] for p in a] + [[-p[0], -p[1], 1.0, 1.0] for p in b]
+    for axis in (0, 1):
+        for sign in (-1.0, 1.0):
+            bounds = [(-1, 1), (-1, 1), (None, None), (None, 1)]
+            bounds[axis] = (sign, sign)
+            res = linprog([0, 0, 0, -1], A_ub=rows, b_ub=[0.0] * len(rows), bounds=bounds)
+            if res.status == 0 and -res.fun >= -1e-9:
+                return True
+    return False
+
+
+def test_occlusion_is_off_by_default_and_checked():
+    masks = torch.zeros(1, 16, 16, dtype=torch.bool)
+    masks[0, 2:14, 3:12] = True
+    depth = torch.ones(16, 16)
+    plain = augment(depth, masks, generator=torch.Generator().manual_seed(3))
+    off = augment(depth, masks, generator=torch.Generator().manual_seed(3), occlusion=0.0)
+    assert torch.equal(plain[0], off[0]) and torch.equal(plain[1], off[1])
+    # off draws nothing more: what follows on the generator is unchanged too
+    g1, g2 = torch.Generator().manual_seed(5), torch.Generator().manual_seed(5)
+    augment(depth, masks, generator=g1)
+    augment(depth, masks, generator=g2, occlusion=0.0)
+    assert torch.equal(torch.rand(4, generator=g1), torch.rand(4, generator=g2))
+    for bad in ({"occlusion": 1.5}, {"occlusion": -0.1}, {"kept": (0.0, 0.5)},
+                {"kept": (0.8, 0.5)}, {"kept": (0.5, 1.2)}):  # fmt: skip
+        with pytest.raises(ValueRangeError):
+            augment(depth, masks, generator=torch.Generator(), **bad)
+
+
+@given(
     st.floats(0.0, 0.45),
     st.integers(0, 2**31 - 1),
     st.sampled_from([torch.float32, torch.float64]),

@@ -89,6 +89,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="jitter of the appearance crop in augmented copies, fraction of its side",
     )
     parser.add_argument(
+        "--occlusion",
+        type=float,
+        default=0.0,
+        help="probability that an instance of an augmented copy is cut to a part (default 0)",
+    )
+    parser.add_argument(
         "--max-images", type=int, default=None, metavar="N", help="use at most N images"
     )
     parser.add_argument(
@@ -207,6 +213,8 @@ def _train_set_key(config: Any, root: Path, args: argparse.Namespace) -> dict[st
         "split": args.split,
         "copies": args.copies,
         "crop_jitter": args.crop_jitter if args.copies > 1 else 0.0,
+        # only where it acts, so that the keys of sets built without it stay as they were
+        **({"occlusion": args.occlusion} if args.copies > 1 and args.occlusion else {}),
         "max_images": args.max_images,
         "min_visib_fract": args.min_visib_fract,
         "seed": args.seed,
@@ -274,7 +282,14 @@ def _training_set(
         model,
         root,
         **option_values(
-            args, "split", "copies", "crop_jitter", "min_visib_fract", "max_images", "seed"
+            args,
+            "split",
+            "copies",
+            "crop_jitter",
+            "occlusion",
+            "min_visib_fract",
+            "max_images",
+            "seed",
         ),
         symmetries=symmetries if args.symmetric_targets else None,
         progress=progress,
@@ -339,6 +354,8 @@ def run(args: argparse.Namespace) -> int:
     out = check_writable(args.out, folder=True)
     if args.copies < 1 or args.steps < 1:
         raise UsageError("--copies and --steps must be at least 1")
+    if not 0.0 <= args.occlusion <= 1.0:
+        raise UsageError(f"--occlusion must lie in [0, 1], got {args.occlusion}")
     train_config = _train_config(args)
     device = resolve_device(args.device)
     had_group = dist.is_available() and dist.is_initialized()

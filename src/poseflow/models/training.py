@@ -8,6 +8,7 @@ augmentations) and stores the flow inputs; :func:`train` then runs
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -84,15 +85,20 @@ def augment(
     depth_noise: float = 0.002,
     max_erosion: int = 2,
     mask_noise: float = 0.02,
+    occlusion: float = 0.0,
+    kept: tuple[float, float] = (0.3, 0.8),
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Perturb a training observation the way real sensors and segmenters do.
+    """Perturb a training observation the way real sensors, segmenters and clutter do.
 
-    (The third augmentation, jitter of the appearance crop, is applied by
+    (The fourth augmentation, jitter of the appearance crop, is applied by
     :meth:`FunFlow6D.observe <poseflow.models.FunFlow6D.observe>`'s ``crop_jitter``.)
 
     Depth gets Gaussian noise (``depth_noise`` metres at 1 m, growing with ``z²``); each mask is
     eroded by a random radius up to ``max_erosion`` pixels and loses a random ``mask_noise``
-    fraction of its pixels.
+    fraction of its pixels; with probability ``occlusion`` it is then cut by a straight edge
+    in a random direction, as by an object in front, keeping a fraction of its pixels drawn
+    uniformly from ``kept``: an instance seen only in part, which generated scenes rarely show
+    (most of their instances are over 90 % visible) and real ones often do.
 
     Args:
         depth: depth ``(H, W)`` metres.
@@ -101,6 +107,8 @@ def augment(
         depth_noise: noise standard deviation at 1 m, metres.
         max_erosion: largest erosion radius, pixels.
         mask_noise: fraction of mask pixels dropped at random.
+        occlusion: probability that a mask is cut, in ``[0, 1]``.
+        kept: the range of the fraction of its pixels a cut mask keeps, within ``(0, 1]``.
 
     Returns:
         The perturbed ``(depth, masks)``.
@@ -111,6 +119,11 @@ def augment(
         >>> d.shape, bool(m.sum() < 64)
         (torch.Size([8, 8]), True)
     """
+    if not 0.0 <= occlusion <= 1.0 or not 0.0 < kept[0] <= kept[1] <= 1.0:
+        raise ValueRangeError(
+            f"occlusion must lie in [0, 1] and kept be a range within (0, 1], got {occlusion}, "
+            f"{kept}"
+        )
     noise = torch.randn(depth.shape, generator=generator).to(depth) * depth_noise * depth.square()
     depth = torch.where(depth > 0, depth + noise, depth)
     out = []
@@ -120,8 +133,31 @@ def augment(
             k = 2 * r + 1
             m = -F.max_pool2d(-m[None, None].float(), k, stride=1, padding=r)[0, 0] > 0.5
         drop = (torch.rand(m.shape, generator=generator) < mask_noise).to(m.device)
-        out.append(m & ~drop)
+        m = m & ~drop
+        if occlusion and float(torch.rand((), generator=generator)) < occlusion:
+            m = _cut(m, generator, kept)
+        out.append(m)
     return depth, torch.stack(out) if out else masks
+
+
+def _cut(mask: torch.Tensor, generator: torch.Generator, kept: tuple[float, float]) -> torch.Tensor:
+    """``mask`` ``(H, W)`` bool less the pixels beyond a straight edge in a random direction.
+
+    The edge keeps a fraction of the pixels drawn uniformly from ``kept``; an empty mask stays
+    empty.
+    """
+    pixels = mask.nonzero().to(torch.float64)  # (P, 2)
+    if len(pixels) == 0:
+        return mask
+    angle = float(torch.rand((), generator=generator)) * 2 * torch.pi
+    fraction = kept[0] + float(torch.rand((), generator=generator)) * (kept[1] - kept[0])
+    along = pixels @ torch.tensor([math.cos(angle), math.sin(angle)], dtype=torch.float64)
+    count = max(1, round(fraction * len(pixels)))
+    keep = along.argsort()[:count]
+    out = torch.zeros_like(mask)
+    rows, cols = pixels[keep].long().unbind(1)
+    out[rows, cols] = True
+    return out
 
 
 @torch.no_grad()
@@ -132,6 +168,7 @@ def build_training_set(
     split: str = "train",
     copies: int = 1,
     crop_jitter: float = 0.1,
+    occlusion: float = 0.0,
     min_visib_fract: float = 0.1,
     max_images: int | None = None,
     seed: int = 0,
@@ -152,6 +189,8 @@ def build_training_set(
         copies: augmented copies of every instance (the first is not augmented).
         crop_jitter: jitter of the appearance crop of the augmented copies (see
             :func:`~poseflow.features.lifting.jitter_boxes`).
+        occlusion: the probability that an instance of an augmented copy is seen only in part
+            (see :func:`augment`).
         min_visib_fract: skip instances less visible than this.
         max_images: use at most this many images.
         seed: seed of the augmentations and samplings.
@@ -181,7 +220,7 @@ def build_training_set(
         for copy in range(copies):
             depth, masks = s["depth"], s["masks_visib"][keep]
             if copy:
-                depth, masks = augment(depth, masks, generator=g)
+                depth, masks = augment(depth, masks, generator=g, occlusion=occlusion)
             image = ImageInstances(s["rgb"], depth, s["K"], masks, s["obj_ids"][keep])
             obs = model.observe(image, generator=g, crop_jitter=crop_jitter if copy else 0.0)
             inputs = model.flow_inputs(obs, s["poses"][keep])
