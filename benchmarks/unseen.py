@@ -19,8 +19,10 @@ Everything is written under ``--work`` (default ``runs/unseen/DATASET_NAME``) an
 run again, so a second run with other seeds or ``--predict-args`` only predicts and scores.
 
 Run ``python benchmarks/unseen.py ../shared/devbench --threads 2`` (the README recipe's synth of
-3,200 images, the surface embedding and the training took 39 minutes on an idle 2-core machine,
-then 0.3-1.7 s per image and estimator). The recipe learns a surface embedding of the dataset's
+3,200 images, the surface embedding and the training took 39 minutes on an idle 2-core machine
+with one copy of each training instance; the recipe's second, augmented copy, a third of its
+instances seen only in part, adds the features of that copy, about 7 minutes; then 0.3-1.7 s per
+image and estimator). The recipe learns a surface embedding of the dataset's
 objects on the synth images (:func:`~poseflow.features.surface_training.train_surface_embedding`,
 ``--surface-steps``, ``--surface-images``; 0 steps keeps the shipped descriptor) and trains
 FunFlow6D on it; ``--threads`` sets the synth's processes and the embedding's threads (the small
@@ -101,8 +103,8 @@ def _recipe(args: argparse.Namespace, dataset: Path, work: Path) -> Path:
             _run([
                 "train", str(train_data), "--out", str(run), "--config", str(args.config),
                 "--steps", str(args.steps), "--batch-size", "16", "--lr", "1e-3",
-                "--ema-decay", "0.995", "--device", "cpu", "--no-progress",
-                *train_args,
+                "--ema-decay", "0.995", "--copies", "2", "--occlusion", "0.5",
+                "--device", "cpu", "--no-progress", *train_args,
             ])  # fmt: skip
     if not args.distill_steps:
         return model

@@ -192,7 +192,7 @@ def test_the_shipped_checkpoint_keeps_its_settings_under_the_new_names():
     new = config.to_dict()
     assert new["ransac_distance"] == raw["ransac_threshold"]
     assert new["icp_distances"] == raw["icp_thresholds"]
-    # the verifier's options added since (the polish) keep their defaults
+    # the verifier's options added since (the polish, the slides) keep their defaults
     old_verifier = {**raw["verifier"], "rank_hypotheses": raw["verify_hypotheses"]}
     assert new["verifier"] == {**VerifierConfig().to_dict(), **old_verifier}
     renamed = ("ransac_threshold", "icp_thresholds", "verification", "verify_hypotheses")

@@ -140,8 +140,8 @@ class PoseVerifier(PoseScorer):
         >>> out = Renderer([model.mesh]).render(pose[None], K, 160, 120)
         >>> image = ImageInstances(None, out.depth, K, out.masks_full, [1])  # no colour
         >>> result = verifier.verify(image, pose[None])
-        >>> result.hypotheses.shape  # the estimate, its 3 candidates and 3 turns searched
-        torch.Size([1, 7, 4, 4])
+        >>> result.hypotheses.shape  # the estimate, 2 candidates, 4 turns and 4 slides searched
+        torch.Size([1, 11, 4, 4])
         >>> int(result.chosen[0]), bool(result.valid[0])  # the estimate is kept
         (0, True)
     """
