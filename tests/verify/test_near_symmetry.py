@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 import pytest
@@ -159,16 +160,26 @@ def _cube_group(R: torch.Tensor) -> None:
     assert all(tuple((a @ b).flatten().tolist()) in keys for a in group for b in group)
 
 
+def _turned_cloud(
+    seed: int, draw: Any, count: int, extents: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``count`` float64 points ``draw(count, 3) * extents``, turned by a random ``R0`` and moved.
+
+    Returns ``(points (count, 3), R0 (3, 3))``: the cloud's box axes are ``R0``'s columns.
+    """
+    g = torch.Generator().manual_seed(seed)
+    R0 = random_rotation(1, generator=g, dtype=torch.float64)[0]
+    local = draw(count, 3, generator=g, dtype=torch.float64) * extents
+    return local @ R0.T + torch.randn(3, generator=g, dtype=torch.float64), R0
+
+
 @given(seed=st.integers(0, 2**31 - 1), double=st.booleans(), size=st.floats(0.3, 1.0))
 def test_box_turns_are_the_cube_groups_of_the_model_and_principal_frames(
     seed: int, double: bool, size: float
 ) -> None:
     dtype = torch.float64 if double else torch.float32
-    g = torch.Generator().manual_seed(seed)
-    R0 = random_rotation(1, generator=g, dtype=torch.float64)[0]
     extents = torch.tensor([size, 1.7 * size, 3.0 * size], dtype=torch.float64)  # distinct
-    local = torch.randn(400, 3, generator=g, dtype=torch.float64) * extents
-    points = (local @ R0.T + torch.randn(3, generator=g, dtype=torch.float64)).to(dtype)
+    points = _turned_cloud(seed, torch.randn, 400, extents)[0].to(dtype)
     T = box_turns(points)
     assert T.dtype == dtype and 23 <= len(T) <= 46
     T = T.double()
@@ -201,11 +212,10 @@ def test_box_slides_shift_along_the_principal_axes_by_fractions_of_the_extent(
     seed: int, double: bool, size: float
 ) -> None:
     dtype = torch.float64 if double else torch.float32
-    g = torch.Generator().manual_seed(seed)
-    R0 = random_rotation(1, generator=g, dtype=torch.float64)[0]
     extents = torch.tensor([3.0 * size, size, 1.7 * size], dtype=torch.float64)  # distinct
-    local = (torch.rand(600, 3, generator=g, dtype=torch.float64) - 0.5) * extents
-    points = (local @ R0.T + torch.randn(3, generator=g, dtype=torch.float64)).to(dtype)
+    uniform = lambda *shape, **kw: torch.rand(*shape, **kw) - 0.5  # noqa: E731
+    points, R0 = _turned_cloud(seed, uniform, 600, extents)
+    points = points.to(dtype)
     T = box_slides(points, (0.25, 0.5))
     assert T.dtype == dtype and T.shape == (12, 4, 4)
     T = T.double()
