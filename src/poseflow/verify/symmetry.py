@@ -90,6 +90,17 @@ def axis_angle_matrix(axis: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
     return axis_angle_to_rotation(axis / norm * angle[..., None])
 
 
+def _principal_axes(points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Centroid ``(3,)`` and principal axes ``(3, 3)`` of ``points`` ``(N, 3)`` (float64, CPU).
+
+    The axes are columns, by increasing variance.
+    """
+    cpu = points.detach().to("cpu", torch.float64)
+    centre = cpu.mean(0)
+    centred = cpu - centre
+    return centre, torch.linalg.eigh(centred.T @ centred)[1]
+
+
 def box_slides(points: torch.Tensor, fractions: tuple[float, ...] = (0.25, 0.5)) -> torch.Tensor:
     """Shifts of an object along its principal axes: the other starts of a global search.
 
@@ -117,10 +128,9 @@ def box_slides(points: torch.Tensor, fractions: tuple[float, ...] = (0.25, 0.5))
         raise ValueRangeError(f"box_slides needs at least 3 points, got {points.shape[0]}")
     if not all(0 < f <= 1 for f in fractions):
         raise ValueRangeError(f"the fractions must lie in (0, 1], got {fractions}")
-    cpu = points.detach().to("cpu", torch.float64)
-    centred = cpu - cpu.mean(0)
-    _, axes = torch.linalg.eigh(centred.T @ centred)  # columns, by increasing variance
-    extent = (centred @ axes).amax(0) - (centred @ axes).amin(0)  # (3,)
+    centre, axes = _principal_axes(points)
+    along = (points.detach().to("cpu", torch.float64) - centre) @ axes
+    extent = along.amax(0) - along.amin(0)  # (3,)
     shifts = [
         sign * f * extent[a] * axes[:, a]
         for a in (2, 1, 0)
@@ -163,10 +173,7 @@ def box_turns(points: torch.Tensor, *, min_angle: float = 5.0) -> torch.Tensor:
     if points.shape[0] < 3:
         raise ValueRangeError(f"box_turns needs at least 3 points, got {points.shape[0]}")
     dtype, device = points.dtype, points.device
-    cpu = points.detach().to("cpu", torch.float64)
-    centre = cpu.mean(0)
-    centred = cpu - centre
-    _, axes = torch.linalg.eigh(centred.T @ centred)
+    centre, axes = _principal_axes(points)
     axes = axes * torch.linalg.det(axes)  # a proper frame: columns are the principal axes
     cube = []
     for perm in itertools.permutations(range(3)):
