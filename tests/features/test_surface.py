@@ -25,6 +25,7 @@ from poseflow.features import (
 )
 from poseflow.features.appearance import AppearanceEncoder
 from poseflow.features.surface_training import surface_crops, surface_loss, train_surface_embedding
+from poseflow.flows import native_bfloat16
 from poseflow.models import FunFlow6D, FunFlow6DConfig
 from poseflow.models.components import build_appearance_encoder
 from poseflow.models.objects import select_objects
@@ -198,6 +199,26 @@ def test_encoder_queries_and_keys(tmp_path, device, dtype) -> None:
         enc.point_keys(1, pts, 0.2)
     with pytest.raises(ValueRangeError, match="needs its folder"):
         build_appearance_encoder("surface", crop_size=32)
+
+
+def test_training_precision_is_applied_recorded_and_checked(dataset, tmp_path) -> None:
+    def trained(precision):
+        folder = train_surface_embedding(
+            dataset, tmp_path / precision, steps=2, batch_size=2, queries=8, negatives=16,
+            dim=16, init=None, precision=precision, progress=False,
+        )  # fmt: skip
+        config = json.loads((folder / "config.json").read_text())["training"]
+        return config["precision"], load_surface_embedding(folder)[0].state_dict()
+
+    named = {p: trained(p) for p in ("fp32", "bf16", "auto")}
+    assert named["fp32"][0] == "fp32" and named["bf16"][0] == "bf16"
+    assert named["auto"][0] == ("bf16" if native_bfloat16("cpu") else "fp32")
+    single, half = named["fp32"][1], named["bf16"][1]
+    assert any(not torch.equal(single[k], half[k]) for k in single)  # the products were bf16
+    for k in single:  # the same two steps otherwise
+        torch.testing.assert_close(half[k], single[k], atol=2e-2, rtol=0)
+    with pytest.raises(ValueRangeError, match="precision must be one of"):
+        train_surface_embedding(dataset, tmp_path / "x", steps=1, precision="fp64")
 
 
 def test_trained_embedding_conditions_funflow6d(dataset, tmp_path) -> None:

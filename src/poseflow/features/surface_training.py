@@ -30,6 +30,7 @@ from pathlib import Path
 
 import torch
 
+from poseflow._precision import PRECISIONS, autocast_dtype, precision_autocast
 from poseflow.errors import DegenerateInputError, ValueRangeError
 from poseflow.features.appearance import sample_features
 from poseflow.features.descriptor_training import _warmup_cosine
@@ -183,6 +184,7 @@ def train_surface_embedding(
     temperature: float = 0.07,
     sigma: float = 0.1,
     init: str | Path | None = "shipped",
+    precision: str = "auto",
     seed: int = 0,
     progress: bool = True,
     log: Callable[[str], None] | None = None,
@@ -204,6 +206,9 @@ def train_surface_embedding(
         lr: peak learning rate.
         init: a descriptor folder whose weights start the query network, ``"shipped"`` for the
             package's (when present), or None for a random start.
+        precision: what the query network's products compute in (``"auto"``: bfloat16 where
+            the CPU has it, as FunFlow6D's ``appearance_precision="auto"`` runs it at use;
+            the keys and the loss stay float32), see :func:`poseflow.flows.autocast_dtype`.
         seed: seeds the crops' points, the initialisation and the batches.
         progress: show progress bars.
         log: called with a line of figures every 100 steps.
@@ -224,6 +229,7 @@ def train_surface_embedding(
     """
     if steps < 1 or batch_size < 1 or queries < 1 or negatives < 1:
         raise ValueRangeError("steps, batch_size, queries and negatives must be positive")
+    dtype = autocast_dtype(precision, "cpu")
     data = surface_crops(root, split, max_images=max_images, seed=seed, progress=progress)
     torch.manual_seed(seed)
     model = SurfaceEmbedding(data.diameters, dim=dim)
@@ -242,7 +248,9 @@ def train_surface_embedding(
         pick = torch.randint(data.uv.shape[1], (batch_size, queries), generator=g)
         uv = torch.gather(data.uv[idx], 1, pick[..., None].expand(-1, -1, 2))
         coords = torch.gather(data.coords[idx], 1, pick[..., None].expand(-1, -1, 3))
-        q = sample_features(model.query(x), uv, (size, size))
+        with precision_autocast(precision, "cpu"):
+            dense = model.query(x)
+        q = sample_features(dense.float(), uv, (size, size))
         loss = surface_loss(
             torch.nn.functional.normalize(q, dim=-1), coords, data.obj_ids[idx].tolist(),
             model.keys, data.surfaces, negatives=negatives, temperature=temperature,
@@ -262,6 +270,7 @@ def train_surface_embedding(
         "steps": steps, "images": max_images, "crops": len(data.crops), "batch_size": batch_size,
         "queries": queries, "negatives": negatives, "lr": lr, "temperature": temperature,
         "sigma": sigma, "seed": seed, "init": None if init is None else str(init),
+        "precision": next(name for name, d in PRECISIONS.items() if d is dtype),
         "loss": round(sum(recent) / len(recent), 4),
         "seconds": round(time.monotonic() - start, 1),
     }  # fmt: skip
@@ -309,6 +318,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--lr", type=float, default=2e-3)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--no-init", action="store_true", help="random start of the query net")
+    parser.add_argument(
+        "--precision", default="auto", choices=["auto", "fp32", "bf16"],
+        help="the query network's products (auto: bfloat16 where the CPU has it)",
+    )  # fmt: skip
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
@@ -316,6 +329,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     out = train_surface_embedding(
         args.dataset, args.out, steps=args.steps, split=args.split, max_images=args.max_images,
         dim=args.dim, lr=args.lr, seed=args.seed, init=None if args.no_init else "shipped",
+        precision=args.precision,
         progress=not args.no_progress, log=lambda line: print(line, flush=True),
     )  # fmt: skip
     print(f"wrote {out}/model.safetensors and config.json", flush=True)

@@ -7,6 +7,12 @@ noise with :func:`sample` (Euler, midpoint, Heun or RK4), anchors held fixed by 
 per-point positional encoding of its condition.
 """
 
+from poseflow._precision import (
+    PRECISIONS,
+    autocast_dtype,
+    native_bfloat16,
+    precision_autocast,
+)
 from poseflow.flows.checkpoint import (
     atomic_write,
     flatten_optimizer_state,
@@ -42,12 +48,6 @@ from poseflow.flows.loss import cfm_loss
 from poseflow.flows.objective import CFMObjective, DistillationObjective, FlowBatch, StepRandom
 from poseflow.flows.path import LinearPath, PathSample
 from poseflow.flows.positional import PointPositionalEncoder, nerf_embedding
-from poseflow.flows.precision import (
-    PRECISIONS,
-    autocast_dtype,
-    native_bfloat16,
-    precision_autocast,
-)
 from poseflow.flows.protocols import VelocityModel
 from poseflow.flows.samplers import (
     SAMPLERS,

@@ -63,6 +63,7 @@ from torch import nn
 from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import DataLoader, Dataset, DistributedSampler, IterableDataset, Sampler
 
+from poseflow._precision import PRECISIONS
 from poseflow.errors import DegenerateInputError, MissingWeightsError, ValueRangeError
 from poseflow.flows.checkpoint import (
     atomic_write,
@@ -81,7 +82,6 @@ from poseflow.flows.distributed import (
 )
 from poseflow.flows.ema import EMA
 from poseflow.flows.objective import CFMObjective, FlowBatch, StepRandom
-from poseflow.flows.precision import PRECISIONS
 from poseflow.flows.schedule import warmup_cosine_lr
 
 __all__ = ["CFMTrainer", "Objective", "TrainConfig", "ValidateHook"]

@@ -26,11 +26,11 @@ import torch
 from torch import nn
 
 from poseflow._checks import check_mask, check_tensor
+from poseflow._precision import precision_autocast
 from poseflow.errors import ShapeError, ValueRangeError
 from poseflow.eval.timing import stage, timed
 from poseflow.flows.dit import PointDiT
 from poseflow.flows.positional import PointPositionalEncoder
-from poseflow.flows.precision import precision_autocast
 from poseflow.flows.samplers import ODESampler, initial_noise
 from poseflow.fusion import build_fusion
 from poseflow.models.config import NetConfig

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import torch
 
 from poseflow._checks import check_tensor
+from poseflow._precision import precision_autocast
 from poseflow._units import check_intrinsics
 from poseflow.errors import ShapeError
 from poseflow.eval.timing import stage
@@ -28,7 +29,6 @@ from poseflow.features import (
     encode_on_support,
     lift_target_features,
 )
-from poseflow.flows.precision import precision_autocast
 from poseflow.geometry.pointcloud import (
     backproject_depth,
     estimate_normals,

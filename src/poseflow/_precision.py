@@ -1,10 +1,12 @@
-"""The arithmetic a velocity network runs in: named precisions and the autocast they mean.
+"""The arithmetic a network runs in: named precisions and the autocast they mean.
 
 ``"fp32"`` is the network's own dtype, ``"bf16"`` / ``"fp16"`` run its matrix products under
-:func:`torch.autocast` in that dtype (normalisations, softmax statistics and the state the
-sampler integrates stay float32), and ``"auto"`` (inference only) is ``"bf16"`` where the device
-computes it natively, else ``"fp32"``: a CUDA GPU with bfloat16 support, or a CPU with AVX-512
-BF16 or AMX instructions. Elsewhere bfloat16 products would be emulated, slower than float32.
+:func:`torch.autocast` in that dtype (normalisations, softmax statistics and the state a sampler
+integrates stay float32), and ``"auto"`` is ``"bf16"`` where the device computes it natively,
+else ``"fp32"``: a CUDA GPU with bfloat16 support, or a CPU with AVX-512 BF16 or AMX
+instructions. Elsewhere bfloat16 products would be emulated, slower than float32. Shared by the
+velocity network (:mod:`poseflow.flows` re-exports it), the appearance encoders at inference and
+the surface embedding's training.
 """
 
 from __future__ import annotations
