@@ -15,9 +15,14 @@ diameters), taken as the smallest over the object's symmetries, so that symmetri
 not pushed apart. The query network starts from the shipped learned descriptor's weights (the
 depth channels from zero) when the package has them.
 
-Run ``python -m poseflow.features.surface_training TRAIN_DATASET --out DIR`` (about 20 minutes
-on one CPU thread at the default 10,000 steps: a minute for the crops of 1,600 images, 0.12 s a
-step); FunFlow6D uses the result with ``appearance_encoder="surface:DIR"``.
+The query network computes in bfloat16 where the CPU multiplies it natively (``precision``),
+as FunFlow6D runs it at use with ``appearance_precision="auto"``: 1.55 times the steps per
+second of float32 on one thread, the same loss and inliers (``benchmarks/surface_precision.py``,
+``benchmarks/LOG.md``).
+
+Run ``python -m poseflow.features.surface_training TRAIN_DATASET --out DIR`` (about 15 minutes
+on one CPU thread at the default 10,000 steps: a minute for the crops of 1,600 images, about
+0.08 s a step on an idle core); FunFlow6D uses the result with ``appearance_encoder="surface:DIR"``.
 """
 
 from __future__ import annotations
