@@ -1,12 +1,13 @@
 """Steps per second of the surface embedding's training in float32 and in bfloat16.
 
 :func:`~poseflow.features.surface_training.train_surface_embedding` runs its query network
-under ``precision`` (``"auto"``, the default: bfloat16 where the CPU multiplies it natively).
+under ``precision`` (``"fp32"``, the default; ``"bf16"``; ``"auto"``: bfloat16 where the CPU
+multiplies it natively).
 This trains the same embedding (same crops, seed and batches) for ``--steps`` steps in each
 precision, alternately ``--repeats`` times, and prints the seconds per step of each (the
 training loop alone, without the crops), their ratio, and the loss over the last steps, then
 the JSON line and the command. Where the CPU has no bfloat16 products, ``bf16`` is emulated and
-slower: ``auto`` then trains in float32.
+slower (``auto`` then trains in float32).
 
 Run ``python benchmarks/surface_precision.py TRAIN_DATASET [--images 200 --steps 200]``;
 ``--quick`` (CI) trains three steps on two generated images.

@@ -15,14 +15,15 @@ diameters), taken as the smallest over the object's symmetries, so that symmetri
 not pushed apart. The query network starts from the shipped learned descriptor's weights (the
 depth channels from zero) when the package has them.
 
-The query network computes in bfloat16 where the CPU multiplies it natively (``precision``),
-as FunFlow6D runs it at use with ``appearance_precision="auto"``: 1.55 times the steps per
-second of float32 on one thread, the same loss and inliers (``benchmarks/surface_precision.py``,
+``precision="bf16"`` (or ``"auto"``: bfloat16 where the CPU multiplies it natively) runs the
+query network's products in bfloat16, as FunFlow6D can at use (``appearance_precision``): 1.55
+times the steps per second of float32 on one thread, the same loss and inliers; the default is
+float32, in which the recipe's AR was measured (``benchmarks/surface_precision.py``,
 ``benchmarks/LOG.md``).
 
-Run ``python -m poseflow.features.surface_training TRAIN_DATASET --out DIR`` (about 15 minutes
-on one CPU thread at the default 10,000 steps: a minute for the crops of 1,600 images, about
-0.08 s a step on an idle core); FunFlow6D uses the result with ``appearance_encoder="surface:DIR"``.
+Run ``python -m poseflow.features.surface_training TRAIN_DATASET --out DIR`` (about 20 minutes
+on one CPU thread at the default 10,000 steps: a minute for the crops of 1,600 images, 0.12 s a
+step); FunFlow6D uses the result with ``appearance_encoder="surface:DIR"``.
 """
 
 from __future__ import annotations
@@ -189,7 +190,7 @@ def train_surface_embedding(
     temperature: float = 0.07,
     sigma: float = 0.1,
     init: str | Path | None = "shipped",
-    precision: str = "auto",
+    precision: str = "fp32",
     seed: int = 0,
     progress: bool = True,
     log: Callable[[str], None] | None = None,
@@ -211,9 +212,9 @@ def train_surface_embedding(
         lr: peak learning rate.
         init: a descriptor folder whose weights start the query network, ``"shipped"`` for the
             package's (when present), or None for a random start.
-        precision: what the query network's products compute in (``"auto"``: bfloat16 where
-            the CPU has it, as FunFlow6D's ``appearance_precision="auto"`` runs it at use;
-            the keys and the loss stay float32), see :func:`poseflow.flows.autocast_dtype`.
+        precision: what the query network's products compute in (``"bf16"``, ``"auto"``:
+            bfloat16 where the CPU has it; the keys and the loss stay float32), see
+            :func:`poseflow.flows.autocast_dtype`.
         seed: seeds the crops' points, the initialisation and the batches.
         progress: show progress bars.
         log: called with a line of figures every 100 steps.
@@ -324,7 +325,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--no-init", action="store_true", help="random start of the query net")
     parser.add_argument(
-        "--precision", default="auto", choices=["auto", "fp32", "bf16"],
+        "--precision", default="fp32", choices=["fp32", "bf16", "auto"],
         help="the query network's products (auto: bfloat16 where the CPU has it)",
     )  # fmt: skip
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
