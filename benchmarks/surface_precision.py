@@ -42,7 +42,9 @@ def main() -> None:
     torch.set_num_threads(max(1, args.threads))
     with tempfile.TemporaryDirectory() as tmp:
         root = args.dataset
-        if args.quick or root is None:
+        if root is None and not args.quick:
+            parser.error("give a BOP dataset with a train split, or --quick")
+        if args.quick:
             from poseflow.data import generate_dataset
 
             root = generate_dataset(
