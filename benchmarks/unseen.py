@@ -25,8 +25,9 @@ instances seen only in part, adds the features of that copy, about 7 minutes; th
 image and estimator). The recipe learns a surface embedding of the dataset's
 objects on the synth images (:func:`~poseflow.features.surface_training.train_surface_embedding`,
 ``--surface-steps``, ``--surface-images``; 0 steps keeps the shipped descriptor) and trains
-FunFlow6D on it; ``--threads`` sets the synth's processes and the embedding's threads (the small
-flow network trains on one). Each step prints its minutes.
+FunFlow6D on it; ``--threads`` sets the synth's processes, the embedding's threads, the processes
+that compute the training set's features and the flow network's threads. Each step prints its
+minutes.
 
 ``--quick`` (CI) generates a two-image test split of the demo objects as the "user's dataset"
 and trains a few steps on four generated images (with ``--oracle`` when both estimators run): it
@@ -104,7 +105,7 @@ def _recipe(args: argparse.Namespace, dataset: Path, work: Path) -> Path:
                 "train", str(train_data), "--out", str(run), "--config", str(args.config),
                 "--steps", str(args.steps), "--batch-size", "16", "--lr", "1e-3",
                 "--ema-decay", "0.995", "--copies", "2", "--occlusion", "0.5",
-                "--device", "cpu", "--no-progress", *train_args,
+                "--device", "cpu", "--no-progress", *threads, *train_args,
             ])  # fmt: skip
     if not args.distill_steps:
         return model
@@ -193,8 +194,9 @@ def main() -> None:
         "--threads",
         type=int,
         default=None,
-        help="CPU threads of the recipe's synth (processes) and surface embedding (default: "
-        "$OMP_NUM_THREADS if set, else 1); FunFlow6D's small network trains on one",
+        help="CPU threads of the recipe: the synth's and the training features' processes, the "
+        "surface embedding's and the flow network's threads (default: $OMP_NUM_THREADS if set, "
+        "else 1)",
     )
     parser.add_argument("--mesh-scale", type=float, default=0.001, help="model units to metres")
     parser.add_argument("--synth-seed", type=int, default=1)

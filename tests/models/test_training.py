@@ -188,6 +188,28 @@ def test_the_training_set_keeps_the_maps_of_symmetric_objects_only(tiny_model, t
     assert torch.isfinite(torch.tensor(metrics["loss"]))
 
 
+def test_the_training_set_is_the_same_from_any_number_of_workers(tiny_model, tmp_path):
+    from poseflow.data.synthetic import generate_dataset
+    from poseflow.models.training import build_training_set
+
+    root = generate_dataset(
+        tmp_path / "ds", num_train_images=3, num_test_images=0, width=160, height=120,
+        seed=4, progress=False,
+    )  # fmt: skip
+    kwargs = {"copies": 2, "occlusion": 0.5, "progress": False}
+    one = build_training_set(tiny_model, root, workers=1, **kwargs)
+    two = build_training_set(tiny_model, root, workers=2, **kwargs)
+    other_seed = build_training_set(tiny_model, root, workers=1, seed=1, **kwargs)
+    assert len(one) > 3  # several instances of several images, in two copies
+    assert one.tensors.keys() == two.tensors.keys()
+    for k, v in one.tensors.items():
+        assert torch.equal(v, two.tensors[k]), k
+    # the augmentations and samplings follow the seed
+    assert any(not torch.equal(v, other_seed.tensors[k]) for k, v in one.tensors.items())
+    with pytest.raises(ValueRangeError):
+        build_training_set(tiny_model, root, workers=0, **kwargs)
+
+
 def test_a_model_cannot_teach_itself(tiny_model) -> None:
     from poseflow.models.training import train
 

@@ -1,7 +1,8 @@
 """``poseflow train``: train FunFlow6D on the training images of a BOP dataset.
 
 Steps: prepare the dataset's objects (cached under ``RUN_DIR/model/objects/`` or ``--cache``),
-run the frozen encoders over the training instances once (``--copies`` augmented copies each,
+run the frozen encoders over the training instances once (whole images in ``--threads``
+processes of one thread each; ``--copies`` augmented copies each,
 with the maps to the symmetric equivalents of the objects that ``models_info.json`` declares
 symmetric, so that a flipped ground truth of a symmetric object costs no loss; cached as
 ``RUN_DIR/train_set.safetensors`` and reused while the dataset, the feature settings and the
@@ -218,6 +219,7 @@ def _train_set_key(config: Any, root: Path, args: argparse.Namespace) -> dict[st
         "max_images": args.max_images,
         "min_visib_fract": args.min_visib_fract,
         "seed": args.seed,
+        "draws": "per image",  # each image's own generator (any number of workers)
         "symmetric_targets": args.symmetric_targets,
         "features": features,
     }
@@ -268,6 +270,7 @@ def _training_set(
     Returns the set and the folder it was read from (None: built).
     """
     from poseflow._cache import atomic_write
+    from poseflow.cli.common import image_workers
     from poseflow.models.training import build_training_set
 
     key = _train_set_key(model.config, root, args)
@@ -278,22 +281,24 @@ def _training_set(
         )
         if cached is not None:
             return cached, folder
-    data = build_training_set(
-        model,
-        root,
-        **option_values(
-            args,
-            "split",
-            "copies",
-            "crop_jitter",
-            "occlusion",
-            "min_visib_fract",
-            "max_images",
-            "seed",
-        ),
-        symmetries=symmetries if args.symmetric_targets else None,
-        progress=progress,
-    )
+    with image_workers("cpu") as workers:  # the objects' features are computed on the CPU
+        data = build_training_set(
+            model,
+            root,
+            **option_values(
+                args,
+                "split",
+                "copies",
+                "crop_jitter",
+                "occlusion",
+                "min_visib_fract",
+                "max_images",
+                "seed",
+            ),
+            symmetries=symmetries if args.symmetric_targets else None,
+            workers=workers,
+            progress=progress,
+        )
     if write:
         meta.unlink(missing_ok=True)  # no key beside a half-written set
         data.save(path)

@@ -13,13 +13,16 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
 from poseflow._cache import atomic_write
+from poseflow._workers import map_forked
 from poseflow.data.bop import BOPImageDataset
 from poseflow.data.frame import ImageInstances
 from poseflow.errors import DegenerateInputError, ValueRangeError
+from poseflow.eval.distributed import image_seed
 from poseflow.flows import (
     CFMObjective,
     CFMTrainer,
@@ -173,6 +176,7 @@ def build_training_set(
     max_images: int | None = None,
     seed: int = 0,
     symmetries: Mapping[int, torch.Tensor] | None = None,
+    workers: int = 1,
     progress: bool = True,
 ) -> FlowTrainingSet:
     """Run the frozen encoders over the instances of a BOP split.
@@ -181,6 +185,10 @@ def build_training_set(
     targets (:func:`~poseflow.models.inputs.equivalent_maps`, identity-padded to the largest
     count), and training pairs each noise draw with the nearest one: a flipped ground truth of
     a symmetric object costs no loss. A set whose objects are all asymmetric stores no maps.
+
+    Every image draws its augmentations and samplings from its own generator, seeded by
+    ``seed`` and the image's ids (:func:`~poseflow.eval.distributed.image_seed`), so the set is
+    the same whichever ``workers`` build it.
 
     Args:
         model: the model; the objects of the split must be prepared.
@@ -196,6 +204,8 @@ def build_training_set(
         seed: seed of the augmentations and samplings.
         symmetries: ``{obj_id: (S, 4, 4)}`` symmetry transforms in metres, identity included
             (:attr:`~poseflow.data.objects.ObjectModel.symmetries`); None: no equivalents.
+        workers: CPU processes of one thread each that take whole images
+            (``poseflow._workers.map_forked``); 1: here, on the current threads.
         progress: show a progress bar.
 
     Returns:
@@ -208,15 +218,20 @@ def build_training_set(
 
     images = BOPImageDataset(root, split)
     count = len(images) if max_images is None else min(max_images, len(images))
-    g = torch.Generator().manual_seed(seed)
-    parts: dict[str, list[torch.Tensor]] = {k: [] for k in TRAINING_FIELDS}
-    maps: list[torch.Tensor] = []  # (S, 3, 4) per kept instance
-    for i in tqdm(range(count), desc=f"features of {split}", disable=not progress):
+
+    def image_inputs(i: int) -> tuple[dict[str, list[np.ndarray]], list[np.ndarray]]:
+        """The flow inputs ``{field: [(B, ...)] per copy}`` and symmetry maps of image ``i``.
+
+        As numpy arrays: what a worker process returns is pickled back to the parent.
+        """
         s = images[i]
+        g = torch.Generator().manual_seed(image_seed(seed, s["scene_id"], s["im_id"]))
+        parts: dict[str, list[np.ndarray]] = {k: [] for k in TRAINING_FIELDS}
+        maps: list[np.ndarray] = []  # (S, 3, 4) per kept instance
         keep = (s["visib_fract"] >= min_visib_fract) & s["valid"]
         keep &= torch.tensor([int(o) in model.objects for o in s["obj_ids"]], dtype=torch.bool)
         if not bool(keep.any()):
-            continue
+            return parts, maps
         for copy in range(copies):
             depth, masks = s["depth"], s["masks_visib"][keep]
             if copy:
@@ -225,11 +240,23 @@ def build_training_set(
             obs = model.observe(image, generator=g, crop_jitter=crop_jitter if copy else 0.0)
             inputs = model.flow_inputs(obs, s["poses"][keep])
             for k in TRAINING_FIELDS:
-                parts[k].append(getattr(inputs, k)[obs.valid])
+                parts[k].append(getattr(inputs, k)[obs.valid].numpy())
             if symmetries is not None:
                 for oid in obs.obj_ids[obs.valid].tolist():
                     sym = symmetries.get(int(oid), torch.eye(4)[None])
-                    maps.append(equivalent_maps(sym, model.objects[int(oid)].diameter / 2))
+                    diameter = model.objects[int(oid)].diameter
+                    maps.append(equivalent_maps(sym, diameter / 2).numpy())
+        return parts, maps
+
+    parts: dict[str, list[torch.Tensor]] = {k: [] for k in TRAINING_FIELDS}
+    maps: list[torch.Tensor] = []
+    bar = tqdm(total=count, desc=f"features of {split}", disable=not progress)
+    for image_parts, image_maps in map_forked(image_inputs, count, workers):
+        for k in TRAINING_FIELDS:
+            parts[k] += map(torch.from_numpy, image_parts[k])
+        maps += map(torch.from_numpy, image_maps)
+        bar.update(1)
+    bar.close()
     if not parts["x_1"] or sum(len(p) for p in parts["x_1"]) == 0:
         raise DegenerateInputError(f"{root}/{split} holds no usable instance of a prepared object")
     tensors = {k: torch.cat(v) for k, v in parts.items()}
