@@ -18,16 +18,14 @@ them without their ``--set`` of fields other than the verifier's (the verificati
 Everything is written under ``--work`` (default ``runs/unseen/DATASET_NAME``) and reused when
 run again, so a second run with other seeds or ``--predict-args`` only predicts and scores.
 
-Run ``python benchmarks/unseen.py ../shared/devbench --threads 2`` (the README recipe's synth of
-3,200 images, the surface embedding and the training took 39 minutes on an idle 2-core machine
-with one copy of each training instance; the recipe's second, augmented copy, a third of its
-instances seen only in part, adds the features of that copy, about 7 minutes; then 0.3-1.7 s per
-image and estimator). The recipe learns a surface embedding of the dataset's
-objects on the synth images (:func:`~poseflow.features.surface_training.train_surface_embedding`,
-``--surface-steps``, ``--surface-images``; 0 steps keeps the shipped descriptor) and trains
+Run ``python benchmarks/unseen.py ../shared/devbench --threads 2`` (the README recipe: the synth
+of 3,200 images, the surface embedding, the training set's features and the training; the minutes
+of each step are printed; then 0.3-2 s per image and estimator). The recipe learns a surface
+embedding of the dataset's objects on the synth images
+(:func:`~poseflow.features.surface_training.train_surface_embedding`, ``--surface-steps``,
+``--surface-images``, ``--surface-precision``; 0 steps keeps the shipped descriptor) and trains
 FunFlow6D on it; ``--threads`` sets the synth's processes, the embedding's threads, the processes
-that compute the training set's features and the flow network's threads. Each step prints its
-minutes.
+that compute the training set's features and the flow network's threads.
 
 ``--quick`` (CI) generates a two-image test split of the demo objects as the "user's dataset"
 and trains a few steps on four generated images (with ``--oracle`` when both estimators run): it
@@ -92,6 +90,7 @@ def _recipe(args: argparse.Namespace, dataset: Path, work: Path) -> Path:
                     steps=args.surface_steps,
                     dim=SURFACE_DIM,
                     max_images=args.surface_images or None,
+                    precision=args.surface_precision,
                     progress=False,
                 )
         encoder = f"surface:{surface.resolve()}"
@@ -189,6 +188,12 @@ def main() -> None:
         type=int,
         default=1600,
         help="synth images the surface embedding learns from (0: all)",
+    )
+    parser.add_argument(
+        "--surface-precision",
+        choices=["fp32", "bf16", "auto"],
+        default="fp32",
+        help="arithmetic of the surface embedding's query network (default: fp32)",
     )
     parser.add_argument(
         "--threads",

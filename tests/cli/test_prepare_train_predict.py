@@ -188,6 +188,22 @@ def test_changed_features_rebuild_the_training_set(run_dir, dataset, tmp_path, c
     assert not (out / "checkpoints").exists()  # --data-only trains nothing
 
 
+def test_two_threads_build_the_same_training_set_in_two_processes(dataset, tmp_path, capsys):
+    from poseflow.models.training import FlowTrainingSet
+
+    sets = {}
+    for threads in ("1", "2"):
+        out = tmp_path / threads
+        argv = ["train", str(dataset), "--out", str(out), *TINY, "--copies", "2", "--no-progress"]
+        assert main([*argv, "--data-only", "--threads", threads]) == 0
+        assert "training set built" in capsys.readouterr().out
+        sets[threads] = FlowTrainingSet.load(out / "train_set.safetensors")
+        key = json.loads((out / "train_set.json").read_text())
+        assert "threads" not in key and "workers" not in key
+    for k, v in sets["1"].tensors.items():
+        assert torch.equal(v, sets["2"].tensors[k]), k
+
+
 def test_predict_writes_a_bop_csv_and_the_stage_timing(run_dir, dataset, tmp_path, capsys):
     csv, timing = tmp_path / "res" / "ff_synth-test.csv", tmp_path / "timing.json"
     argv = ["predict", str(dataset), "--model", str(run_dir / "model"), "--out", str(csv)]
