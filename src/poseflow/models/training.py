@@ -250,13 +250,12 @@ def build_training_set(
 
     parts: dict[str, list[torch.Tensor]] = {k: [] for k in TRAINING_FIELDS}
     maps: list[torch.Tensor] = []
-    bar = tqdm(total=count, desc=f"features of {split}", disable=not progress)
-    for image_parts, image_maps in map_forked(image_inputs, count, workers):
-        for k in TRAINING_FIELDS:
-            parts[k] += map(torch.from_numpy, image_parts[k])
-        maps += map(torch.from_numpy, image_maps)
-        bar.update(1)
-    bar.close()
+    with tqdm(total=count, desc=f"features of {split}", disable=not progress) as bar:
+        for image_parts, image_maps in map_forked(image_inputs, count, workers):
+            for k in TRAINING_FIELDS:
+                parts[k] += map(torch.from_numpy, image_parts[k])
+            maps += map(torch.from_numpy, image_maps)
+            bar.update(1)
     if not parts["x_1"] or sum(len(p) for p in parts["x_1"]) == 0:
         raise DegenerateInputError(f"{root}/{split} holds no usable instance of a prepared object")
     tensors = {k: torch.cat(v) for k, v in parts.items()}
