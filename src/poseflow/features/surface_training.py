@@ -17,9 +17,9 @@ depth channels from zero) when the package has them.
 
 ``precision="bf16"`` (or ``"auto"``: bfloat16 where the CPU multiplies it natively) runs the
 query network's products in bfloat16, as FunFlow6D can at use (``appearance_precision``): 1.55
-times the steps per second of float32 on one thread, the same loss and inliers; the default is
-float32, in which the recipe's AR was measured (``benchmarks/surface_precision.py``,
-``benchmarks/LOG.md``).
+times the steps per second of float32 on one thread, the same loss and inliers, but FunFlow6D
+trained on it scored 0.008 and 0.023 AR lower on devbench in two pairs of runs, so the default is
+float32 (``benchmarks/surface_precision.py``, ``benchmarks/LOG.md``).
 
 Run ``python -m poseflow.features.surface_training TRAIN_DATASET --out DIR`` (about 20 minutes
 on one CPU thread at the default 10,000 steps: a minute for the crops of 1,600 images, 0.12 s a
