@@ -281,7 +281,7 @@ def _training_set(
         )
         if cached is not None:
             return cached, folder
-    with image_workers("cpu") as workers:  # the objects' features are computed on the CPU
+    with image_workers("cpu") as workers:  # the training set is computed on the CPU
         data = build_training_set(
             model,
             root,

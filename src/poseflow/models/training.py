@@ -218,6 +218,13 @@ def build_training_set(
 
     images = BOPImageDataset(root, split)
     count = len(images) if max_images is None else min(max_images, len(images))
+    object_maps = None  # (S, 3, 4) per prepared object: its instances share them
+    if symmetries is not None:
+        identity = torch.eye(4)[None]
+        object_maps = {
+            oid: equivalent_maps(symmetries.get(oid, identity), obj.diameter / 2).numpy()
+            for oid, obj in model.objects.items()
+        }
 
     def image_inputs(i: int) -> tuple[dict[str, list[np.ndarray]], list[np.ndarray]]:
         """The flow inputs ``{field: [(B, ...)] per copy}`` and symmetry maps of image ``i``.
@@ -241,11 +248,8 @@ def build_training_set(
             inputs = model.flow_inputs(obs, s["poses"][keep])
             for k in TRAINING_FIELDS:
                 parts[k].append(getattr(inputs, k)[obs.valid].numpy())
-            if symmetries is not None:
-                for oid in obs.obj_ids[obs.valid].tolist():
-                    sym = symmetries.get(int(oid), torch.eye(4)[None])
-                    diameter = model.objects[int(oid)].diameter
-                    maps.append(equivalent_maps(sym, diameter / 2).numpy())
+            if object_maps is not None:
+                maps += [object_maps[int(oid)] for oid in obs.obj_ids[obs.valid].tolist()]
         return parts, maps
 
     parts: dict[str, list[torch.Tensor]] = {k: [] for k in TRAINING_FIELDS}
