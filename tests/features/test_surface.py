@@ -24,6 +24,7 @@ from poseflow.features import (
     save_surface_embedding,
 )
 from poseflow.features.appearance import AppearanceEncoder
+from poseflow.features.surface_training import main as surface_main
 from poseflow.features.surface_training import surface_crops, surface_loss, train_surface_embedding
 from poseflow.flows import native_bfloat16
 from poseflow.models import FunFlow6D, FunFlow6DConfig
@@ -219,6 +220,16 @@ def test_training_precision_is_applied_recorded_and_checked(dataset, tmp_path) -
         torch.testing.assert_close(half[k], single[k], atol=2e-2, rtol=0)
     with pytest.raises(ValueRangeError, match="precision must be one of"):
         train_surface_embedding(dataset, tmp_path / "x", steps=1, precision="fp64")
+
+
+def test_queries_are_checked_against_the_pixels_kept(dataset, tmp_path) -> None:
+    out = tmp_path / "all"
+    args = [str(dataset), "--out", str(out), "--steps", "1", "--dim", "16", "--no-init"]
+    assert surface_main([*args, "--queries", "16", "--points-per-crop", "16", "--no-progress"]) == 0
+    training = json.loads((out / "config.json").read_text())["training"]
+    assert (training["queries"], training["points_per_crop"]) == (16, 16)
+    with pytest.raises(ValueRangeError, match="queries must be in 1 to points_per_crop"):
+        train_surface_embedding(dataset, tmp_path / "x", steps=1, queries=17, points_per_crop=16)
 
 
 def test_trained_embedding_conditions_funflow6d(dataset, tmp_path) -> None:

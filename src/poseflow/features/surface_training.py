@@ -184,6 +184,7 @@ def train_surface_embedding(
     max_images: int | None = 1600,
     batch_size: int = 16,
     queries: int = 48,
+    points_per_crop: int = 128,
     negatives: int = 256,
     dim: int = 32,
     lr: float = 2e-3,
@@ -204,7 +205,9 @@ def train_surface_embedding(
         split: the split with poses, masks and depth.
         max_images: crops from at most this many images (None: all).
         batch_size: crops per step.
-        queries: pixels per crop per step.
+        queries: pixels per crop per step, drawn (with replacement) among its
+            ``points_per_crop``.
+        points_per_crop: pixels kept per crop with their canonical coordinates.
         negatives: see :func:`surface_loss`.
         temperature: see :func:`surface_loss`.
         sigma: see :func:`surface_loss`.
@@ -235,8 +238,15 @@ def train_surface_embedding(
     """
     if steps < 1 or batch_size < 1 or queries < 1 or negatives < 1:
         raise ValueRangeError("steps, batch_size, queries and negatives must be positive")
+    if not 1 <= queries <= points_per_crop:
+        raise ValueRangeError(
+            f"queries must be in 1 to points_per_crop, got {queries} of {points_per_crop}"
+        )
     dtype = autocast_dtype(precision, "cpu")
-    data = surface_crops(root, split, max_images=max_images, seed=seed, progress=progress)
+    data = surface_crops(
+        root, split, max_images=max_images, points_per_crop=points_per_crop, seed=seed,
+        progress=progress,
+    )  # fmt: skip
     torch.manual_seed(seed)
     model = SurfaceEmbedding(data.diameters, dim=dim)
     if init is not None:
@@ -274,8 +284,9 @@ def train_surface_embedding(
     model.eval()
     training = {
         "steps": steps, "images": max_images, "crops": len(data.crops), "batch_size": batch_size,
-        "queries": queries, "negatives": negatives, "lr": lr, "temperature": temperature,
-        "sigma": sigma, "seed": seed, "init": None if init is None else str(init),
+        "queries": queries, "points_per_crop": points_per_crop, "negatives": negatives, "lr": lr,
+        "temperature": temperature, "sigma": sigma, "seed": seed,
+        "init": None if init is None else str(init),
         "precision": next(name for name, d in PRECISIONS.items() if d is dtype),
         "loss": round(sum(recent) / len(recent), 4),
         "seconds": round(time.monotonic() - start, 1),
@@ -321,6 +332,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--steps", type=int, default=10000)
     parser.add_argument("--max-images", type=int, default=1600)
     parser.add_argument("--dim", type=int, default=32)
+    parser.add_argument("--queries", type=int, default=48, help="pixels per crop per step")
+    parser.add_argument("--points-per-crop", type=int, default=128, help="pixels kept per crop")
     parser.add_argument("--lr", type=float, default=2e-3)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--no-init", action="store_true", help="random start of the query net")
@@ -334,7 +347,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     torch.set_num_threads(max(1, args.threads))
     out = train_surface_embedding(
         args.dataset, args.out, steps=args.steps, split=args.split, max_images=args.max_images,
-        dim=args.dim, lr=args.lr, seed=args.seed, init=None if args.no_init else "shipped",
+        dim=args.dim, queries=args.queries, points_per_crop=args.points_per_crop, lr=args.lr,
+        seed=args.seed, init=None if args.no_init else "shipped",
         precision=args.precision,
         progress=not args.no_progress, log=lambda line: print(line, flush=True),
     )  # fmt: skip
