@@ -222,13 +222,20 @@ def test_training_precision_is_applied_recorded_and_checked(dataset, tmp_path) -
         train_surface_embedding(dataset, tmp_path / "x", steps=1, precision="fp64")
 
 
-def test_queries_are_checked_against_the_pixels_kept(dataset, tmp_path) -> None:
+def test_queries_are_checked_against_the_pixels_kept(dataset, tmp_path, monkeypatch) -> None:
+    kept = []
+
+    def recording(*args, **kwargs):
+        kept.append(kwargs["points_per_crop"])
+        return surface_crops(*args, **kwargs)
+
+    monkeypatch.setattr("poseflow.features.surface_training.surface_crops", recording)
     out = tmp_path / "all"
     args = [str(dataset), "--out", str(out), "--steps", "1", "--dim", "16", "--no-init"]
     assert surface_main([*args, "--queries", "16", "--points-per-crop", "16", "--no-progress"]) == 0
     training = json.loads((out / "config.json").read_text())["training"]
-    assert (training["queries"], training["points_per_crop"]) == (16, 16)
-    with pytest.raises(ValueRangeError, match="queries must be in 1 to points_per_crop"):
+    assert kept == [16] and (training["queries"], training["points_per_crop"]) == (16, 16)
+    with pytest.raises(ValueRangeError, match="queries must be at most points_per_crop"):
         train_surface_embedding(dataset, tmp_path / "x", steps=1, queries=17, points_per_crop=16)
 
 

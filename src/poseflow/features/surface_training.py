@@ -238,9 +238,9 @@ def train_surface_embedding(
     """
     if steps < 1 or batch_size < 1 or queries < 1 or negatives < 1:
         raise ValueRangeError("steps, batch_size, queries and negatives must be positive")
-    if not 1 <= queries <= points_per_crop:
+    if queries > points_per_crop:
         raise ValueRangeError(
-            f"queries must be in 1 to points_per_crop, got {queries} of {points_per_crop}"
+            f"queries must be at most points_per_crop, got {queries} of {points_per_crop}"
         )
     dtype = autocast_dtype(precision, "cpu")
     data = surface_crops(
