@@ -434,7 +434,7 @@ def test_build_config_applies_file_then_flags_then_set(tmp_path):
     assert (cfg.num_points, cfg.fusion, cfg.steps) == (64, "sum", 9)
     assert build_config(_config_args(["--set", "icp_distances=[]"])).icp_distances == ()
     named = build_config(_config_args(["--config", "learned_small", "--set", "net.dit.depth=2"]))
-    assert named.appearance_encoder == "learned" and named.num_hypotheses == 12
+    assert named.appearance_encoder == "learned" and named.num_hypotheses == 24
     assert (named.net.dit.depth, named.net.dit.hidden_dim) == (2, 64)  # merged, not reset
 
 

@@ -210,10 +210,11 @@ def test_recipes_are_the_configs_files(tmp_path):
         assert FunFlow6DConfig.recipe(name) == FunFlow6DConfig.from_dict(RECIPES[name])
     learned = FunFlow6DConfig.recipe("learned_small")
     got = (learned.appearance_encoder, learned.num_hypotheses, learned.solver, learned.steps)
-    assert got == ("learned", 12, "midpoint", 1)
+    assert got == ("learned", 24, "midpoint", 1)
     demo = FunFlow6DConfig.recipe("demo_small")
     as_demo = learned.replace(
         appearance_encoder="dsift", solver="euler", steps=4, ransac_iterations=1000,
+        num_hypotheses=12,
         verifier=dataclasses.replace(learned.verifier, search_top_k=demo.verifier.search_top_k),
     )  # fmt: skip
     assert as_demo == demo
