@@ -380,7 +380,7 @@ class FunFlow6DConfig:
         Example:
             >>> cfg = FunFlow6DConfig.recipe("learned_small")
             >>> cfg.appearance_encoder, cfg.num_hypotheses, cfg.solver, cfg.steps
-            ('learned', 12, 'midpoint', 1)
+            ('learned', 24, 'midpoint', 1)
         """
         check_name("recipe", name, tuple(RECIPES))
         return cls.from_dict(RECIPES[name])
