@@ -584,9 +584,9 @@ RECIPES: dict[str, dict[str, Any]] = {
     "demo_small": _SMALL,
     # one midpoint step (two network evaluations per hypothesis, half of Euler 4's): the same AR
     # on both new-object sets of benchmarks/RESULTS.md in half the network time; 24 hypotheses
-    # (of 12): +0.009 AR on average over seven trained models of the two sets and a third of the
-    # seeds' spread, for 0.1 s per image; an instance draws 300 RANSAC samples per hypothesis and
-    # the verifier searches the turns of its best two candidates
+    # (of 12): +0.009 AR on average over seven trained models of the two sets (one −0.002), for
+    # 0.1 s per image; an instance draws 300 RANSAC samples per hypothesis and the verifier
+    # searches the turns of its best two candidates
     "learned_small": {
         **_SMALL,
         "num_hypotheses": 24,
