@@ -19,6 +19,11 @@ the BOP 2019 AR per object, the estimator as it is next to oracle replacements o
   (generation is the limit where this stays low, the verifier's ranking where ``verified`` stays
   far below it).
 
+Per object it counts the verifier's wrong choices (MSSD above a tenth of the diameter) and, of
+those, the ones whose full-grid score ranks the ground-truth pose itself no higher than the wrong
+pose (on the choice's crop): there the score cannot tell the truth from the choice, and no better
+search among candidates would find it; in the others the search or the candidates lose it.
+
 It also reports, per object, the flow's endpoint error (median over instances and hypotheses of
 the mean distance between predicted and true canonical points, symmetry-aware, as a fraction of
 the diameter) and the conditioning's correspondence inliers (mutual nearest neighbours of the
@@ -198,12 +203,14 @@ def diagnose(args: argparse.Namespace, out: Path) -> dict:
     g = torch.Generator().manual_seed(args.seed)
     rows: dict[str, list[PoseResults]] = defaultdict(list)
     quality = _FlowQuality(args.inlier_threshold)
+    truth = _TruthCheck()
     for (s, i), wanted in sorted(images.items()):
         obj_ids, masks, gt, rgb, depth, K = target_instances(ds.scene(s), i, wanted)
         image = (rgb, depth, K, masks, obj_ids)
         with torch.no_grad():
             est, obs, solved = _flow_variants(model, objects, image, gt, g, quality)
             est.update(_verified_variants(model, objects, image, gt, est["model"], obs, solved))
+            truth.add(model, objects, ImageInstances(*image), gt, est["verified"])
         for name, e_ in est.items():
             ok = e_.valid
             k = int(ok.sum())
@@ -224,6 +231,7 @@ def diagnose(args: argparse.Namespace, out: Path) -> dict:
             "per_object": {o: round(v["AR"], 4) for o, v in r["per_object"].items()},
         }
     record.update(quality.summary())
+    record.update(truth.summary())
     _print_table(record)
     return record
 
@@ -357,6 +365,44 @@ class _FlowQuality:
         }
 
 
+class _TruthCheck:
+    """Per object: the verifier's wrong choices, and those its score ranks above the truth."""
+
+    def __init__(self) -> None:
+        self.wrong: dict[int, int] = defaultdict(int)
+        self.truth_not_higher: dict[int, int] = defaultdict(int)
+        self.seen: dict[int, int] = defaultdict(int)
+
+    def add(self, model: FunFlow6D, objects: dict, image: ImageInstances, gt: torch.Tensor,
+            verified: PoseEstimate) -> None:  # fmt: skip
+        """Add one image's verified estimates ``(B, 4, 4)`` against the ground truth ``gt``."""
+        rows = verified.valid.nonzero()[:, 0]
+        if not len(rows):
+            return
+        chosen = verified.poses[rows]
+        pair = torch.stack((chosen, gt[rows].to(chosen)), dim=1)  # (b, 2, 4, 4), choice's crop
+        part = ImageInstances(image.rgb, image.depth, image.K, image.masks[rows],
+                              [image.obj_ids[r] for r in rows.tolist()])  # fmt: skip
+        score = model.verifier.score(part, pair).total
+        for k, r in enumerate(rows.tolist()):
+            oid = int(image.obj_ids[r])
+            o = objects[oid]
+            err = mssd(chosen[k : k + 1].float(), gt[r : r + 1], o.points, o.symmetries.float())
+            self.seen[oid] += 1
+            if float(err[0]) > 0.1 * o.diameter:
+                self.wrong[oid] += 1
+                self.truth_not_higher[oid] += int(score[k, 1] <= score[k, 0])
+
+    def summary(self) -> dict:
+        """``{"wrong_choices": {obj: n}, "truth_not_higher": {obj: n}, "verified": {obj: n}}``."""
+        keys = sorted(self.seen)
+        return {
+            "verified_targets": {str(o): self.seen[o] for o in keys},
+            "wrong_choices": {str(o): self.wrong[o] for o in keys},
+            "truth_not_higher": {str(o): self.truth_not_higher[o] for o in keys},
+        }
+
+
 def _print_table(record: dict) -> None:
     """Per object: the AR of every variant, the endpoint error and the inliers."""
     objs = sorted(record["epe"], key=int)
@@ -370,6 +416,9 @@ def _print_table(record: dict) -> None:
     for k in record["inliers"]:
         cells = "".join(f"{record['inliers'][k][o]:>8.1f}" for o in objs)
         print(f"{'inliers ' + k:<22}{cells}")
+    for k in ("verified_targets", "wrong_choices", "truth_not_higher"):
+        cells = "".join(f"{record[k].get(o, 0):>8d}" for o in objs)
+        print(f"{k.replace('_', ' '):<22}{cells}{sum(record[k].values()):>8d}")
 
 
 if __name__ == "__main__":
