@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import pytest
 import torch
@@ -345,6 +346,7 @@ def test_errors(verifier: PoseVerifier, scene: dict[str, torch.Tensor]) -> None:
         {"search_below": True},
         {"search_below": 1.5},
         {"search_top_k": 0},
+        {"expand_top_k": 0},
     ],
 )
 def test_config_rejects_bad_values(field: dict[str, object]) -> None:
@@ -452,6 +454,40 @@ def test_ranking_makes_the_best_hypothesis_the_estimate(
     assert float(rotation_angle_error(out.poses[0, :3, :3], true[:3, :3])) < 1.0
     no_extra = verifier.rank_hypotheses(image, poses, extra=extra[:, :0])
     assert torch.equal(no_extra.poses, poses[:, None]) and no_extra.mask.all()
+
+
+def test_expanding_the_best_hypotheses_reaches_a_near_symmetry_of_the_second(
+    box: ObjectModel, scene: dict[str, torch.Tensor]
+) -> None:
+    """``expand_top_k=2``: the second hypothesis's flips are candidates too.
+
+    The estimate is 3 cm off (none of its flips is right) and the other hypothesis is the truth
+    flipped end for end: only its own flip is the truth.
+    """
+    true, off = box_pose(), box_pose(0.03)
+    flipped_true = true @ half_turn([1.0, 0, 0])
+    image = one_box(scene)
+
+    def is_true(pose: torch.Tensor) -> bool:
+        angle = float(rotation_angle_error(pose[:3, :3], true[:3, :3]))
+        return angle < 3.0 and float((pose[:3, 3] - true[:3, 3]).norm()) < 0.003
+
+    one = PoseVerifier(CONFIG)
+    one.prepare(1, box)
+    two = PoseVerifier(replace(CONFIG, expand_top_k=2))
+    two.prepare(1, box)
+    extra = flipped_true[None, None]
+    assert not is_true(one.verify(image, off[None], extra=extra).poses[0])
+    assert is_true(two.verify(image, off[None], extra=extra).poses[0])
+    # its ranking orders every hypothesis by the coarse score, the best first
+    far = box_pose(0.06)
+    hyps = torch.stack((off, far, flipped_true, true))[None]  # (1, 4, 4, 4)
+    ranked = two.rank_hypotheses(image, hyps[:, 0], extra=hyps[:, 1:])
+    assert torch.equal(ranked.poses[0, 0], true)
+    boxes = two.crop_boxes(hyps[:, 0], [1], K, image.masks)
+    coarse = two.score(image, ranked.poses, boxes=boxes, crop_size=CONFIG.coarse_crop_size).total
+    assert (coarse[0, :-1] >= coarse[0, 1:]).all(), coarse
+    assert ranked.mask.all()
 
 
 def test_instances_without_an_estimate_come_back_unverified(

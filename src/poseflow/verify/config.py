@@ -18,7 +18,7 @@ __all__ = ["VerifierConfig"]
 #: The int fields of :class:`VerifierConfig` by their least value.
 _INT_MINIMA: dict[int, tuple[str, ...]] = {
     0: ("max_candidates", "rank_top_k", "refine_top_k", "polish_levels"),
-    1: ("block_size", "search_top_k", "icp_iterations", "polish_moves"),
+    1: ("block_size", "search_top_k", "icp_iterations", "polish_moves", "expand_top_k"),
     2: ("turn_steps",),
     3: ("appearance_window", "max_observed_points"),
     8: ("crop_size", "coarse_crop_size"),
@@ -81,6 +81,11 @@ class VerifierConfig:
             estimator's own pick alone. The classic baseline has one pose per instance.
         refine_top_k: candidates (besides the estimate) refined by ICP and scored again, the best
             of the first, unrefined scoring.
+        expand_top_k: hypotheses of an instance expanded with their near-symmetric candidates,
+            the best of the verifier's ranking
+            (:meth:`~poseflow.verify.PoseVerifier.rank_hypotheses`, which then orders them all
+            by its score); 1 expands the estimate alone. Three gave no more AR than one on four
+            models (``benchmarks/LOG.md``).
         search_below: a valid instance whose chosen pose scores below this is searched globally
             (:meth:`~poseflow.verify.PoseVerifier.search`): the pose turned by the
             :func:`~poseflow.verify.box_turns` and slid by ``search_slides``, the best
@@ -138,6 +143,7 @@ class VerifierConfig:
     rank_top_k: int = 0
     rank_hypotheses: bool = True
     refine_top_k: int = 2
+    expand_top_k: int = 1
     search_below: float = 0.45
     search_top_k: int = 4
     search_slides: tuple[float, ...] = (0.25, 0.5)

@@ -303,6 +303,14 @@ class PoseVerifier(PoseScorer):
         )
         best = torch.where(valid, contest.best(), 0)
         rows = torch.arange(B, device=hyp.device)
+        if self.config.expand_top_k > 1:  # all of them by their score, the best first
+            ranked = torch.where(contest.coarse.valid, contest.coarse.total, -torch.inf)
+            ranked[rows, best] = torch.inf
+            order = ranked.argsort(dim=1, descending=True, stable=True)
+            order = torch.where(valid[:, None], order, torch.arange(1 + E, device=hyp.device))
+            return Hypotheses(
+                hyp.gather(1, order[..., None, None].expand(-1, -1, 4, 4)), mask.gather(1, order)
+            )
         swapped, flags = hyp.clone(), mask.clone()
         swapped[rows, 0], swapped[rows, best] = hyp[rows, best], hyp[rows, 0]
         flags[rows, 0], flags[rows, best] = mask[rows, best], mask[rows, 0]
@@ -422,8 +430,13 @@ class PoseVerifier(PoseScorer):
         hyp = self.expand(poses, image.obj_ids)
         if extra is not None and extra.shape[1]:
             more = extra_mask if extra_mask is not None else torch.ones_like(extra[..., 0, 0])
+            more = more.bool()
+            m = min(cfg.expand_top_k - 1, extra.shape[1])  # the first m expanded too
+            grown = [self.expand(extra[:, j], image.obj_ids) for j in range(m)]
+            grown_mask = [h.mask & more[:, j, None] for j, h in enumerate(grown)]
             hyp = Hypotheses(
-                torch.cat((hyp.poses, extra), dim=1), torch.cat((hyp.mask, more.bool()), dim=1)
+                torch.cat([hyp.poses, *(h.poses for h in grown), extra[:, m:]], dim=1),
+                torch.cat([hyp.mask, *grown_mask, more[:, m:]], dim=1),
             )
         k = min(cfg.refine_top_k, hyp.poses.shape[1] - 1)
         contest = self._contest(image, hyp.poses, hyp.mask, k=k, refine_first=cfg.refine_estimate)
