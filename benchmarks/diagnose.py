@@ -394,7 +394,7 @@ class _TruthCheck:
                 self.truth_not_higher[oid] += int(score[k, 1] <= score[k, 0])
 
     def summary(self) -> dict:
-        """``{"wrong_choices": {obj: n}, "truth_not_higher": {obj: n}, "verified": {obj: n}}``."""
+        """``{"verified_targets", "wrong_choices", "truth_not_higher"}``, each ``{obj: n}``."""
         keys = sorted(self.seen)
         return {
             "verified_targets": {str(o): self.seen[o] for o in keys},

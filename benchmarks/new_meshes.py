@@ -49,15 +49,15 @@ UV = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 
 
 def _paint(mesh, uv: UV, seed: int):  # type: ignore[no-untyped-def]
-    """Vertex colours from a procedural texture at the vertices' ``uv`` (wrapped to [0, 1))."""
-    o3d = import_open3d("the new meshes")
+    """Vertex colours from a procedural texture at the vertices' ``uv``, both wrapped to [0, 1)."""
     texture = procedural_texture(seed, 256).astype(np.float64)
     texture = texture / 255.0 if texture.max() > 1 else texture
-    u, v = uv(np.asarray(mesh.vertices))
-    iu = np.clip((u % 1.0) * 255, 0, 255).astype(int)
-    iv = np.clip((v % 1.0) * 255, 0, 255).astype(int)
-    mesh.vertex_colors = o3d.utility.Vector3dVector(texture[iv, iu, :3])
-    return mesh
+
+    def wrapped(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        u, w = uv(v)
+        return u, w % 1.0
+
+    return _paint_image(mesh, texture, wrapped)
 
 
 def _grey(mesh, level: float):  # type: ignore[no-untyped-def]
@@ -132,13 +132,17 @@ def _label(seed: int, width: int = 1024, height: int = 384) -> np.ndarray:
 
 
 def _paint_image(mesh, image: np.ndarray, uv: UV, where=None):  # type: ignore[no-untyped-def]
-    """Vertex colours from ``image`` at the vertices' ``uv`` in [0, 1] (v up), where ``where``."""
+    """Vertex colours from ``image`` ``(h, w, 3)`` in [0, 1] where ``where`` holds (all: None).
+
+    ``uv`` maps vertices to ``(u, r)``: ``u`` across the image (wrapped to [0, 1)), ``r`` down
+    its rows from the top (clipped to [0, 1]).
+    """
     o3d = import_open3d("the new meshes")
     v = np.asarray(mesh.vertices)
-    u, w = uv(v)
+    u, r = uv(v)
     h, wd = image.shape[:2]
     iu = np.clip((u % 1.0) * (wd - 1), 0, wd - 1).astype(int)
-    iv = np.clip((1 - np.clip(w, 0, 1)) * (h - 1), 0, h - 1).astype(int)
+    iv = np.clip(np.clip(r, 0, 1) * (h - 1), 0, h - 1).astype(int)
     colours = np.asarray(mesh.vertex_colors) if mesh.has_vertex_colors() else np.zeros_like(v)
     keep = np.ones(len(v), bool) if where is None else where(v)
     colours[keep] = image[iv[keep], iu[keep]]
@@ -182,7 +186,14 @@ def build_meshes_3() -> dict[int, tuple[object, dict]]:
     about_z = {"symmetries_continuous": [{"axis": [0, 0, 1], "offset": [0, 0, 0]}]}
     on_side = lambda v: np.abs(v[:, 2]) < 57.0  # noqa: E731  the can's label, not its lid
     lid = lambda v: np.ones(len(v), bool)  # noqa: E731
-    around = lambda h: lambda v: (np.arctan2(v[:, 1], v[:, 0]) / (2 * np.pi), v[:, 2] / h + 0.5)  # noqa: E731
+
+    def around(height: float) -> UV:
+        """A label around z, ``height`` mm tall, its top row at ``z = height / 2``."""
+        return lambda v: (
+            np.arctan2(v[:, 1], v[:, 0]) / (2 * np.pi),
+            1 - np.clip(v[:, 2] / height + 0.5, 0, 1),
+        )
+
     return {
         1: (_grey(_fine(bowl), 0.92), about_z),
         2: (_grey(_fine(bracket), 0.45), {}),

@@ -35,12 +35,15 @@ import argparse
 import json
 import shutil
 import tempfile
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
+import trimesh
 from _common import report
+from scipy import ndimage
 
 from poseflow.data.bop import BOPDataset, BOPWriter, TestTarget, write_test_targets
 from poseflow.data.bop.json_io import read_models_info
@@ -189,8 +192,6 @@ class GLRenderer:
 
 
 def _load_mesh(path: Path) -> _Mesh:
-    import trimesh
-
     m = trimesh.load(path, process=False)
     colors = np.full((len(m.vertices), 3), 0.6)
     if m.visual.kind == "vertex":
@@ -201,8 +202,6 @@ def _load_mesh(path: Path) -> _Mesh:
 
 
 def _trimesh_of(mesh: _Mesh):  # type: ignore[no-untyped-def]
-    import trimesh
-
     return trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
 
 
@@ -225,8 +224,6 @@ def _table(rng: np.random.Generator) -> _Mesh:
 
 
 def _distractor(rng: np.random.Generator) -> _Mesh:
-    import trimesh
-
     kind = rng.integers(3)
     if kind == 0:
         m = trimesh.creation.box(rng.uniform(0.03, 0.12, 3))
@@ -240,8 +237,6 @@ def _distractor(rng: np.random.Generator) -> _Mesh:
 
 def _resting(mesh: _Mesh, rng: np.random.Generator) -> np.ndarray:
     """A stable resting pose on z = 0, drawn by probability, turned about z; centred in x, y."""
-    import trimesh
-
     with np.errstate(invalid="ignore"):
         poses, prob = trimesh.poses.compute_stable_poses(_trimesh_of(mesh), n_samples=1)
     prob = np.nan_to_num(np.asarray(prob, float))
@@ -324,8 +319,6 @@ def _sensor_depth(
     valid &= rng.random(depth.shape) >= grazing
     gy, gx = np.gradient(depth)
     edge = (np.abs(gx) + np.abs(gy)) > 0.02
-    from scipy import ndimage
-
     edge = ndimage.binary_dilation(edge, iterations=1) & (rng.random(depth.shape) < 0.7)
     valid &= ~edge & (rng.random(depth.shape) >= 0.003)
     return np.where(valid & (disparity > 0), f * baseline / np.maximum(disparity, 1e-6), 0.0)
@@ -333,8 +326,6 @@ def _sensor_depth(
 
 def _sensor_rgb(rgb: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """Exposure, white balance, optical blur and noise of a colour sensor; uint8 ``(H, W, 3)``."""
-    from scipy import ndimage
-
     out = rgb * rng.uniform(0.85, 1.2) * rng.uniform(0.9, 1.1, 3)
     out = ndimage.gaussian_filter(out, sigma=(0.6, 0.6, 0))
     out = out + rng.normal(0.0, 0.012, out.shape)
@@ -345,6 +336,7 @@ def write_split(
     source: Path, out: Path, *, scenes: int, seed: int, baseline: float = 0.075
 ) -> dict:
     """Render ``scenes`` x 4 test images of ``source``'s meshes into the BOP folder ``out``."""
+    began = time.perf_counter()
     rng = np.random.default_rng(seed)
     out.mkdir(parents=True, exist_ok=True)
     for name in ("models", "models_eval"):
@@ -396,7 +388,11 @@ def write_split(
                     masks_visib=np.stack(visib), R_w2c=w2c[:3, :3], t_w2c=w2c[:3, 3],
                 )  # fmt: skip
     write_test_targets(out / "test_targets_bop19.json", targets)
-    return {"images": scenes * VIEWS_PER_SCENE, "targets": len(targets), "objects": obj_ids}
+    seconds = round(time.perf_counter() - began, 1)
+    return {
+        "images": scenes * VIEWS_PER_SCENE, "targets": len(targets), "objects": obj_ids,
+        "seconds": seconds,
+    }  # fmt: skip
 
 
 def main() -> None:

@@ -51,7 +51,7 @@ def split(other_renderer, tmp_path_factory):
 
 def test_the_split_is_a_bop_dataset_with_targets(split):
     out, record = split
-    assert record["images"] == 4
+    assert record["images"] == 4 and 0 < record["seconds"] < 600
     assert 0 < record["targets"] <= 4 * len(record["objects"])
     targets = BOPDataset(out, "test").test_targets()
     assert len(targets) == record["targets"]
@@ -68,6 +68,7 @@ def test_ground_truth_poses_match_poseflows_renderer(split):
     out, _ = split
     scene = BOPDataset(out, "test").scene(1)
     objects = load_object_models(out)
+    compared = 0
     for im_id in range(4):
         K = torch.as_tensor(scene.camera[im_id].K, dtype=torch.float32)
         depth = scene.load_depth_image(im_id)
@@ -84,3 +85,5 @@ def test_ground_truth_poses_match_poseflows_renderer(split):
             if both.sum() > 50:
                 error = (depth[both] - ours.depth[both]).abs().median()
                 assert error < 0.004, (im_id, gt.obj_id, float(error))  # sensor noise ~1 mm
+                compared += 1
+    assert compared >= 4  # most instances show enough measured depth to compare

@@ -69,6 +69,12 @@ def scene(box: ObjectModel) -> dict[str, torch.Tensor]:
     return {"rgb": rgb, "depth": out.depth, "masks": out.masks_visible}
 
 
+def is_at(pose: torch.Tensor, truth: torch.Tensor) -> bool:
+    """``pose`` within 3 degrees and 3 mm of ``truth``."""
+    angle = float(rotation_angle_error(pose[:3, :3], truth[:3, :3]))
+    return angle < 3.0 and float((pose[:3, 3] - truth[:3, 3]).norm()) < 0.003
+
+
 def one_box(scene: dict[str, torch.Tensor]) -> ImageInstances:
     """The scene's image and its one instance, the box (object 1)."""
     return ImageInstances(scene["rgb"], scene["depth"], K, scene["masks"], [1])
@@ -387,17 +393,13 @@ def test_extra_hypotheses_compete_with_the_near_symmetric_candidates(
     off[:3, 3] += torch.tensor([0.03, 0.0, 0.0])  # 3 cm off: no near-symmetry turns it right
     args = (one_box(scene), off[None])
 
-    def is_true(pose: torch.Tensor) -> bool:
-        angle = float(rotation_angle_error(pose[:3, :3], true[:3, :3]))
-        return angle < 3.0 and float((pose[:3, 3] - true[:3, 3]).norm()) < 0.003
-
-    assert not is_true(verifier.verify(*args).poses[0])
+    assert not is_at(verifier.verify(*args).poses[0], true)
     out = verifier.verify(*args, extra=true[None, None], extra_mask=torch.ones(1, 1, dtype=bool))
-    assert int(out.chosen[0]) != 0 and is_true(out.poses[0])
+    assert int(out.chosen[0]) != 0 and is_at(out.poses[0], true)
     padded = verifier.verify(
         *args, extra=true[None, None], extra_mask=torch.zeros(1, 1, dtype=bool)
     )
-    assert not is_true(padded.poses[0])  # a masked-out extra hypothesis is never chosen
+    assert not is_at(padded.poses[0], true)  # a masked-out extra hypothesis is never chosen
     with pytest.raises(ShapeError):
         verifier.verify(*args, extra=true[None])
 
@@ -468,17 +470,13 @@ def test_expanding_the_best_hypotheses_reaches_a_near_symmetry_of_the_second(
     flipped_true = true @ half_turn([1.0, 0, 0])
     image = one_box(scene)
 
-    def is_true(pose: torch.Tensor) -> bool:
-        angle = float(rotation_angle_error(pose[:3, :3], true[:3, :3]))
-        return angle < 3.0 and float((pose[:3, 3] - true[:3, 3]).norm()) < 0.003
-
     one = PoseVerifier(CONFIG)
     one.prepare(1, box)
     two = PoseVerifier(replace(CONFIG, expand_top_k=2))
     two.prepare(1, box)
     extra = flipped_true[None, None]
-    assert not is_true(one.verify(image, off[None], extra=extra).poses[0])
-    assert is_true(two.verify(image, off[None], extra=extra).poses[0])
+    assert not is_at(one.verify(image, off[None], extra=extra).poses[0], true)
+    assert is_at(two.verify(image, off[None], extra=extra).poses[0], true)
     # its ranking orders every hypothesis by the coarse score, the best first
     far = box_pose(0.06)
     hyps = torch.stack((off, far, flipped_true, true))[None]  # (1, 4, 4, 4)

@@ -427,17 +427,23 @@ class PoseVerifier(PoseScorer):
     ) -> Verification:
         """:meth:`verify` of instances that all have an estimate ``(B, 4, 4)``."""
         cfg = self.config
-        hyp = self.expand(poses, image.obj_ids)
-        if extra is not None and extra.shape[1]:
-            more = extra_mask if extra_mask is not None else torch.ones_like(extra[..., 0, 0])
-            more = more.bool()
-            m = min(cfg.expand_top_k - 1, extra.shape[1])  # the first m expanded too
-            grown = [self.expand(extra[:, j], image.obj_ids) for j in range(m)]
-            grown_mask = [h.mask & more[:, j, None] for j, h in enumerate(grown)]
-            hyp = Hypotheses(
-                torch.cat([hyp.poses, *(h.poses for h in grown), extra[:, m:]], dim=1),
-                torch.cat([hyp.mask, *grown_mask, more[:, m:]], dim=1),
-            )
+        B = poses.shape[0]
+        if extra is None:
+            extra = poses.new_zeros(B, 0, 4, 4)
+        more = torch.ones_like(extra[..., 0, 0], dtype=torch.bool)
+        if extra_mask is not None:
+            more = extra_mask.bool()
+        # the estimate and the first m others, each with its near-symmetric candidates, in one call
+        m = min(cfg.expand_top_k - 1, extra.shape[1])
+        ids = torch.as_tensor(image.obj_ids).reshape(-1).repeat_interleave(1 + m)
+        grown = self.expand(torch.cat((poses[:, None], extra[:, :m]), 1).reshape(-1, 4, 4), ids)
+        C = grown.poses.shape[1]
+        kept = grown.mask.reshape(B, 1 + m, C)
+        kept[:, 1:] &= more[:, :m, None]
+        hyp = Hypotheses(
+            torch.cat((grown.poses.reshape(B, (1 + m) * C, 4, 4), extra[:, m:]), dim=1),
+            torch.cat((kept.reshape(B, (1 + m) * C), more[:, m:]), dim=1),
+        )
         k = min(cfg.refine_top_k, hyp.poses.shape[1] - 1)
         contest = self._contest(image, hyp.poses, hyp.mask, k=k, refine_first=cfg.refine_estimate)
         out = contest.verification(cfg.significance)
