@@ -50,7 +50,7 @@ bench-unseen: $(STAMP)
 
 # gpu.py needs a GPU at full scale (benchmarks/RESULTS.md gives its commands); --quick is its CPU dry run
 bench-quick: $(STAMP)
-	for b in $(BENCHMARKS) unseen diagnose conditioning_use gpu surface_precision other_renderer; do $(PY) benchmarks/$$b.py --quick || exit 1; done
+	for b in $(BENCHMARKS) unseen detection diagnose conditioning_use gpu surface_precision other_renderer; do $(PY) benchmarks/$$b.py --quick || exit 1; done
 
 demo: $(STAMP)
 	$(PY) -m poseflow.cli demo

@@ -12,6 +12,11 @@ per image and object, FunFlow6D's or the baseline's estimates, whichever are clo
 (:func:`~poseflow.eval.closest_results`), the most a choice between the two could give, to read
 against the hybrid's.
 
+``--detections`` picks the instances: the split's ground-truth visible masks (``gt``), the
+recipe's own detector (``own``: ``poseflow train-detector`` on the synth images, into
+``MODEL/detector``, then ``poseflow predict --detections own``; no ground-truth mask or box at
+test time) or both (the default; the detector's columns are tagged ``-own``).
+
 ``--predict-args`` go to FunFlow6D and the hybrid whole; the baseline, which has no network, takes
 them without their ``--set`` of fields other than the verifier's (the verification stays alike).
 
@@ -19,9 +24,9 @@ Everything is written under ``--work`` (default ``runs/unseen/DATASET_NAME``) an
 run again, so a second run with other seeds or ``--predict-args`` only predicts and scores.
 
 Run ``python benchmarks/unseen.py ../shared/devbench --threads 2`` (the README recipe: the synth
-of 3,200 images, the surface embedding, the training set's features and the training; the minutes
-of each step are printed; then 0.3-2 s per image and estimator). The recipe learns a surface
-embedding of the dataset's objects on the synth images
+of 3,200 images, the surface embedding, the detector, the training set's features and the
+training; the minutes of each step are printed; then 0.3-2 s per image and estimator). The
+recipe learns a surface embedding of the dataset's objects on the synth images
 (:func:`~poseflow.features.surface_training.train_surface_embedding`, ``--surface-steps``,
 ``--surface-images``, ``--surface-precision``; 0 steps keeps the shipped descriptor) and trains
 FunFlow6D on it; ``--threads`` sets the synth's processes, the embedding's threads, the processes
@@ -98,6 +103,13 @@ def _recipe(args: argparse.Namespace, dataset: Path, work: Path) -> Path:
             "--appearance-encoder", encoder, "--set", f"feature_dim={SURFACE_DIM}", *train_args
         ]  # fmt: skip
     model = run / "model"
+    detector = model / "detector"
+    if args.detections != "gt" and not (detector / "model.safetensors").is_file():
+        with _minutes("detector"):
+            _run([
+                "train-detector", str(train_data), "--out", str(detector),
+                "--steps", str(args.detector_steps), "--overwrite", *threads,
+            ])  # fmt: skip
     if not (model / "model.safetensors").is_file():
         with _minutes("train (features and network)"):
             _run([
@@ -220,6 +232,17 @@ def main() -> None:
         action="store_true",
         help="also score the per-target closer of FunFlow6D's and the baseline's estimates",
     )
+    parser.add_argument(
+        "--detections",
+        choices=["gt", "own", "both"],
+        default="both",
+        help="the instances: ground-truth visible masks, the recipe's own detector "
+        "(`poseflow train-detector` on the synth images, `predict --detections own`), or both "
+        "(default; results of the detector's are tagged -own)",
+    )
+    parser.add_argument(
+        "--detector-steps", type=int, default=4000, help="training steps of the detector"
+    )
     parser.add_argument("--quick", action="store_true", help="tiny generated dataset (CI)")
     args = parser.parse_args()
     if args.oracle and not {"funflow6d", "baseline"} <= set(args.methods):
@@ -233,6 +256,7 @@ def main() -> None:
             args.train_images, args.steps, args.seeds = 4, 20, [0]
             args.distill_steps = min(args.distill_steps, 5)
             args.surface_steps = min(args.surface_steps, 5)
+            args.detector_steps = min(args.detector_steps, 3)
             args.oracle = {"funflow6d", "baseline"} <= set(args.methods)  # runs it too
             work = Path(tmp) / "work"
         elif args.dataset is None:
@@ -245,31 +269,41 @@ def main() -> None:
         extra = args.predict_args.split()
         if args.max_images is not None:
             extra += ["--max-images", str(args.max_images)]
-        reports: dict[str, list[dict]] = {m: [] for m in args.methods}
+        sources = {"gt": [""], "own": ["-own"], "both": ["", "-own"]}[args.detections]
+        columns = [m + source for source in sources for m in args.methods]
+        reports: dict[str, list[dict]] = {c: [] for c in columns}
         for seed in args.seeds:
             csvs = {}
-            for method in args.methods:
-                tag = args.tag + ("1step" if args.distill_steps and method != "baseline" else "")
-                csv = csvs[method] = work / f"{method}{tag}-seed{seed}_{dataset.name}-test.csv"
-                command = ["predict", str(dataset), "--out", str(csv), "--seed", str(seed)]
-                command += ["--method", method, "--no-progress"]
-                if method == "baseline":
-                    command += _baseline_args(extra)
-                else:
-                    command += ["--model", str(model), *extra]
-                _run(command)
-                reports[method].append(_score(dataset, csv))
+            for source in sources:
+                for method in args.methods:
+                    tag = args.tag + (
+                        "1step" if args.distill_steps and method != "baseline" else ""
+                    )
+                    name = f"{method}{tag}{source}-seed{seed}_{dataset.name}-test.csv"
+                    csv = csvs[method + source] = work / name
+                    command = ["predict", str(dataset), "--out", str(csv), "--seed", str(seed)]
+                    command += ["--method", method, "--no-progress"]
+                    if source:
+                        command += ["--detections", "own", "--detector", str(model / "detector")]
+                    if method == "baseline":
+                        command += _baseline_args(extra)
+                    else:
+                        command += ["--model", str(model), *extra]
+                    _run(command)
+                    reports[method + source].append(_score(dataset, csv))
             if args.oracle:
                 csv = work / f"oracle{args.tag}-seed{seed}_{dataset.name}-test.csv"
-                chosen, counts = closest_results(dataset, [csvs["funflow6d"], csvs["baseline"]])
+                pair = [csvs["funflow6d" + sources[0]], csvs["baseline" + sources[0]]]
+                chosen, counts = closest_results(dataset, pair)
                 write_results(csv, chosen)
                 print(f"oracle, seed {seed}: FunFlow6D closer for {counts[0]} image-objects, "
                       f"the baseline for {counts[1]}")  # fmt: skip
                 reports.setdefault("oracle", []).append(_score(dataset, csv))
+                if "oracle" not in columns:
+                    columns.append("oracle")
         summary = {m: _summary(r) for m, r in reports.items()}
     summary["dataset"], summary["seeds"] = dataset.name, args.seeds
     summary["distill_steps"] = args.distill_steps
-    columns = list(reports)
     runs = [summary[m] for m in columns]
     print(f"\n{dataset.name}: AR over seeds {args.seeds} (mean ± half range)")
     print(f"{'object':<10}" + "".join(f"{m:>17}" for m in columns))

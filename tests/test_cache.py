@@ -4,13 +4,16 @@ from __future__ import annotations
 
 import json
 import os
+import stat
 
 import numpy as np
 import pytest
+import torch
 
 from poseflow._cache import (
     arrays_key,
     atomic_directory,
+    atomic_write,
     cache_entry,
     files_key,
     json_key,
@@ -100,3 +103,17 @@ def test_a_cache_that_cannot_be_written_is_a_warning(tmp_path):
     with pytest.raises(ZeroDivisionError):  # an error of the writer itself is not hidden
         write_entry(tmp_path / "e", lambda tmp: 1 / 0, what="object 1")
     assert not (tmp_path / "e").exists()
+
+
+def test_atomic_write_gives_the_file_the_permissions_of_the_umask(tmp_path):
+    """A writer that makes its file private (safetensors' 0600) still leaves it group-readable."""
+    from safetensors.torch import save_file
+
+    old = os.umask(0o022)
+    try:
+        path = atomic_write(
+            tmp_path / "w.safetensors", lambda t: save_file({"x": torch.ones(1)}, t)
+        )
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE(path.stat().st_mode) == 0o644

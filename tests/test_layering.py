@@ -32,6 +32,7 @@ _BELOW_BASELINES = (
     "flows",
     "eval",
     "verify",
+    "detect",
 )
 LAYERS: dict[str, tuple[str, ...]] = {
     "geometry": (),
@@ -43,6 +44,7 @@ LAYERS: dict[str, tuple[str, ...]] = {
     "flows": ("geometry",),
     "eval": ("geometry", "render", "data"),
     "verify": ("geometry", "render", "data", "registration"),
+    "detect": ("geometry", "render", "data", "features"),
     "baselines": _BELOW_BASELINES,
     "models": (*_BELOW_BASELINES, "baselines"),
     "assets": (),

@@ -188,8 +188,9 @@ def atomic_write(path: str | os.PathLike[str], write: Callable[[Path], Any]) -> 
 
     The temporary file is flushed to disk before the rename, so ``path`` only ever names a
     complete file; on an exception it is removed and ``path`` is left as it was. ``write``
-    creates the file, which therefore gets the permissions of any new file (not ``mkstemp``'s
-    0600, which would hide shipped weights from other users).
+    creates the file; it then gets the permissions umask gives any new file, even where the
+    writer made it private (safetensors' ``save_file`` writes 0600, which would hide a model on a
+    shared disk from the rest of the group).
 
     Args:
         path: the final file; its folder must exist.
@@ -210,6 +211,9 @@ def atomic_write(path: str | os.PathLike[str], write: Callable[[Path], Any]) -> 
         write(tmp)
         with open(tmp, "rb+") as f:
             os.fsync(f.fileno())
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
         os.replace(tmp, path)
     except BaseException:
         tmp.unlink(missing_ok=True)

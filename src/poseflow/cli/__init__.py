@@ -36,13 +36,15 @@ __all__ = [
     "subcommand_parsers",
 ]
 
-#: Subcommand modules under ``poseflow.cli``, in the order ``--help`` lists them.
+#: Subcommands (modules of ``poseflow.cli``, ``-`` for ``_``) in the order ``--help`` lists them.
 SUBCOMMANDS = (
     "demo",
     "estimate",
     "synth",
     "prepare",
     "train",
+    "train-detector",
+    "detect",
     "predict",
     "eval",
     "view",
@@ -68,6 +70,8 @@ def subcommand_parsers(parser: argparse.ArgumentParser) -> Iterator[argparse.Arg
 def add_command(subparsers: argparse._SubParsersAction, name: str) -> argparse.ArgumentParser:
     """Register the subcommand of module ``poseflow.cli.NAME`` on ``subparsers``.
 
+    The module of a hyphenated name has underscores (``train-detector``: ``train_detector``).
+
     Its parser takes the module's ``HELP``, ``DESCRIPTION``, ``EPILOG`` and ``FORMATTER`` (the
     last two optional), the options of its ``add_arguments``, then ``--no-progress`` and
     ``--quiet``; the parsed arguments' ``run`` is the module's ``run``.
@@ -77,7 +81,7 @@ def add_command(subparsers: argparse._SubParsersAction, name: str) -> argparse.A
     """
     from poseflow.cli.common import add_output_arguments
 
-    module = importlib.import_module(f"poseflow.cli.{name}")
+    module = importlib.import_module(f"poseflow.cli.{name.replace('-', '_')}")
     parser = subparsers.add_parser(
         name,
         help=module.HELP,

@@ -113,7 +113,17 @@ def _add_instance_arguments(inst: Any) -> None:
         "--detections", default=None, metavar="JSON", help="BOP detections with COCO-RLE masks"
     )
     inst.add_argument(
-        "--score-threshold", type=float, default=0.0, help="drop detections scoring below this"
+        "--detector",
+        default=None,
+        metavar="DIR",
+        help="without --mask and --detections: find the instances with this detector folder "
+        "(default: MODEL_DIR/detector when --model has one)",
+    )
+    inst.add_argument(
+        "--score-threshold",
+        type=float,
+        default=0.0,
+        help="drop detections scoring below this (default: 0)",
     )
 
 
@@ -248,17 +258,17 @@ def _estimator(args: argparse.Namespace, objects: dict[int, Any], progress: bool
 def run(args: argparse.Namespace) -> int:
     """Read the frame and the meshes, estimate, write the JSON and the overlay; returns 0."""
     from poseflow.cli.common import check_writable, show_progress
-    from poseflow.errors import UsageError
     from poseflow.eval.frame import estimate_frame, write_poses_json
 
+    detector, detector_dir = None, None
     if not args.mask and args.detections is None:
-        raise UsageError("give the instances: one --mask PNG per instance, or --detections")
+        detector, detector_dir = _detector(args)
     if args.view:
         _check_view_dependencies()
     out = check_writable(args.out, flag="--out", folder=True)
     progress = show_progress(args)
     objects = load_meshes(args.mesh, mesh_scale=args.mesh_scale, progress=progress)
-    frame = _read_checked_frame(args, objects)
+    frame = _read_checked_frame(args, objects, detector)
     estimator, method = _estimator(args, objects, progress)
     diameters = {o: m.diameter for o, m in objects.items()}
     result = estimate_frame(estimator, frame, diameters=diameters)
@@ -270,15 +280,46 @@ def run(args: argparse.Namespace) -> int:
         "K": frame.K.tolist(),
         "meshes": {str(o): m.name for o, m in objects.items()},
     }
+    missed = missed_objects(frame.obj_ids, objects) if detector is not None else []
+    if detector is not None:
+        meta["detector"] = detector_dir
+        meta["missed"] = missed
     write_poses_json(out / "poses.json", result, meta=meta)
-    _write_overlay(out / "overlay.png", frame, objects, result, method)
+    notes = [f"obj {o}: not found" for o in missed]
+    _write_overlay(out / "overlay.png", frame, objects, result, method, notes)
+    for o in missed:
+        print(f"obj {o}: not found by the detector")
     if args.view:
         _write_view(out, frame, objects, result, method, name=f"{method}: {args.rgb}")
     _print_poses(result, method, out)
     return 0
 
 
-def _read_checked_frame(args: argparse.Namespace, objects: dict[int, Any]) -> Any:
+def _detector(args: argparse.Namespace) -> tuple[Any, str]:
+    """The detector of ``--detector`` or ``--model``'s folder, and the folder: no masks given.
+
+    Raises:
+        UsageError: neither names one.
+        MissingWeightsError: the model folder holds no detector.
+    """
+    from poseflow.cli.common import LOG, resolve_model
+    from poseflow.cli.detect import detector_folder
+    from poseflow.detect import Detector
+    from poseflow.errors import UsageError
+
+    if args.detector is None and args.model is None:
+        raise UsageError(
+            "give the instances: one --mask PNG per instance, --detections, or a detector "
+            "(--model MODEL_DIR with MODEL_DIR/detector, or --detector DIR)"
+        )
+    folder = detector_folder(args.detector, str(resolve_model(args.model)))
+    LOG.info("finding the objects with the detector %s", folder)
+    return Detector.load(folder), folder
+
+
+def _read_checked_frame(
+    args: argparse.Namespace, objects: dict[int, Any], detector: Any = None
+) -> Any:
     """The frame of the options, its objects known and its depth in plausible units.
 
     Raises:
@@ -303,7 +344,10 @@ def _read_checked_frame(args: argparse.Namespace, objects: dict[int, Any]) -> An
         scene_id=args.scene_id,
         im_id=args.im_id,
         score_threshold=args.score_threshold,
+        detector=None if detector is None else detector.detect,
     )
+    if detector is not None:
+        frame = _known_only(frame, objects)
     unknown = sorted({int(o) for o in frame.obj_ids.tolist()} - set(objects))
     if unknown:
         raise UsageError(f"the detections name objects {unknown} that no --mesh gives")
@@ -321,8 +365,44 @@ def _read_checked_frame(args: argparse.Namespace, objects: dict[int, Any]) -> An
     return frame
 
 
-def _write_overlay(path: Path, frame: Any, objects: dict, result: Any, method: str) -> None:
-    """Every instance drawn on the image: an invalid one dashed and named so in the legend."""
+def _known_only(frame: Any, objects: dict[int, Any]) -> Any:
+    """The frame without the detector's instances of objects that no ``--mesh`` gives."""
+    import dataclasses
+
+    from poseflow.cli.common import LOG
+
+    keep = [int(o) in objects for o in frame.obj_ids.tolist()]
+    dropped = sorted({int(o) for o, k in zip(frame.obj_ids.tolist(), keep) if not k})
+    if dropped:
+        LOG.info("the detector found objects %s, which no --mesh gives: skipped", dropped)
+    mask = frame.obj_ids.new_tensor(keep, dtype=bool) if keep else frame.obj_ids.bool()
+    return dataclasses.replace(
+        frame,
+        masks=frame.masks[mask],
+        obj_ids=frame.obj_ids[mask],
+        scores=frame.scores[mask],
+        sources=[s for s, k in zip(frame.sources, keep) if k],
+    )
+
+
+def missed_objects(found: Any, objects: dict[int, Any]) -> list[int]:
+    """The objects given (``--mesh``) of which no instance was found.
+
+    Example:
+        >>> import torch
+        >>> missed_objects(torch.tensor([2, 2]), {1: None, 2: None})
+        [1]
+    """
+    return sorted(set(objects) - {int(o) for o in found.tolist()})
+
+
+def _write_overlay(
+    path: Path, frame: Any, objects: dict, result: Any, method: str, notes: list[str]
+) -> None:
+    """Every instance drawn on the image: an invalid one dashed and named so in the legend.
+
+    ``notes`` end the legend (the objects the detector did not find).
+    """
     from poseflow.eval.overlay import write_overlay
 
     order = sorted(objects)
@@ -337,6 +417,7 @@ def _write_overlay(path: Path, frame: Any, objects: dict, result: Any, method: s
         scores=result.scores,
         valid=result.valid,
         mesh_names=[f"obj {o}" for o in order],
+        notes=notes,
     )
 
 

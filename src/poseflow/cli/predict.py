@@ -128,11 +128,22 @@ def _add_instance_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--detections",
         default=None,
-        metavar="JSON",
-        help="BOP detections JSON with COCO-RLE segmentations (default: ground-truth masks)",
+        metavar="JSON|own",
+        help="the instances: a BOP detections JSON with COCO-RLE segmentations, or own for the "
+        "detector of the model folder (MODEL_DIR/detector, or --detector) run on every image "
+        "(default: the split's ground-truth visible masks)",
     )
     parser.add_argument(
-        "--score-threshold", type=float, default=0.0, help="drop detections scoring below this"
+        "--detector",
+        default=None,
+        metavar="DIR",
+        help="with --detections own: this detector folder instead of MODEL_DIR/detector",
+    )
+    parser.add_argument(
+        "--score-threshold",
+        type=float,
+        default=0.0,
+        help="drop detections scoring below this (default: 0)",
     )
     targets = parser.add_mutually_exclusive_group()
     targets.add_argument(
@@ -210,16 +221,41 @@ def select_targets(
     return sorted(found, key=lambda t: (t.scene_id, t.im_id, t.obj_id))
 
 
-def _detections(args: argparse.Namespace, dataset: Any, targets: Any) -> list[Any]:
-    """Detections kept by the threshold and the targets, minus masks of the wrong size."""
+def _detections(
+    args: argparse.Namespace, dataset: Any, targets: Any, progress: bool = False
+) -> list[Any]:
+    """Detections kept by the threshold and the targets, minus masks of the wrong size.
+
+    ``--detections own`` runs the detector (:func:`_own_detections`) first.
+
+    Raises:
+        BOPFormatError: the detections name objects the dataset has no model of.
+        UsageError: ``--score-threshold`` leaves none of them.
+    """
     from PIL import Image
 
-    from poseflow.data.bop import BOPDataWarning, BOPDetectionDataset
+    from poseflow.data.bop import BOPDataWarning, BOPDetectionDataset, read_detections
+    from poseflow.errors import BOPFormatError, UsageError
 
+    if args.detections == "own":
+        found = _own_detections(args, dataset, targets, progress)
+    else:
+        found = read_detections(args.detections)
+    strangers = sorted({d.obj_id for d in found} - set(dataset.models_info()))
+    if strangers:
+        raise BOPFormatError(
+            f"the detections name objects {strangers} that {dataset.root} has no model of: are "
+            "they for another dataset?"
+        )
+    if found and not any(d.score >= args.score_threshold for d in found):
+        raise UsageError(
+            f"--score-threshold {args.score_threshold} leaves no detection (the best scores "
+            f"{max(d.score for d in found):.3f})"
+        )
     dets = BOPDetectionDataset(
         dataset.root,
         args.split,
-        args.detections,
+        found,
         score_threshold=args.score_threshold,
         targets=targets or None,
     ).detections
@@ -241,6 +277,26 @@ def _detections(args: argparse.Namespace, dataset: Any, targets: Any) -> list[An
             continue
         kept.append(d)
     return kept
+
+
+def _own_detections(
+    args: argparse.Namespace, dataset: Any, targets: Any, progress: bool
+) -> list[Any]:
+    """The detector's detections in the images to estimate (the targets' first ``--max-images``)."""
+    from poseflow.cli.common import LOG, resolve_model
+    from poseflow.cli.detect import detector_folder
+    from poseflow.detect import Detector, detect_dataset
+
+    if args.detector is None and args.model is None:
+        from poseflow.errors import UsageError
+
+        raise UsageError("--detections own needs --detector DIR or --model MODEL_DIR")
+    folder = detector_folder(args.detector, str(resolve_model(args.model)))
+    detector = Detector.load(folder)
+    LOG.info("detecting the objects with %s", folder)
+    wanted = select_targets(dataset, targets=targets)
+    images = sorted({(t.scene_id, t.im_id) for t in wanted})[: args.max_images]
+    return detect_dataset(detector, dataset.root, args.split, images=images, progress=progress)
 
 
 def _targets_option(args: argparse.Namespace, root: Path) -> str | bool | None:
@@ -328,7 +384,7 @@ def _predict(
             model.config = full_grid_ranking(model.config)
     ds = BOPDataset(root, args.split)
     wanted = _targets_option(args, root)
-    detections = _detections(args, ds, wanted) if args.detections is not None else None
+    detections = _detections(args, ds, wanted, show) if args.detections is not None else None
     targets = select_targets(ds, targets=wanted, detections=detections)
     targets, images = _share(targets, args, device, ranks)
     objects = _objects(ds, root, [t for t in targets if (t.scene_id, t.im_id) in images], show)

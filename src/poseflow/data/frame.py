@@ -23,7 +23,7 @@ from __future__ import annotations
 import json
 import math
 import warnings
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -446,6 +446,7 @@ def read_frame(
     scene_id: int | None = None,
     im_id: int | None = None,
     score_threshold: float = 0.0,
+    detector: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], Any] | None = None,
 ) -> Frame:
     """Read one RGB-D frame and its instances from files, with every check of this module.
 
@@ -461,6 +462,10 @@ def read_frame(
         scene_id: the scene of the detections (and nothing else).
         im_id: the image of the detections and of a ``scene_camera.json``.
         score_threshold: detections scoring below it are dropped.
+        detector: finds the instances when no masks or detections are given: called as
+            ``detector(rgb (3, H, W) uint8, depth (H, W) metres, K (3, 3))``, it returns an object
+            with ``masks (B, H, W)``, ``obj_ids (B,)`` and ``scores (B,)`` (a
+            :class:`~poseflow.detect.Detector`'s ``detect``).
 
     Returns:
         The :class:`Frame` (``B`` may be 0 when the detections hold none for the image).
@@ -477,8 +482,8 @@ def read_frame(
         ValueRangeError: implausible intrinsics given as numbers, or no instance source given.
         BOPFormatError: implausible intrinsics in a file (named, with the image id).
     """
-    if not masks and detections is None:
-        raise ValueRangeError("give the instances: mask images or a detections file")
+    if not masks and detections is None and detector is None:
+        raise ValueRangeError("give the instances: mask images, a detections file or a detector")
     color = read_color(rgb)
     raw_K, bop_scale, source = _camera_entry(K, im_id)
     if bop_scale is not None:
@@ -501,6 +506,13 @@ def read_frame(
         )
         m = torch.cat([m, dm])
         ids, scores, sources = ids + dids, scores + dscores, sources + dsrc
+    if detector is not None and not masks and detections is None:
+        found = detector(color, d, intrinsics.float())
+        kept = found.scores >= score_threshold
+        m = found.masks[kept].bool()
+        ids = [int(o) for o in found.obj_ids[kept].tolist()]
+        scores = [float(x) for x in found.scores[kept].tolist()]
+        sources = [f"detector, score {x:.2f}" for x in scores]
     return Frame(
         rgb=color,
         depth=d,

@@ -22,6 +22,7 @@
   (:func:`export_scene`).
 """
 
+from poseflow.eval.detection import score_detections
 from poseflow.eval.distributed import (
     PredictionPart,
     Ranks,
@@ -163,6 +164,7 @@ __all__ = [
     "predict_seeded",
     "project_points",
     "read_results",
+    "score_detections",
     "seeded_estimator",
     "shard_images",
     "stage",

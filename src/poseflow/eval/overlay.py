@@ -196,6 +196,7 @@ def overlay_poses(
     valid: Sequence[bool] | torch.Tensor | None = None,
     mesh_names: Sequence[str] | None = None,
     legend: bool = True,
+    notes: Sequence[str] = (),
 ) -> torch.Tensor:
     """Outline models in estimated poses (and GT poses) over a grey image, with a legend.
 
@@ -221,6 +222,7 @@ def overlay_poses(
         valid: the validity of each pose ``(n,)`` (default: all valid).
         mesh_names: each mesh's name in the legend (default ``mesh 0``, ``mesh 1``, ...).
         legend: draw the legend.
+        notes: more lines at the end of the legend (e.g. the objects a detector did not find).
 
     Returns:
         The picture, ``(H, W, 3)`` uint8.
@@ -253,9 +255,10 @@ def overlay_poses(
         edges.insert(0, (gt[0], gt_color))
         covered |= gt[1]
     pic = _paint(out, edges)
-    if not legend or (est.poses.shape[0] == 0 and gt is None):
+    if not legend or (est.poses.shape[0] == 0 and gt is None and not notes):
         return pic
     entries = _legend_entries(est, method, mesh_names, None if gt is None else gt_color, H)
+    entries += [(None, note, False) for note in notes]
     return _draw_legend(pic, entries, covered)
 
 

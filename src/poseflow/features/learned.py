@@ -47,7 +47,10 @@ __all__ = [
     "LearnedAppearanceEncoder",
     "depth_layers",
     "load_descriptor",
+    "load_network_weights",
+    "read_network_config",
     "save_descriptor",
+    "write_network_folder",
 ]
 
 #: The ``format`` tag of a descriptor folder's ``config.json``.
@@ -337,10 +340,10 @@ def save_descriptor(net: DescriptorNet, out: str | Path, **config: Any) -> Path:
         4
     """
     meta = {"version": _VERSION, **net.config(), **config}
-    return _write_folder(net, out, DESCRIPTOR_FORMAT, meta)
+    return write_network_folder(net, out, DESCRIPTOR_FORMAT, meta)
 
 
-def _write_folder(net: nn.Module, out: str | Path, fmt: str, meta: dict[str, Any]) -> Path:
+def write_network_folder(net: nn.Module, out: str | Path, fmt: str, meta: dict[str, Any]) -> Path:
     """Write ``model.safetensors`` (float32) and ``config.json`` (``meta`` tagged ``fmt``)."""
     from safetensors.torch import save_file
 
@@ -353,7 +356,7 @@ def _write_folder(net: nn.Module, out: str | Path, fmt: str, meta: dict[str, Any
     return folder
 
 
-def _read_config(folder: Path, fmt: str, what: str) -> dict[str, Any]:
+def read_network_config(folder: Path, fmt: str, what: str) -> dict[str, Any]:
     """A folder's ``config.json``, checked to be of format ``fmt`` and a readable version.
 
     Raises:
@@ -376,7 +379,7 @@ def _read_config(folder: Path, fmt: str, what: str) -> dict[str, Any]:
     return cfg
 
 
-def _load_weights(net: nn.Module, folder: Path) -> None:
+def load_network_weights(net: nn.Module, folder: Path) -> None:
     """Load ``folder/model.safetensors`` into ``net`` strictly.
 
     Raises:
@@ -422,7 +425,7 @@ def load_descriptor(folder: str | Path) -> tuple[DescriptorNet, dict[str, Any]]:
             raise MissingWeightsError(
                 f"learned descriptor folder {folder} lacks {name}; {_HOW_TO_MAKE}"
             )
-    cfg = _read_config(folder, DESCRIPTOR_FORMAT, "learned descriptor")
+    cfg = read_network_config(folder, DESCRIPTOR_FORMAT, "learned descriptor")
     try:
         net = DescriptorNet(
             widths=cfg["widths"],
@@ -432,5 +435,5 @@ def load_descriptor(folder: str | Path) -> tuple[DescriptorNet, dict[str, Any]]:
         )
     except (KeyError, TypeError, ValueError) as err:
         raise CheckpointError(f"{folder / _CONFIG} has bad network sizes: {err!r}") from err
-    _load_weights(net, folder)
+    load_network_weights(net, folder)
     return net.eval(), cfg

@@ -41,10 +41,10 @@ from poseflow.features.learned import (
     _WEIGHTS,
     DEPTH_CHANNELS,
     DescriptorNet,
-    _load_weights,
-    _read_config,
     _weights_key,
-    _write_folder,
+    load_network_weights,
+    read_network_config,
+    write_network_folder,
 )
 
 __all__ = [
@@ -340,7 +340,7 @@ def save_surface_embedding(model: SurfaceEmbedding, out: str | Path, **config: A
         {1: 0.2}
     """
     meta = {"version": _VERSION, **model.config(), **config}
-    return _write_folder(model, out, SURFACE_FORMAT, meta)
+    return write_network_folder(model, out, SURFACE_FORMAT, meta)
 
 
 def load_surface_embedding(folder: str | Path) -> tuple[SurfaceEmbedding, dict[str, Any]]:
@@ -358,7 +358,7 @@ def load_surface_embedding(folder: str | Path) -> tuple[SurfaceEmbedding, dict[s
     for path in (folder, folder / _CONFIG, folder / _WEIGHTS):
         if not path.exists():
             raise MissingWeightsError(f"surface embedding: no {path}; {_HOW_TO_MAKE}")
-    cfg = _read_config(folder, SURFACE_FORMAT, "surface embedding")
+    cfg = read_network_config(folder, SURFACE_FORMAT, "surface embedding")
     try:
         model = SurfaceEmbedding(
             {int(o): float(d) for o, d in cfg["diameters"].items()},
@@ -370,5 +370,5 @@ def load_surface_embedding(folder: str | Path) -> tuple[SurfaceEmbedding, dict[s
         )
     except (KeyError, TypeError, ValueError, AttributeError) as err:
         raise CheckpointError(f"{folder / _CONFIG} has bad sizes: {err!r}") from err
-    _load_weights(model, folder)
+    load_network_weights(model, folder)
     return model.eval(), cfg
