@@ -26,6 +26,8 @@ _SUBPACKAGES = (
     "fusion",
     "flows",
     "eval",
+    "verify",
+    "detect",
     "models",
     "baselines",
     "assets",

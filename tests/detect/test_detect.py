@@ -271,3 +271,20 @@ def test_detect_dataset_covers_the_split(twins):
     assert all(d.time > 0 for d in dets)
     one = detect_dataset(_tiny_detector(), twins, "train", images=[min(images)], progress=False)
     assert {(d.scene_id, d.im_id) for d in one} <= {min(images)}
+
+
+def test_funflow6d_keeps_its_detector_and_follows_the_device_and_dtype(tmp_path):
+    from poseflow.models import FunFlow6D, FunFlow6DConfig
+
+    model = FunFlow6D(FunFlow6DConfig(num_points=32, crop_size=32, query_views=2))
+    with pytest.raises(MissingWeightsError, match="train-detector"):
+        model.detect(torch.rand(3, 48, 64), torch.ones(48, 64), torch.eye(3))
+    model.detector = _tiny_detector()
+    model.save(tmp_path / "model")
+    back = FunFlow6D.load(tmp_path / "model")
+    assert back.detector is not None and back.detector.config == model.detector.config
+    back.to(torch.float64)
+    assert all(p.dtype == torch.float64 for p in back.detector.parameters())
+    K = torch.tensor([[290.0, 0, 32], [0, 290.0, 24], [0, 0, 1]])
+    found = back.detect(torch.rand(3, 48, 64), torch.ones(48, 64), K)
+    assert found.masks.shape[1:] == (48, 64)

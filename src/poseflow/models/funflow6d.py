@@ -24,7 +24,8 @@ from torch import nn
 from poseflow._units import check_depth_extent
 from poseflow.data.frame import ImageInstances
 from poseflow.data.objects import ObjectModel
-from poseflow.errors import CheckpointError, ValueRangeError
+from poseflow.detect import DetectedObjects, Detector
+from poseflow.errors import CheckpointError, MissingWeightsError, ValueRangeError
 from poseflow.eval.predict import PoseEstimate, SeededEstimator, invalidate_implausible
 from poseflow.eval.timing import stage
 from poseflow.features import AppearanceEncoder, GeometricEncoder
@@ -65,6 +66,8 @@ class FunFlow6D(nn.Module, SeededEstimator):
         super().__init__()
         self.config = cfg = FunFlow6DConfig() if config is None else config
         self.geometric_encoder, self.appearance_encoder, self.net = _build_parts(cfg)
+        #: The detector of the model's objects (``MODEL_DIR/detector``), or None.
+        self.detector: Detector | None = None
         self.objects: dict[int, PreparedObject] = {}
         self.verifier = PoseVerifier(cfg.verifier)
 
@@ -214,13 +217,33 @@ class FunFlow6D(nn.Module, SeededEstimator):
         """The device of the network's weights."""
         return next(self.net.parameters()).device
 
+    @torch.no_grad()
+    def detect(self, rgb: torch.Tensor, depth: torch.Tensor, K: torch.Tensor) -> DetectedObjects:
+        """The instances of the model's objects in one image, by :attr:`detector`.
+
+        ``found = model.detect(rgb, depth, K)`` then ``model.estimate(rgb, depth, K,
+        found.masks, found.obj_ids)`` estimates an image that comes without masks.
+
+        Raises:
+            MissingWeightsError: the model has no detector.
+        """
+        if self.detector is None:
+            raise MissingWeightsError(
+                "this model has no detector: train one with `poseflow train-detector "
+                "SYNTH_DATASET --out MODEL_DIR/detector` and load the model again"
+            )
+        return self.detector.detect(rgb, depth, K)
+
     def save(self, folder: str | Path) -> Path:
-        """Write ``config.json`` and ``model.safetensors`` (trainable weights only)."""
-        return write_checkpoint(folder, self.config, self.net.state_dict())
+        """Write ``config.json``, ``model.safetensors`` (trainable weights), any ``detector/``."""
+        out = write_checkpoint(folder, self.config, self.net.state_dict())
+        if self.detector is not None:
+            self.detector.save(Path(folder) / "detector")
+        return out
 
     @classmethod
     def load(cls, folder: str | Path, *, device: str | torch.device = "cpu") -> FunFlow6D:
-        """Load a model written by :meth:`save` (no pickle is ever read).
+        """Load a model written by :meth:`save` (no pickle is ever read), with its detector.
 
         Raises:
             MissingWeightsError: ``folder`` holds no checkpoint.
@@ -230,6 +253,8 @@ class FunFlow6D(nn.Module, SeededEstimator):
         config, state = read_checkpoint(folder)
         model = cls(config)
         _load_weights(model.net, state, Path(folder) / "model.safetensors")
+        if (Path(folder) / "detector").is_dir():
+            model.detector = Detector.load(Path(folder) / "detector")
         return model.to(device)
 
 
