@@ -312,7 +312,8 @@ def _detector(args: argparse.Namespace) -> tuple[Any, str]:
             "give the instances: one --mask PNG per instance, --detections, or a detector "
             "(--model MODEL_DIR with MODEL_DIR/detector, or --detector DIR)"
         )
-    folder = detector_folder(args.detector, str(resolve_model(args.model)))
+    model = None if args.detector is not None else str(resolve_model(args.model))
+    folder = detector_folder(args.detector, model)
     LOG.info("finding the objects with the detector %s", folder)
     return Detector.load(folder), folder
 

@@ -291,7 +291,8 @@ def _own_detections(
         from poseflow.errors import UsageError
 
         raise UsageError("--detections own needs --detector DIR or --model MODEL_DIR")
-    folder = detector_folder(args.detector, str(resolve_model(args.model)))
+    model = None if args.detector is not None else str(resolve_model(args.model))
+    folder = detector_folder(args.detector, model)
     detector = Detector.load(folder)
     LOG.info("detecting the objects with %s", folder)
     wanted = select_targets(dataset, targets=targets)
