@@ -273,21 +273,3 @@ def test_compiled_appearance_equals_the_tensor_one_to_rounding(
     assert torch.equal(compiled != 0, tensors != 0)  # the same windows count
     eps = torch.finfo(dtype).eps
     torch.testing.assert_close(compiled, tensors, rtol=0, atol=16 * eps)
-
-
-def test_a_band_at_the_mask_edge_hides_a_mask_eroded_within_it() -> None:
-    """The edge band (crop_observation's mask_band) keeps an eroded mask from lowering the score."""
-    from poseflow.verify import crop_observation
-
-    render, obs = crops_and_renders(1)
-    exact = score(render, obs)
-    eroded = torch.zeros_like(obs.mask)
-    eroded[:, 5:11, 5:11] = True  # one pixel off the 8 x 8 square
-    boxes = torch.tensor([[-0.5, -0.5, S - 0.5, S - 0.5]], dtype=torch.float64)  # pixel centres
-    for band, same in ((0, False), (1, True)):
-        crops = crop_observation(obs.depth[0], eroded, boxes, S, mask_band=band)
-        assert (crops.uncertain is not None) == (band > 0)
-        seen = ObservedCrops(obs.depth, crops.mask, obs.color, crops.uncertain)
-        out = score(render, seen)
-        assert bool(torch.isclose(out.silhouette, exact.silhouette).all()) == same
-        assert bool(torch.isclose(out.depth, exact.depth).all()) == same

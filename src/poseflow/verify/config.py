@@ -17,7 +17,7 @@ __all__ = ["VerifierConfig"]
 
 #: The int fields of :class:`VerifierConfig` by their least value.
 _INT_MINIMA: dict[int, tuple[str, ...]] = {
-    0: ("max_candidates", "rank_top_k", "refine_top_k", "polish_levels", "mask_band"),
+    0: ("max_candidates", "rank_top_k", "refine_top_k", "polish_levels"),
     1: ("block_size", "search_top_k", "icp_iterations", "polish_moves", "expand_top_k"),
     2: ("turn_steps",),
     3: ("appearance_window", "max_observed_points"),
@@ -41,9 +41,6 @@ class VerifierConfig:
             the ones refined by ICP and scored on the full grid.
         crop_margin: side of the compared crop over the object's projected diameter at the
             estimate's depth (1 fits the whole object).
-        mask_band: image pixels on either side of the mask's edge that the comparison ignores
-            (0: none): a detector's mask is uncertain there, and a score that counts them
-            moves a pose nearer or farther to fit the mask's size.
         depth_tolerance: a rendered pixel agrees with the observed depth when they differ by less
             than this (VSD's tau).
         visibility_tolerance: a rendered pixel farther than the observed depth by more than this
@@ -128,7 +125,6 @@ class VerifierConfig:
     crop_size: int = 64
     coarse_crop_size: int = 32
     crop_margin: float = 1.2
-    mask_band: int = 0
     depth_tolerance: float = 0.03
     visibility_tolerance: float = 0.1
     occlusion_tolerance: float = 0.1

@@ -67,14 +67,11 @@ class ObservedCrops:
         depth: metres ``(B, S, S)``, 0 where missing or outside the image.
         mask: the instance masks ``(B, S, S)`` bool.
         color: colour ``(B, 3, S, S)`` (area-averaged), or None when no image was given.
-        uncertain: pixels near the mask's edge that the comparison ignores ``(B, S, S)`` bool,
-            or None for none.
     """
 
     depth: torch.Tensor
     mask: torch.Tensor
     color: torch.Tensor | None
-    uncertain: torch.Tensor | None = None
 
 
 def crop_intrinsics(K: torch.Tensor, boxes: torch.Tensor, size: int) -> torch.Tensor:
@@ -389,7 +386,6 @@ def crop_observation(
     rgb: torch.Tensor | None = None,
     *,
     max_supersampling: int = 4,
-    mask_band: int = 0,
 ) -> ObservedCrops:
     """Resample an observed image to square crops, one per instance.
 
@@ -405,7 +401,6 @@ def crop_observation(
         size: side ``S`` of the crops.
         rgb: optional colour image ``(3, Hi, Wi)``, float in ``[0, 1]`` or uint8.
         max_supersampling: cap on ``f``.
-        mask_band: image pixels on either side of each mask's edge marked ``uncertain``.
 
     Returns:
         :class:`ObservedCrops` in the boxes' dtype; outside the image depth is 0 and masks are
@@ -449,20 +444,7 @@ def crop_observation(
         check_tensor(rgb, "rgb", (3, "Hi", "Wi"), floating=False, sizes=sizes)
         check_same(("boxes", boxes), ("rgb", rgb), dtype=False)
         color = _crop_color(rgb, boxes, S, max_supersampling)
-    uncertain = None
-    if mask_band > 0:
-        edge = _mask_edge_band(masks, mask_band)
-        uncertain = inside & edge[bidx, rows, cols]
-    return ObservedCrops(depth=dc, mask=mc, color=color, uncertain=uncertain)
-
-
-def _mask_edge_band(masks: torch.Tensor, band: int) -> torch.Tensor:
-    """Pixels within ``band`` pixels of each mask's edge, inside or outside ``(B, H, W)``."""
-    m = masks[:, None].float()
-    k = 2 * band + 1
-    grown = F.max_pool2d(m, k, stride=1, padding=band)[:, 0] > 0
-    shrunk = -F.max_pool2d(-m, k, stride=1, padding=band)[:, 0] > 0
-    return grown & ~shrunk
+    return ObservedCrops(depth=dc, mask=mc, color=color)
 
 
 def _crop_color(

@@ -377,10 +377,6 @@ def score_renderings(
         rendering.depth, visible, o_depth, o_mask, depth_tolerance.to(dtype)
     )
     inter, union = silhouette_agreement(visible, o_mask)
-    if observed.uncertain is not None:
-        certain = ~observed.uncertain[:, None]
-        agree, support_d = agree & certain, support_d & certain
-        inter, union = inter & certain, union & certain
     if observed.color is not None and wa > 0:
         app = appearance_agreement(
             rendering.color,

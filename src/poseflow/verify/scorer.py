@@ -272,7 +272,7 @@ class PoseScorer:
         objects = self._objects(obj_ids, B)
         Kd = K.to(poses.dtype)
         boxes = self.crop_boxes(poses, obj_ids, Kd, masks)
-        crops = crop_observation(depth, masks, boxes, cfg.crop_size, rgb, mask_band=cfg.mask_band)
+        crops = crop_observation(depth, masks, boxes, cfg.crop_size, rgb)
         kw = {"dtype": poses.dtype, "device": poses.device}
         diameter = torch.tensor([o.diameter for o in objects], **kw)
         eye = torch.eye(3, **kw)
@@ -384,7 +384,7 @@ class PoseScorer:
         Kd = K.to(hypotheses.dtype)
         if boxes is None:
             boxes = self.crop_boxes(hypotheses[:, 0], obj_ids, Kd, masks)
-        crops = crop_observation(depth, masks, boxes, S, rgb, mask_band=self.config.mask_band)
+        crops = crop_observation(depth, masks, boxes, S, rgb)
         return self._compare(objects, hypotheses, hypothesis_mask, crops, Kd, boxes)
 
     def _compare(
