@@ -63,6 +63,7 @@ def test_detect_errors(dataset, model_dir, tmp_path, capsys):
     argv = ["detect", str(dataset), "--model", str(model_dir), "--out", out]
     assert main([*argv, "--score-threshold", "1.5", "-q"]) == 2
     assert "leaves no detection" in capsys.readouterr().err
+    assert main(["detect", str(dataset), "--out", out, "-q"]) == 2  # no detector named
 
 
 def test_predict_with_own_detections(dataset, model_dir, tmp_path):

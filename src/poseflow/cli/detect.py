@@ -26,7 +26,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Add the options of ``poseflow detect`` (its ``run`` is :func:`run`)."""
     parser.add_argument("dataset", help="BOP dataset folder")
     parser.add_argument("--out", required=True, help="detections JSON to write")
-    source = parser.add_mutually_exclusive_group(required=True)
+    source = parser.add_mutually_exclusive_group()
     source.add_argument("--detector", default=None, help="detector folder (train-detector)")
     source.add_argument("--model", default=None, metavar="MODEL_DIR", help="use MODEL_DIR/detector")
     parser.add_argument("--split", default="test", help="split folder (default: test)")
@@ -70,6 +70,8 @@ def run(args: argparse.Namespace) -> int:
     from poseflow.detect import Detector, detect_dataset
     from poseflow.errors import UsageError
 
+    if args.detector is None and args.model is None:
+        raise UsageError("give the detector: --detector DIR or --model MODEL_DIR")
     if args.max_images is not None and args.max_images < 1:
         raise UsageError(f"--max-images must be at least 1, got {args.max_images}")
     root = check_dataset(args.dataset, args.split)
