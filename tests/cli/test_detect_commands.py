@@ -72,7 +72,7 @@ def test_predict_with_own_detections(dataset, model_dir, tmp_path):
     argv += ["--detector", str(model_dir / "detector"), "--no-verify", "--out", str(csv), "-q"]
     assert main(argv) == 0
     rows = read_results(csv)
-    assert set(rows.obj_ids.tolist()) <= {1, 2, 3}
+    assert len(rows.obj_ids) > 0 and set(rows.obj_ids.tolist()) <= {1, 2, 3}
     assert (rows.times > 0).all()
 
 

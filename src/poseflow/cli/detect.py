@@ -9,8 +9,10 @@ for the detector inside a model folder) over a split and writes the BOP detectio
 from __future__ import annotations
 
 import argparse
+from collections.abc import Sequence
+from typing import Any
 
-__all__ = ["DESCRIPTION", "HELP", "add_arguments", "detector_folder", "run"]
+__all__ = ["DESCRIPTION", "HELP", "add_arguments", "check_score_threshold", "load_detector", "run"]
 
 #: ``detect``'s line in ``poseflow --help``.
 HELP = "find a dataset's objects with a trained detector; write BOP detections"
@@ -41,25 +43,53 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def detector_folder(detector: str | None, model: str | None) -> str:
-    """The detector folder that ``--detector`` or ``--model MODEL_DIR`` names.
+def load_detector(detector: str | None, model: str | None, *, needs: str) -> tuple[Any, str]:
+    """The detector of ``--detector DIR``, else of ``--model MODEL_DIR`` (``MODEL_DIR/detector``).
+
+    Args:
+        detector: ``--detector``'s value, or None.
+        model: ``--model``'s value (``demo`` included), or None.
+        needs: the message when neither option names one (the options are added to it).
+
+    Returns:
+        ``(detector, folder)``.
 
     Raises:
+        UsageError: neither option is given.
         MissingWeightsError: ``MODEL_DIR`` holds no detector.
     """
     from pathlib import Path
 
-    from poseflow.errors import MissingWeightsError
+    from poseflow.cli.common import LOG, resolve_model
+    from poseflow.detect import Detector
+    from poseflow.errors import MissingWeightsError, UsageError
 
-    if detector is not None:
-        return detector
-    folder = Path(str(model)) / "detector"
-    if not folder.is_dir():
+    if detector is None and model is None:
+        raise UsageError(f"{needs} (--detector DIR or --model MODEL_DIR)")
+    folder = Path(detector) if detector is not None else resolve_model(model) / "detector"
+    if detector is None and not folder.is_dir():
         raise MissingWeightsError(
             f"the model {model} has no detector ({folder} is missing): train one with "
             f"`poseflow train-detector SYNTH_DATASET --out {folder}`, or pass --detector DIR"
         )
-    return str(folder)
+    LOG.info("finding the objects with the detector %s", folder)
+    return Detector.load(folder), str(folder)
+
+
+def check_score_threshold(found: Sequence[Any], threshold: float) -> None:
+    """Raise UsageError when ``--score-threshold`` leaves none of the detections ``found``.
+
+    Example:
+        >>> from poseflow.data.bop import Detection
+        >>> check_score_threshold([Detection(0, 0, 1, 0.4, (0, 0, 1, 1))], 0.3)
+    """
+    from poseflow.errors import UsageError
+
+    if found and not any(d.score >= threshold for d in found):
+        raise UsageError(
+            f"--score-threshold {threshold} leaves no detection (the best scores "
+            f"{max(d.score for d in found):.3f})"
+        )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -67,25 +97,19 @@ def run(args: argparse.Namespace) -> int:
     from poseflow.cli.common import LOG, check_writable
     from poseflow.data.bop import write_detections
     from poseflow.data.object_folder import check_dataset
-    from poseflow.detect import Detector, detect_dataset
+    from poseflow.detect import detect_dataset
     from poseflow.errors import UsageError
 
-    if args.detector is None and args.model is None:
-        raise UsageError("give the detector: --detector DIR or --model MODEL_DIR")
     if args.max_images is not None and args.max_images < 1:
         raise UsageError(f"--max-images must be at least 1, got {args.max_images}")
+    detector, _ = load_detector(args.detector, args.model, needs="give the detector")
     root = check_dataset(args.dataset, args.split)
     check_writable(args.out)
-    detector = Detector.load(detector_folder(args.detector, args.model))
     found = detect_dataset(
         detector, root, args.split, max_images=args.max_images, progress=not args.quiet
     )
+    check_score_threshold(found, args.score_threshold)
     kept = [d for d in found if d.score >= args.score_threshold]
-    if found and not kept:
-        raise UsageError(
-            f"--score-threshold {args.score_threshold} leaves no detection (the best scores "
-            f"{max(d.score for d in found):.3f})"
-        )
     write_detections(args.out, kept)
     images = len({(d.scene_id, d.im_id) for d in kept})
     LOG.info("%d detections in %d images written to %s", len(kept), images, args.out)

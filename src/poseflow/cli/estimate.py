@@ -262,7 +262,13 @@ def run(args: argparse.Namespace) -> int:
 
     detector, detector_dir = None, None
     if not args.mask and args.detections is None:
-        detector, detector_dir = _detector(args)
+        from poseflow.cli.detect import load_detector
+
+        detector, detector_dir = load_detector(
+            args.detector,
+            args.model,
+            needs="give the instances: one --mask PNG per instance, --detections, or a detector",
+        )
     if args.view:
         _check_view_dependencies()
     out = check_writable(args.out, flag="--out", folder=True)
@@ -293,29 +299,6 @@ def run(args: argparse.Namespace) -> int:
         _write_view(out, frame, objects, result, method, name=f"{method}: {args.rgb}")
     _print_poses(result, method, out)
     return 0
-
-
-def _detector(args: argparse.Namespace) -> tuple[Any, str]:
-    """The detector of ``--detector`` or ``--model``'s folder, and the folder: no masks given.
-
-    Raises:
-        UsageError: neither names one.
-        MissingWeightsError: the model folder holds no detector.
-    """
-    from poseflow.cli.common import LOG, resolve_model
-    from poseflow.cli.detect import detector_folder
-    from poseflow.detect import Detector
-    from poseflow.errors import UsageError
-
-    if args.detector is None and args.model is None:
-        raise UsageError(
-            "give the instances: one --mask PNG per instance, --detections, or a detector "
-            "(--model MODEL_DIR with MODEL_DIR/detector, or --detector DIR)"
-        )
-    model = None if args.detector is not None else str(resolve_model(args.model))
-    folder = detector_folder(args.detector, model)
-    LOG.info("finding the objects with the detector %s", folder)
-    return Detector.load(folder), folder
 
 
 def _read_checked_frame(
@@ -370,13 +353,15 @@ def _known_only(frame: Any, objects: dict[int, Any]) -> Any:
     """The frame without the detector's instances of objects that no ``--mesh`` gives."""
     import dataclasses
 
+    import torch
+
     from poseflow.cli.common import LOG
 
     keep = [int(o) in objects for o in frame.obj_ids.tolist()]
     dropped = sorted({int(o) for o, k in zip(frame.obj_ids.tolist(), keep) if not k})
     if dropped:
         LOG.info("the detector found objects %s, which no --mesh gives: skipped", dropped)
-    mask = frame.obj_ids.new_tensor(keep, dtype=bool) if keep else frame.obj_ids.bool()
+    mask = torch.tensor(keep, dtype=torch.bool)
     return dataclasses.replace(
         frame,
         masks=frame.masks[mask],

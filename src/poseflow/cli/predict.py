@@ -234,8 +234,9 @@ def _detections(
     """
     from PIL import Image
 
+    from poseflow.cli.detect import check_score_threshold
     from poseflow.data.bop import BOPDataWarning, BOPDetectionDataset, read_detections
-    from poseflow.errors import BOPFormatError, UsageError
+    from poseflow.errors import BOPFormatError
 
     if args.detections == "own":
         found = _own_detections(args, dataset, targets, progress)
@@ -247,11 +248,7 @@ def _detections(
             f"the detections name objects {strangers} that {dataset.root} has no model of: are "
             "they for another dataset?"
         )
-    if found and not any(d.score >= args.score_threshold for d in found):
-        raise UsageError(
-            f"--score-threshold {args.score_threshold} leaves no detection (the best scores "
-            f"{max(d.score for d in found):.3f})"
-        )
+    check_score_threshold(found, args.score_threshold)
     dets = BOPDetectionDataset(
         dataset.root,
         args.split,
@@ -283,18 +280,12 @@ def _own_detections(
     args: argparse.Namespace, dataset: Any, targets: Any, progress: bool
 ) -> list[Any]:
     """The detector's detections in the images to estimate (the targets' first ``--max-images``)."""
-    from poseflow.cli.common import LOG, resolve_model
-    from poseflow.cli.detect import detector_folder
-    from poseflow.detect import Detector, detect_dataset
+    from poseflow.cli.detect import load_detector
+    from poseflow.detect import detect_dataset
 
-    if args.detector is None and args.model is None:
-        from poseflow.errors import UsageError
-
-        raise UsageError("--detections own needs --detector DIR or --model MODEL_DIR")
-    model = None if args.detector is not None else str(resolve_model(args.model))
-    folder = detector_folder(args.detector, model)
-    detector = Detector.load(folder)
-    LOG.info("detecting the objects with %s", folder)
+    detector, _ = load_detector(
+        args.detector, args.model, needs="--detections own needs a detector"
+    )
     wanted = select_targets(dataset, targets=targets)
     images = sorted({(t.scene_id, t.im_id) for t in wanted})[: args.max_images]
     return detect_dataset(detector, dataset.root, args.split, images=images, progress=progress)

@@ -12,7 +12,6 @@ resolution. :func:`detect_dataset` runs it over a BOP split and returns BOP dete
 
 from __future__ import annotations
 
-import json
 import time
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
@@ -149,6 +148,8 @@ class Detector(nn.Module):
     def __init__(self, config: DetectorConfig) -> None:
         super().__init__()
         self.config = config
+        #: How it was trained (:func:`~poseflow.detect.train_detector`'s record), kept on save.
+        self.training_record: dict[str, Any] = {}
         self.net = InstanceSegmenter(len(config.obj_ids), widths=config.widths)
 
     @torch.no_grad()
@@ -197,9 +198,11 @@ class Detector(nn.Module):
         ids = torch.tensor(self.config.obj_ids)[found.labels]
         return DetectedObjects(ids, found.masks, found.scores, time.perf_counter() - start)
 
-    def save(self, folder: str | Path, **extra: Any) -> Path:
-        """Write ``config.json`` (the configuration and ``extra``) and ``model.safetensors``."""
-        meta = {"version": 1, "config": _config_json(self.config), **extra}
+    def save(self, folder: str | Path, *, training: dict[str, Any] | None = None) -> Path:
+        """Write ``config.json`` (the configuration and the training record) and the weights."""
+        if training is not None:
+            self.training_record = dict(training)
+        meta = {"version": 1, "config": _config_json(self.config), "training": self.training_record}
         return write_network_folder(self.net, folder, DETECTOR_FORMAT, meta)
 
     @classmethod
@@ -222,6 +225,7 @@ class Detector(nn.Module):
                 f"{folder / 'config.json'}: bad detector configuration: {err}"
             ) from err
         detector = cls(config)
+        detector.training_record = dict(cfg.get("training") or {})
         load_network_weights(detector.net, folder)
         if not all(torch.isfinite(p).all() for p in detector.net.state_dict().values()):
             raise CheckpointError(f"{folder / 'model.safetensors'} holds non-finite weights")
@@ -229,10 +233,7 @@ class Detector(nn.Module):
 
 
 def _config_json(config: DetectorConfig) -> dict[str, Any]:
-    out = asdict(config)
-    out["widths"] = list(config.widths)
-    json.dumps(out)  # JSON-ready
-    return out
+    return {**asdict(config), "widths": list(config.widths)}
 
 
 def detect_dataset(
