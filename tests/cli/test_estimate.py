@@ -92,7 +92,42 @@ def test_unit_mix_ups_stop_with_the_flag_to_set(frame, tmp_path, capsys, change,
         argv += list(change)
     assert main([*argv, "--no-progress"]) == 1
     assert message in capsys.readouterr().err
-    assert not (tmp_path / "out" / "poses.json").exists()
+    assert not (tmp_path / "out").exists()  # a failed run leaves no empty folder behind
+
+
+def test_several_masks_after_one_mask_flag(frame, tmp_path):
+    argv = _argv(frame, tmp_path / "out")
+    argv.insert(argv.index("--mask") + 2, str(frame["mask"]))  # --mask a.png a.png
+    assert main([*argv, "-q"]) == 0
+    poses = json.loads((tmp_path / "out" / "poses.json").read_text())["poses"]
+    assert [p["obj_id"] for p in poses] == [1, 1]
+
+
+def test_a_label_image_given_as_a_mask_is_refused(frame, tmp_path, capsys):
+    mask = np.asarray(Image.open(frame["mask"])) > 0
+    labels = np.zeros(mask.shape, np.uint8)
+    rows = np.nonzero(mask.any(axis=1))[0]
+    middle = rows[len(rows) // 2]
+    labels[:middle][mask[:middle]] = 1
+    labels[middle:][mask[middle:]] = 2  # two instances, one value each
+    Image.fromarray(labels).save(tmp_path / "labels.png")
+    argv = _argv(frame, tmp_path / "out")
+    argv[argv.index("--mask") + 1] = str(tmp_path / "labels.png")
+    assert main(argv) == 1
+    assert "holds 2 labels (1, 2): a label image" in capsys.readouterr().err
+    soft = np.where(mask, 255, 0).astype(np.uint8)
+    edge = mask & ~np.roll(mask, 1, axis=0)
+    soft[edge] = 128  # anti-aliased edge pixels: still one instance
+    Image.fromarray(soft).save(tmp_path / "soft.png")
+    argv[argv.index("--mask") + 1] = str(tmp_path / "soft.png")
+    assert main([*argv, "-q"]) == 0
+
+
+def test_funflow6d_and_hybrid_need_a_model(frame, tmp_path, capsys):
+    for method in ("funflow6d", "hybrid"):
+        assert main([*_argv(frame, tmp_path / "out"), "--method", method]) == 2
+        assert f"--method {method} needs --model" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
 
 
 def test_a_transposed_K_is_refused(frame, tmp_path, capsys):
@@ -157,13 +192,18 @@ def test_no_detection_for_the_image_writes_empty_poses(frame, tmp_path, capsys):
 
 
 @pytest.mark.slow
-def test_estimate_with_the_demo_model_caches_the_prepared_mesh(frame, tmp_path, capsys):
+@pytest.mark.parametrize(("method", "name"), [("funflow6d", "FunFlow6D"), ("hybrid", "hybrid")])
+def test_estimate_with_the_demo_model_caches_the_prepared_mesh(
+    frame, tmp_path, capsys, method, name
+):
     argv = [*_argv(frame, tmp_path / "out"), "--model", "demo", "--cache", str(tmp_path / "c")]
-    assert main([*argv, "--no-progress"]) == 0
-    (pose,) = json.loads((tmp_path / "out" / "poses.json").read_text())["poses"]
+    assert main([*argv, "--method", method, "--no-progress"]) == 0
+    data = json.loads((tmp_path / "out" / "poses.json").read_text())
+    (pose,) = data["poses"]
     assert pose["valid"] and pose["t_m"][2] > 0
+    assert data["method"].startswith(name)
     assert len(list((tmp_path / "c" / "objects").glob("obj_000001/*/object.json"))) == 1
-    assert "FunFlow6D" in capsys.readouterr().out
+    assert name in capsys.readouterr().out
 
 
 def test_bop_depth_in_tenths_of_a_millimetre_read_as_millimetres_stops(frame, tmp_path, capsys):

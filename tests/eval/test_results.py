@@ -165,3 +165,19 @@ def test_the_file_is_written_aside_and_renamed(tmp_path, monkeypatch):
     write_results(path, r)
     assert [p.name for p in tmp_path.iterdir()] == ["r.csv"]
     assert torch.equal(read_results(path).obj_ids, r.obj_ids)
+
+
+def test_exact_duplicate_lines_are_named_in_a_warning(tmp_path, recwarn):
+    path = tmp_path / "dup.csv"
+    rows = [
+        "1,0,5,0.5,1 0 0 0 1 0 0 0 1,10 20 500,0.25",
+        "1,0,6,0.4,1 0 0 0 1 0 0 0 1,0 0 400,0.25",
+    ]
+    path.write_text("\n".join([HEADER, *rows]) + "\n")
+    read_results(path)
+    assert not recwarn.list  # distinct lines: no word
+    path.write_text("\n".join([HEADER, *rows, rows[0], rows[0]]) + "\n")
+    repeat = r"2 line\(s\) repeat an earlier one exactly \(line 4 is line 2\)"
+    with pytest.warns(UserWarning, match=repeat):
+        back = read_results(path)
+    assert len(back) == 4  # still read as written: BOP's rule scores them

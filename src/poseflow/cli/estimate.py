@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from poseflow.cli.common import add_device_argument, add_model_argument, add_seed_argument
+from poseflow.cli.predict import METHOD_LABELS, METHODS
 
 __all__ = ["DESCRIPTION", "FORMATTER", "HELP", "add_arguments", "load_meshes", "run"]
 
@@ -46,8 +47,9 @@ models folder in millimetres). Depth, intrinsics and mesh sizes are checked for 
 and the depth inside each mask against its object's size. --depth-scale is metres per unit; a
 BOP scene_camera.json's depth_scale is millimetres per unit (BOP's 0.1 is --depth-scale 0.0001).
 
-Estimator: the classic baseline (FPFH + RANSAC + ICP, no training) unless --model names a
-trained FunFlow6D model folder (or demo, the small model shipped with poseflow)."""
+Estimator (--method): the classic baseline (FPFH + RANSAC + ICP, no training) unless --model
+names a trained FunFlow6D model folder (or demo, the small model shipped with poseflow); with a
+model, --method hybrid pools both estimators' hypotheses and --method baseline ignores it."""
 
 #: :data:`DESCRIPTION` is shown as written.
 FORMATTER = argparse.RawDescriptionHelpFormatter
@@ -99,7 +101,13 @@ def _add_frame_arguments(frame: Any) -> None:
 def _add_instance_arguments(inst: Any) -> None:
     """``--mask``, ``--obj-id``, ``--detections`` and ``--score-threshold``."""
     inst.add_argument(
-        "--mask", action="append", default=[], metavar="PNG", help="an instance mask; repeatable"
+        "--mask",
+        action="extend",
+        nargs="+",
+        default=[],
+        metavar="PNG",
+        help="instance masks, one binary PNG per instance (non-zero = the object): --mask a.png "
+        "b.png, or --mask repeated",
     )
     inst.add_argument(
         "--obj-id",
@@ -144,6 +152,13 @@ def _add_object_arguments(objs: Any) -> None:
         help="factor from the mesh's units to metres (default 1; 0.001 for a BOP models folder)",
     )
     add_model_argument(objs, without="the classic baseline")
+    objs.add_argument(
+        "--method",
+        choices=METHODS,
+        default=None,
+        help="the estimator (default: funflow6d with --model, else baseline); funflow6d and "
+        "hybrid (the model's and the baseline's hypotheses pooled) need --model",
+    )
     objs.add_argument(
         "--cache", default=None, metavar="DIR", help="cache prepared objects here (FunFlow6D)"
     )
@@ -235,31 +250,63 @@ def _obj_ids(args: argparse.Namespace, objects: dict[int, Any]) -> list[int] | N
     return [next(iter(objects))]
 
 
+def _method(args: argparse.Namespace) -> str:
+    """``--method``, or its default: ``funflow6d`` with ``--model``, else ``baseline``.
+
+    Raises:
+        UsageError: ``funflow6d`` or ``hybrid`` without ``--model``.
+    """
+    from poseflow.errors import UsageError
+
+    method = args.method or ("baseline" if args.model is None else "funflow6d")
+    if method != "baseline" and args.model is None:
+        raise UsageError(f"--method {method} needs --model (a FunFlow6D model folder, or demo)")
+    return method
+
+
 def _estimator(args: argparse.Namespace, objects: dict[int, Any], progress: bool) -> Any:
-    """The estimator and its name: FunFlow6D with ``--model``, else the classic baseline."""
+    """The estimator of ``--method`` and its name."""
+    from poseflow.baselines import ClassicBaseline
     from poseflow.cli.common import LOG, load_model, resolve_device, resolve_model
 
-    if args.model is None:
-        from poseflow.baselines import ClassicBaseline
-
-        LOG.info(
-            "estimating with the classic baseline (FPFH + RANSAC + ICP); --model for FunFlow6D"
-        )
-        baseline = ClassicBaseline(objects, seed=args.seed)
-        return baseline.estimator(), "classic baseline"
+    method = _method(args)
+    if method == "baseline":
+        LOG.info("estimating with the classic baseline (FPFH + RANSAC + ICP)")
+        return ClassicBaseline(objects, seed=args.seed).estimator(), METHOD_LABELS[method]
     folder = resolve_model(args.model)
     model = load_model(folder, device=resolve_device(args.device))
     cache = None if args.cache is None else Path(args.cache) / "objects"  # keyed by each mesh
     LOG.info(f"preparing {len(objects)} object(s) for FunFlow6D from {folder}")
     model.prepare_objects(objects, cache_dir=cache, progress=progress)
-    return model.estimator(seed=args.seed), f"FunFlow6D ({folder})"
+    if method == "funflow6d":
+        return model.estimator(seed=args.seed), f"FunFlow6D ({folder})"
+    from poseflow.models import Hybrid
+
+    hybrid = Hybrid(model, ClassicBaseline(objects, verifier=None, seed=args.seed))
+    return hybrid.estimator(seed=args.seed), f"hybrid ({folder})"
 
 
 def run(args: argparse.Namespace) -> int:
-    """Read the frame and the meshes, estimate, write the JSON and the overlay; returns 0."""
+    """Read the frame and the meshes, estimate, write the JSON and the overlay; returns 0.
+
+    A folder ``--out`` that this run created is removed again when the run fails before
+    writing into it.
+    """
+    out = Path(args.out)
+    existed = out.exists()
+    try:
+        return _run(args)
+    except BaseException:
+        if not existed and out.is_dir() and not any(out.iterdir()):
+            out.rmdir()
+        raise
+
+
+def _run(args: argparse.Namespace) -> int:
     from poseflow.cli.common import check_writable, show_progress
     from poseflow.eval.frame import estimate_frame, write_poses_json
 
+    _method(args)
     detector, detector_dir = None, None
     if not args.mask and args.detections is None:
         from poseflow.cli.detect import load_detector

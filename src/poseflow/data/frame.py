@@ -353,10 +353,37 @@ def read_masks(paths: Sequence[str | Path], width: int, height: int) -> torch.Te
         m = torch.from_numpy(arr > 0)
         if not bool(m.any()):
             raise DegenerateInputError(f"mask {p} is empty (no non-zero pixel)")
+        _check_not_labels(arr, p)
         out.append(m)
     if not out:
         return torch.zeros(0, height, width, dtype=torch.bool)
     return torch.stack(out)
+
+
+def _check_not_labels(arr: np.ndarray, path: str | Path) -> None:
+    """Refuse a label image (several instances, one value each) given as one instance's mask.
+
+    A binary mask has one non-zero value, give or take anti-aliased edges (thin bands); a label
+    image has two or more values that each fill solid regions (pixels whose four neighbours
+    share their value).
+
+    Raises:
+        DegenerateInputError: the image looks like a label image.
+    """
+    from poseflow.errors import DegenerateInputError
+
+    inner = arr[1:-1, 1:-1]
+    solid = (inner > 0) & (inner == arr[:-2, 1:-1]) & (inner == arr[2:, 1:-1])
+    solid &= (inner == arr[1:-1, :-2]) & (inner == arr[1:-1, 2:])
+    values, counts = np.unique(inner[solid], return_counts=True)
+    large = values[counts >= 4]
+    if len(large) >= 2:
+        shown = ", ".join(str(int(v)) for v in large[:6]) + (", ..." if len(large) > 6 else "")
+        raise DegenerateInputError(
+            f"mask {path} holds {len(large)} labels ({shown}): a label image, not one instance's "
+            "mask; give one binary PNG per instance (non-zero = the object), e.g. save "
+            "(labels == value) for each value"
+        )
 
 
 def _detections_of(

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 import os
+import warnings
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -225,7 +226,30 @@ def read_results(path: str | os.PathLike[str]) -> PoseResults:
         out.image_times()
     except ValueRangeError as exc:
         raise ResultsFormatError(f"{path}: {exc}") from None
+    _warn_duplicates(lines[1:], path)
     return out
+
+
+def _warn_duplicates(rows: list[str], path: str | os.PathLike[str]) -> None:
+    """Warn when some lines repeat exactly: each copy counts as an estimate of its own.
+
+    BOP's rule (the best-scored estimates per object and image are kept) stays the score, so
+    copies can take the place of other estimates; the warning names the first repeated line.
+    """
+    seen: dict[str, int] = {}
+    repeats = []
+    for n, row in enumerate(rows, 2):
+        if row and row in seen:
+            repeats.append((n, seen[row]))
+        seen.setdefault(row, n)
+    if repeats:
+        n, first = repeats[0]
+        warnings.warn(
+            f"{path}: {len(repeats)} line(s) repeat an earlier one exactly (line {n} is line "
+            f"{first}); each copy counts as an estimate, so copies can take the place of other "
+            "estimates of the same object and image",
+            stacklevel=3,
+        )
 
 
 def _lines(path: str | os.PathLike[str]) -> list[str]:
