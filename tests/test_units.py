@@ -155,6 +155,17 @@ def test_one_stray_mask_does_not_make_the_depth_look_too_large():
         check_depth_extent(depth, K, masks[2:], [0.05])
 
 
+def test_masks_spilling_onto_a_far_background_do_not_look_like_a_unit_error():
+    depth, K, masks = _scene(n=3)
+    wall = torch.full_like(depth, 2.5)
+    depth = torch.where(masks.any(0), depth, wall)  # the squares 1.7 m in front of a wall
+    loose = torch.nn.functional.max_pool2d(masks[None].float(), 11, 1, 5)[0] > 0  # dilated 5 px
+    ratios = check_depth_extent(depth, K, loose, [0.05, 0.05, 0.05])
+    assert (ratios < 2).all()  # the wall 34 diameters behind counts half a diameter at most
+    with pytest.raises(UnitsError, match="10 times too large"):
+        check_depth_extent(depth * 10, K, loose, [0.05, 0.05, 0.05])
+
+
 def test_instances_with_few_points_or_unknown_diameters_are_not_judged():
     depth, K, masks = _scene()
     small = torch.zeros_like(masks)

@@ -253,8 +253,10 @@ def check_depth_extent(
 ) -> torch.Tensor:
     """Check that the depth inside each mask spans about as much as its object.
 
-    Each mask's valid depth is back-projected and its robust extent (twice the 90th percentile
-    of the distances to the median point) compared with the object's diameter: a depth in the
+    Each mask's valid depth, clamped to half the object's diameter around its median (so that
+    the far background a loose mask takes in does not count), is back-projected and its robust
+    extent (twice the 90th percentile of the distances to the median point) compared with the
+    object's diameter: a depth in the
     wrong unit scales every extent by one factor (10 for 0.1 mm read as millimetres), while its
     median alone can still look plausible. Judged on the instances with at least ``min_points``
     valid pixels, the depth is too large when the median ratio exceeds 3, too small when even
@@ -341,6 +343,11 @@ def _extent_ratios(
         if v.numel() < min_points or not (math.isfinite(diameters[i]) and diameters[i] > 0):
             continue
         z = d[v, u].double()
+        # depth within half a diameter of the median: the background a loose mask takes in
+        # (far behind the object) must not count as the object's extent; a depth in the
+        # wrong unit still scales the lateral extent by its factor
+        half = float(diameters[i]) / 2
+        z = z.clamp(float(z.median()) - half, float(z.median()) + half)
         pts = torch.stack([(u.double() - cx) * z / fx, (v.double() - cy) * z / fy, z], dim=1)
         ratios[i] = _extent(pts) / float(diameters[i])
     return ratios
