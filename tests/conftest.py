@@ -51,7 +51,7 @@ def o3d():
     return pytest.importorskip("open3d")
 
 
-SRC = Path(__file__).resolve().parents[2] / "src"
+SRC = Path(__file__).resolve().parents[1] / "src"
 
 
 def _run_torchrun(argv: list[str], *, timeout: float = 400) -> subprocess.CompletedProcess:

@@ -91,3 +91,13 @@ def test_meshes_in_millimetres_need_mesh_scale(tmp_path, mesh_folder, capsys):
     assert main([*argv, "--test", "1", "--no-progress"]) == 1
     err = capsys.readouterr().err
     assert "a.ply has a diameter of" in err and "set --mesh-scale 0.001" in err
+
+
+def test_a_log_gets_plain_progress_lines(tmp_path, mesh_folder, capsys):
+    argv = ["--objects", str(mesh_folder), "--mesh-scale", "0.001", "--width", "48", "--height"]
+    argv += ["40", "--train", "2", "--test", "1"]
+    assert main(["synth", str(tmp_path / "z"), *argv]) == 0
+    err = capsys.readouterr().err  # not a terminal: status lines, not a bar
+    assert "synth: 3/3 (100%), elapsed" in err and "\x1b" not in err and "\r" not in err
+    assert main(["synth", str(tmp_path / "q"), *argv, "--no-progress"]) == 0
+    assert "synth:" not in capsys.readouterr().err

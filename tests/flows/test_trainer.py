@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import logging
 from pathlib import Path
 
 import pytest
@@ -334,3 +335,17 @@ def test_mixed_precision_on_cuda(precision: str, tmp_path: Path) -> None:
     assert again.resume() and again.step == 20
     if precision == "fp16":
         assert again.scaler.get_scale() == trainer.scaler.get_scale()
+
+
+def test_progress_is_a_status_line_in_a_log(caplog, monkeypatch) -> None:
+    """Not on a terminal, the bar is one line through the ``poseflow`` logger per 30 s and at
+    the end, with the loss and no escape codes; a resumed fit counts from its first step."""
+    monkeypatch.setattr("sys.stderr.isatty", lambda: False, raising=False)
+    trainer = _trainer(progress=True)
+    with caplog.at_level(logging.INFO, logger="poseflow"):
+        trainer.fit(until=4)
+        trainer.fit()
+    lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith("cfm: ")]
+    assert len(lines) == 2  # each fit takes well under 30 s: its last line only
+    assert lines[0].startswith("cfm: 4/4 (100%)") and lines[1].startswith("cfm: 10/10 (100%)")
+    assert all(", loss " in line and "\x1b" not in line for line in lines)

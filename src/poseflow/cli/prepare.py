@@ -51,8 +51,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     """Prepare the objects and print one line per object; returns 0."""
     import torch
-    from tqdm.auto import tqdm
 
+    from poseflow._progress import progress as progress_loop
     from poseflow.cli.common import check_writable, show_progress
     from poseflow.cli.options import build_config, config_requested
     from poseflow.data.object_folder import check_dataset, load_object_models, object_cache_dir
@@ -78,7 +78,10 @@ def run(args: argparse.Namespace) -> int:
     model = FunFlow6D(config)
     rows = []
     with torch.no_grad():
-        for obj_id, obj in tqdm(models.items(), desc="prepare objects", disable=not show):
+        items = models.items()
+        for obj_id, obj in progress_loop(
+            items, total=len(items), desc="prepare objects", enabled=show
+        ):
             t0 = time.perf_counter()
             model.prepare_objects({obj_id: obj}, cache_dir=cache, progress=False)
             rows.append((obj_id, obj.name, obj.diameter, time.perf_counter() - t0))

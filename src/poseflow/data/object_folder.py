@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from poseflow._cache import update_with_file
+from poseflow._progress import progress as progress_loop
 from poseflow.data.bop import read_models_info
 from poseflow.data.objects import ObjectModel
 from poseflow.errors import MissingFileError, ValueRangeError
@@ -83,8 +84,6 @@ def load_object_models(
         MissingFileError: the folder, ``models_info.json`` or a model file is missing.
         ValueRangeError: an object id of ``obj_ids`` has no entry in ``models_info.json``.
     """
-    from tqdm.auto import tqdm
-
     root = check_dataset(root)
     infos = read_models_info(root / "models" / "models_info.json")
     wanted = sorted(infos) if obj_ids is None else sorted({int(o) for o in obj_ids})
@@ -92,7 +91,7 @@ def load_object_models(
     if unknown:
         raise ValueRangeError(f"objects {unknown} are not in {root / 'models/models_info.json'}")
     out = {}
-    for obj_id in tqdm(wanted, desc="load models", disable=not progress):
+    for obj_id in progress_loop(wanted, total=len(wanted), desc="load models", enabled=progress):
         path = root / "models" / f"obj_{obj_id:06d}.ply"
         if not path.is_file():
             raise MissingFileError(f"missing model of obj {obj_id}: {path}")

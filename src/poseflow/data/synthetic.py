@@ -33,6 +33,7 @@ import numpy as np
 import torch
 from PIL import Image
 
+from poseflow._progress import ProgressBar
 from poseflow._workers import map_forked
 from poseflow.data.bop import BOPWriter, TestTarget, write_test_targets
 from poseflow.data.depth_noise import DepthNoise
@@ -294,7 +295,7 @@ def generate_dataset(
         min_target_visib: instances of the test split at least this visible become test targets.
         image_ext: ``".png"`` or ``".jpg"``.
         mesh_scale: factor to metres of the meshes read from a folder (0.001 for meshes in mm).
-        progress: show a tqdm progress bar.
+        progress: show a progress bar.
         overwrite: write into a folder that holds files, overwriting those of the same names.
             Files of an earlier dataset that this one does not rewrite stay and mix with it
             (scenes, images, models), which is why a non-empty folder is refused by default,
@@ -346,13 +347,11 @@ def generate_dataset(
     pools = _Pools.build(objs, seed, settings.distance[1])  # the renderer holds every mesh
     write_synthetic_models(root, objs)
     settings.write_camera(root / "camera.json")
-    from tqdm.auto import tqdm
-
-    bar = tqdm(total=num_train_images + num_test_images, disable=not progress, unit="img")
     targets: list[TestTarget] = []
-    for split, count in (("train", num_train_images), ("test", num_test_images)):
-        targets += _render_split(root, split, count, pools, settings, bar, workers)
-    bar.close()
+    total = num_train_images + num_test_images
+    with ProgressBar(total, desc="synth", enabled=progress) as bar:
+        for split, count in (("train", num_train_images), ("test", num_test_images)):
+            targets += _render_split(root, split, count, pools, settings, bar, workers)
     write_test_targets(root / "test_targets_bop19.json", targets)
     return root
 
@@ -474,7 +473,13 @@ class _Image:
 
 
 def _render_split(
-    root: Path, split: str, count: int, pools: _Pools, s: _Settings, bar: Any, workers: int
+    root: Path,
+    split: str,
+    count: int,
+    pools: _Pools,
+    s: _Settings,
+    bar: ProgressBar,
+    workers: int,
 ) -> list[TestTarget]:
     """Render and write the ``count`` images of ``split``; the test targets among them.
 
@@ -510,7 +515,7 @@ def _render_split(
         )  # fmt: skip
         if split == "test":
             targets += _test_targets(scene_id, im_id, image, s.min_target_visib)
-        bar.update(1)
+        bar.update()
         if n + 1 == len(images) or images[n + 1][0] != scene_id:
             writer.flush()
     return targets

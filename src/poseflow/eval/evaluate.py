@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from poseflow._progress import progress as progress_loop
 from poseflow.data.bop import BOPDataset, BOPDataWarning, ModelInfo
 from poseflow.data.objects import load_mesh
 from poseflow.errors import ValueRangeError
@@ -498,9 +499,8 @@ def _vsd_errors(
     by_image: dict[tuple[int, int], list[int]] = defaultdict(list)
     for p, key in enumerate(pairs.image):
         by_image[key].append(p)
-    from tqdm.auto import tqdm
-
-    for key in tqdm(sorted(by_image), disable=not progress, unit="img", desc="VSD"):
+    keys = sorted(by_image)
+    for key in progress_loop(keys, total=len(keys), desc="VSD", enabled=progress):
         K = scenes.K[key]
         width, height = scenes.size[key]
         depth = ds.scene(key[0]).load_depth_image(key[1]).to(torch.float64)

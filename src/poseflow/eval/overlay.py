@@ -22,6 +22,7 @@ import numpy as np
 import torch
 from torch.nn import functional as F
 
+from poseflow._progress import progress as progress_loop
 from poseflow._workers import map_forked
 from poseflow.errors import ShapeError, ValueRangeError
 from poseflow.render.raycast import Renderer
@@ -443,8 +444,6 @@ def write_result_overlays(
     Returns:
         The written files, in scene and image order.
     """
-    from tqdm.auto import tqdm
-
     out = Path(folder)
     out.mkdir(parents=True, exist_ok=True)
     ids = sorted(meshes)
@@ -481,4 +480,4 @@ def write_result_overlays(
         return path
 
     drawn = map_forked(draw, len(images), workers)
-    return list(tqdm(drawn, desc="overlays", total=len(images), disable=not progress))
+    return list(progress_loop(drawn, total=len(images), desc="overlays", enabled=progress))

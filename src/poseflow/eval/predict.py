@@ -18,6 +18,7 @@ from typing import Any
 
 import torch
 
+from poseflow._progress import progress as progress_loop
 from poseflow._units import check_depth_extent, check_intrinsics, in_front_of_camera
 from poseflow._workers import check_workers, map_forked
 from poseflow.data.bop import BOPDataset, BOPScene, Detection
@@ -295,8 +296,6 @@ def predict_dataset(
             zero, another resolution), named with its file and image id.
         ShapeError: an image's colour, depth and masks differ in size (the files are named).
     """
-    from tqdm.auto import tqdm
-
     ds = dataset if isinstance(dataset, BOPDataset) else BOPDataset(dataset, split)
     keys = sorted(_images_to_predict(ds, targets).items())[:max_images]
     by_image = _by_image(detections or ())
@@ -337,7 +336,7 @@ def predict_dataset(
     else:
         outcomes = map_forked(in_worker, len(keys), workers)
     parts = []
-    for out, taken in tqdm(outcomes, desc="predict", total=len(keys), disable=not progress):
+    for out, taken in progress_loop(outcomes, total=len(keys), desc="predict", enabled=progress):
         if taken is not None:
             timer.add(taken)  # type: ignore[union-attr]
         if out is None:

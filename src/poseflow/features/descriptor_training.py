@@ -53,6 +53,7 @@ import numpy as np
 import torch
 from torch.nn import functional as F
 
+from poseflow._progress import ProgressBar
 from poseflow.errors import ValueRangeError
 from poseflow.features.appearance import sample_features
 from poseflow.features.learned import DEPTH_CHANNELS, DescriptorNet, save_descriptor
@@ -270,8 +271,6 @@ def train_descriptor(
         ...     sorted(p.name for p in folder.iterdir())
         ['config.json', 'model.safetensors']
     """
-    from tqdm.auto import tqdm
-
     if query_pooling not in ("mean", "select"):
         raise ValueRangeError(f"query_pooling must be 'mean' or 'select', got {query_pooling!r}")
     cfg = config or DescriptorTrainingConfig()
@@ -287,20 +286,21 @@ def train_descriptor(
                         training=record.summary(final))  # fmt: skip
 
     net.train()
-    bar = tqdm(range(cfg.steps), desc="descriptor", disable=not progress, mininterval=5.0)
-    for _ in bar:
-        loss, acc = _step(net, opt, gen.batch(cfg.batch_size, fresh=cfg.fresh_pairs), cfg)
-        sched.step()
-        record.add(loss, acc)
-        if record.done % 50 == 0 or record.done == cfg.steps:
-            line = record.line(sched.get_last_lr()[0])
-            bar.set_postfix_str(line.split(" ", 2)[2])
-            if log is not None:
-                log(line)
-        if save_every and record.done % save_every == 0 and record.done < cfg.steps:
-            save(False)
-        if time_limit is not None and time.monotonic() - record.start > time_limit:
-            break
+    with ProgressBar(cfg.steps, desc="descriptor", enabled=progress) as bar:
+        for _ in range(cfg.steps):
+            loss, acc = _step(net, opt, gen.batch(cfg.batch_size, fresh=cfg.fresh_pairs), cfg)
+            sched.step()
+            record.add(loss, acc)
+            bar.update()
+            if record.done % 50 == 0 or record.done == cfg.steps:
+                lr = sched.get_last_lr()[0]
+                bar.set_postfix(**record.values(lr))
+                if log is not None:
+                    log(record.line(lr))
+            if save_every and record.done % save_every == 0 and record.done < cfg.steps:
+                save(False)
+            if time_limit is not None and time.monotonic() - record.start > time_limit:
+                break
     net.eval()
     save(True)
     return Path(out)
@@ -353,11 +353,17 @@ class _Record:
         recent = self.history[-50:]
         return float(np.mean([r[k] for r in recent])) if recent else None
 
+    def values(self, lr: float) -> dict[str, str]:
+        """The recent loss and accuracy and ``lr``, formatted: ``{"loss": "0.4123", ...}``."""
+        return {
+            "loss": f"{self._recent(0):.4f}",
+            "acc": f"{self._recent(1):.3f}",
+            "lr": f"{lr:.2e}",
+        }
+
     def line(self, lr: float) -> str:
-        return (
-            f"step {self.done} loss {self._recent(0):.4f} acc {self._recent(1):.3f} "
-            f"lr {lr:.2e} {time.monotonic() - self.start:.0f}s"
-        )
+        values = " ".join(f"{k} {v}" for k, v in self.values(lr).items())
+        return f"step {self.done} {values} {time.monotonic() - self.start:.0f}s"
 
     def summary(self, final: bool) -> dict:
         loss, acc = self._recent(0), self._recent(1)

@@ -37,6 +37,7 @@ from pathlib import Path
 import torch
 
 from poseflow._precision import PRECISIONS, autocast_dtype, precision_autocast
+from poseflow._progress import progress as progress_loop
 from poseflow.errors import DegenerateInputError, ValueRangeError
 from poseflow.features.appearance import sample_features
 from poseflow.features.descriptor_training import _warmup_cosine
@@ -86,8 +87,6 @@ def surface_crops(
     Raises:
         DegenerateInputError: no instance has enough pixels.
     """
-    from tqdm.auto import tqdm
-
     from poseflow.data.bop import BOPDataset
     from poseflow.data.object_folder import load_object_models
 
@@ -96,7 +95,7 @@ def surface_crops(
     g = torch.Generator().manual_seed(seed)
     crops, uvs, coords, ids = [], [], [], []
     images = [(s, i) for s in ds.scene_ids for i in ds.scene(s).im_ids][:max_images]
-    for s, im in tqdm(images, desc="crops", disable=not progress, mininterval=5.0):
+    for s, im in progress_loop(images, total=len(images), desc="crops", enabled=progress):
         scene = ds.scene(s)
         rgb = scene.load_rgb_image(im)
         rgb = rgb.float() if rgb.is_floating_point() else rgb.float() / 255.0
@@ -255,10 +254,10 @@ def train_surface_embedding(
     sched = torch.optim.lr_scheduler.LambdaLR(opt, _warmup_cosine(steps))
     g = torch.Generator().manual_seed(seed)
     size, start, recent = data.crops.shape[-1], time.monotonic(), []
-    from tqdm.auto import tqdm
-
     model.train()
-    for step in tqdm(range(steps), desc="surface embedding", disable=not progress):
+    for step in progress_loop(
+        range(steps), total=steps, desc="surface embedding", enabled=progress
+    ):
         idx = torch.randint(len(data.crops), (batch_size,), generator=g)
         x = _colour_jitter(data.crops[idx].float(), g)
         pick = torch.randint(data.uv.shape[1], (batch_size, queries), generator=g)

@@ -2,9 +2,10 @@
 
 :class:`CFMTrainer` trains any velocity model with an objective (by default
 :class:`~poseflow.flows.objective.CFMObjective`): AdamW with linear warm-up and cosine decay,
-gradient clipping, bf16/fp16 autocast on CUDA, an EMA of the weights, a tqdm bar with loss and
-throughput, a JSONL metrics log, a periodic validation hook, and atomic safetensors + JSON
-checkpoints from which :meth:`CFMTrainer.resume` continues bit-exactly.
+gradient clipping, bf16/fp16 autocast on CUDA, an EMA of the weights, a progress bar with loss and
+throughput (a status line every 30 s when stderr is not a terminal), a JSONL metrics log, a
+periodic validation hook, and atomic safetensors + JSON checkpoints from which
+:meth:`CFMTrainer.resume` continues bit-exactly.
 
 Reproducibility. Every random draw of step ``s`` comes from generators seeded with a hash of
 ``(seed, s)``: the noise and times of the objective (:class:`~poseflow.flows.objective.StepRandom`,
@@ -64,6 +65,7 @@ from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import DataLoader, Dataset, DistributedSampler, IterableDataset, Sampler
 
 from poseflow._precision import PRECISIONS
+from poseflow._progress import ProgressBar
 from poseflow.errors import DegenerateInputError, MissingWeightsError, ValueRangeError
 from poseflow.flows.checkpoint import (
     atomic_write,
@@ -119,7 +121,7 @@ class TrainConfig:
             end of :meth:`CFMTrainer.fit` when there is an output directory).
         keep_checkpoints: number of checkpoints kept on disk.
         num_workers: ``DataLoader`` worker processes (when the trainer builds the loader).
-        progress: show a tqdm bar on rank 0.
+        progress: show a progress bar on rank 0.
         find_unused_parameters: passed to ``DistributedDataParallel``.
     """
 
@@ -256,7 +258,9 @@ class CFMTrainer:
         last: dict[str, float] = {}
         if self.step >= until:
             return last
-        bar = self._progress_bar(until)
+        bar = ProgressBar(
+            until, desc="cfm", initial=self.step, enabled=cfg.progress and self.ctx.is_main
+        )
         batches = self._batches(self.step)
         loss_sum = torch.zeros((), dtype=torch.float64, device=self.device)
         extra_sums: dict[str, torch.Tensor] = {}
@@ -473,18 +477,6 @@ class CFMTrainer:
         ]
         text = "".join(line + "\n" for line in kept)
         atomic_write(log, lambda tmp: Path(tmp).write_text(text))
-
-    def _progress_bar(self, until: int) -> Any:
-        from tqdm.auto import tqdm
-
-        return tqdm(
-            total=until,
-            initial=self.step,
-            disable=not (self.config.progress and self.ctx.is_main),
-            desc="cfm",
-            unit="step",
-            dynamic_ncols=True,
-        )
 
     def _build_loader(self) -> DataLoader | None:
         data = self._data

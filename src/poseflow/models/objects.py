@@ -29,6 +29,7 @@ from typing import Any
 import torch
 
 from poseflow._cache import atomic_write, cache_entry, json_key, read_entry, write_entry
+from poseflow._progress import progress as progress_loop
 from poseflow.data.objects import ObjectModel, sample_surface
 from poseflow.errors import ValueRangeError
 from poseflow.features import (
@@ -330,11 +331,12 @@ def prepare_objects(
     Returns:
         ``{obj_id: PreparedObject}``.
     """
-    from tqdm.auto import tqdm
-
     fingerprint = object_fingerprint(config)
     out: dict[int, PreparedObject] = {}
-    for obj_id, model in tqdm(sorted(models.items()), desc="prepare objects", disable=not progress):
+    items = sorted(models.items())
+    for obj_id, model in progress_loop(
+        items, total=len(items), desc="prepare objects", enabled=progress
+    ):
         prepared = None
         if cache_dir is not None:
             prepared = load_prepared_object(cache_dir, obj_id, model, config)

@@ -18,6 +18,7 @@ import torch
 import torch.nn.functional as F
 
 from poseflow._cache import atomic_write
+from poseflow._progress import progress as progress_loop
 from poseflow._workers import map_forked
 from poseflow.data.bop import BOPImageDataset
 from poseflow.data.frame import ImageInstances
@@ -214,8 +215,6 @@ def build_training_set(
     Raises:
         DegenerateInputError: no usable instance in the split.
     """
-    from tqdm.auto import tqdm
-
     images = BOPImageDataset(root, split)
     count = len(images) if max_images is None else min(max_images, len(images))
     object_maps = None  # (S, 3, 4) per prepared object: its instances share them
@@ -254,12 +253,13 @@ def build_training_set(
 
     parts: dict[str, list[torch.Tensor]] = {k: [] for k in TRAINING_FIELDS}
     maps: list[torch.Tensor] = []
-    with tqdm(total=count, desc=f"features of {split}", disable=not progress) as bar:
-        for image_parts, image_maps in map_forked(image_inputs, count, workers):
-            for k in TRAINING_FIELDS:
-                parts[k] += map(torch.from_numpy, image_parts[k])
-            maps += map(torch.from_numpy, image_maps)
-            bar.update(1)
+    outcomes = map_forked(image_inputs, count, workers)
+    for image_parts, image_maps in progress_loop(
+        outcomes, total=count, desc=f"features of {split}", enabled=progress
+    ):
+        for k in TRAINING_FIELDS:
+            parts[k] += map(torch.from_numpy, image_parts[k])
+        maps += map(torch.from_numpy, image_maps)
     if not parts["x_1"] or sum(len(p) for p in parts["x_1"]) == 0:
         raise DegenerateInputError(f"{root}/{split} holds no usable instance of a prepared object")
     tensors = {k: torch.cat(v) for k, v in parts.items()}

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import torch
 
+from poseflow._progress import progress as progress_loop
 from poseflow.data.frame import ImageInstances
 from poseflow.data.objects import ObjectModel
 from poseflow.errors import ValueRangeError
@@ -155,10 +156,9 @@ def prepare_verification(
             written gives a warning.
         progress: show a progress bar.
     """
-    from tqdm.auto import tqdm
-
-    for obj_id, model in tqdm(
-        sorted(models.items()), desc="prepare verifier", disable=not progress
+    items = sorted(models.items())
+    for obj_id, model in progress_loop(
+        items, total=len(items), desc="prepare verifier", enabled=progress
     ):
         verifier.objects.pop(int(obj_id), None)
         verifier.prepare(obj_id, model, cache_dir=cache_dir)
