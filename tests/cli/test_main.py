@@ -1,10 +1,11 @@
+import argparse
 import subprocess
 import sys
 
 import pytest
 
 import poseflow
-from poseflow.cli import SUBCOMMANDS, is_usage_error, main
+from poseflow.cli import SUBCOMMANDS, build_parser, is_usage_error, main, subcommand_parsers
 from poseflow.errors import (
     MissingFileError,
     ResultsFormatError,
@@ -62,6 +63,32 @@ def test_help_shows_no_restructured_text(command, capsys):
         main([command, "--help"])
     text = capsys.readouterr().out
     assert "``" not in text and ":func:" not in text and ":class:" not in text
+
+
+def _shown(default):
+    """The texts of a default that its help may show (as typed, or a float as %g)."""
+    if default is True:
+        return {"on"}
+    if isinstance(default, list):
+        return {" ".join(map(str, default))}
+    return {str(default), f"{default:g}"} if isinstance(default, float) else {str(default)}
+
+
+@pytest.mark.parametrize("parser", list(subcommand_parsers(build_parser())), ids=lambda p: p.prog)
+def test_every_option_has_a_help_that_shows_its_default(parser):
+    formatter = parser._get_formatter()
+    for action in parser._actions:
+        if isinstance(action, (argparse._HelpAction, argparse._SubParsersAction)):
+            continue
+        name = "/".join(action.option_strings) or action.dest
+        assert action.help and action.help.strip(), f"{parser.prog} {name} has no help"
+        default = action.default
+        if default is None or default is False or default is argparse.SUPPRESS or default == []:
+            continue
+        text = " ".join(formatter._expand_help(action).split())
+        assert any(shown in text for shown in _shown(default)), (
+            f"{parser.prog} {name}: the help does not show the default {default!r}: {text!r}"
+        )
 
 
 def test_usage_and_failure_are_told_apart(capsys):

@@ -74,12 +74,14 @@ def add_command(subparsers: argparse._SubParsersAction, name: str) -> argparse.A
 
     Its parser takes the module's ``HELP``, ``DESCRIPTION``, ``EPILOG`` and ``FORMATTER`` (the
     last two optional), the options of its ``add_arguments``, then ``--no-progress`` and
-    ``--quiet``; the parsed arguments' ``run`` is the module's ``run``.
+    ``--quiet``; the parsed arguments' ``run`` is the module's ``run``. Its help, and that of its
+    own subcommands, ends each option's text with the option's default
+    (:func:`~poseflow.cli.common.with_defaults`).
 
     Returns:
         The subcommand's parser.
     """
-    from poseflow.cli.common import add_output_arguments
+    from poseflow.cli.common import add_output_arguments, with_defaults
 
     module = importlib.import_module(f"poseflow.cli.{name.replace('-', '_')}")
     parser = subparsers.add_parser(
@@ -91,6 +93,8 @@ def add_command(subparsers: argparse._SubParsersAction, name: str) -> argparse.A
     )
     module.add_arguments(parser)
     add_output_arguments(parser)
+    for command in (parser, *subcommand_parsers(parser)):
+        command.formatter_class = with_defaults(command.formatter_class)
     parser.set_defaults(run=module.run)
     return parser
 

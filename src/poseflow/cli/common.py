@@ -1,5 +1,7 @@
 """Helpers shared by the subcommands.
 
+- help: :class:`DefaultsHelpFormatter` (every option's help ends with its default) and
+  :func:`with_defaults`;
 - output: :func:`add_output_arguments` (``--no-progress``, ``--quiet``), :func:`show_progress`,
   :func:`command_output` (status lines and warnings through :mod:`logging`, written around the
   progress bars), :func:`check_writable` (an output path is checked before any work);
@@ -38,6 +40,7 @@ from typing import Any
 __all__ = [
     "DEFAULT_SEED",
     "LOG",
+    "DefaultsHelpFormatter",
     "add_cache_argument",
     "add_device_argument",
     "add_model_argument",
@@ -56,10 +59,50 @@ __all__ = [
     "resolve_model",
     "show_progress",
     "solver_name",
+    "with_defaults",
 ]
 
 #: The logger of the command line's status lines (stderr; silenced by ``--quiet``).
 LOG = logging.getLogger("poseflow.cli")
+
+# ------------------------------------------------------------------------------ help
+
+
+class DefaultsHelpFormatter(argparse.HelpFormatter):
+    """A help formatter that ends each option's help with its default: ``(default: X)``.
+
+    Not where the help already speaks of a default (a default of None that means something is
+    said in words there), nor for a default of None, False, ``[]`` or ``SUPPRESS`` (the option is
+    off or unset without it). A list is shown as typed (``3 6``), True as ``on``.
+    """
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text, value = action.help or "", action.default
+        unset = value is None or value is False or value is argparse.SUPPRESS or value == []
+        if unset or "default" in text:
+            return text
+        if value is True:
+            shown = "on"
+        elif isinstance(value, list):
+            shown = " ".join(map(str, value))
+        else:
+            shown = str(value)
+        return f"{text} (default: {shown.replace('%', '%%')})"
+
+
+def with_defaults(formatter: type[argparse.HelpFormatter]) -> type[argparse.HelpFormatter]:
+    """``formatter`` (e.g. ``argparse.RawDescriptionHelpFormatter``) with the defaults shown.
+
+    Example:
+        >>> parser = argparse.ArgumentParser(formatter_class=with_defaults(argparse.HelpFormatter))
+        >>> _ = parser.add_argument("--steps", type=int, default=10, help="optimiser steps")
+        >>> "optimiser steps (default: 10)" in parser.format_help()
+        True
+    """
+    if issubclass(formatter, DefaultsHelpFormatter):
+        return formatter
+    return type(f"{formatter.__name__}WithDefaults", (DefaultsHelpFormatter, formatter), {})
+
 
 # ------------------------------------------------------------------------------ output
 
@@ -70,7 +113,7 @@ def add_output_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument(
         "--no-progress",
         action="store_true",
-        help="hide the progress bars (they are shown only when stderr is a terminal)",
+        help="hide progress (a bar on a terminal, a status line every 30 s in a log)",
     )
     group.add_argument(
         "-q",
@@ -81,14 +124,12 @@ def add_output_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def show_progress(args: argparse.Namespace) -> bool:
-    """Whether to draw progress bars: not asked away and stderr is a terminal.
+    """Whether to show progress: not asked away with ``--no-progress`` or ``--quiet``.
 
-    Redirected to a file or a CI log, a bar is a stream of carriage returns; the status lines of
-    :data:`LOG` say how far a run got instead.
+    On a terminal a bar; redirected to a file or a CI log, a plain status line at least every
+    30 s (:mod:`poseflow._progress`).
     """
-    if getattr(args, "no_progress", False) or getattr(args, "quiet", False):
-        return False
-    return sys.stderr.isatty()
+    return not (getattr(args, "no_progress", False) or getattr(args, "quiet", False))
 
 
 class _BarSafeHandler(logging.Handler):
@@ -278,7 +319,7 @@ def add_cache_argument(parser: Any, *, without: str) -> None:
         "--cache",
         default=None,
         metavar="DIR",
-        help=f"folder holding the prepared objects (objects/); default {without}",
+        help=f"folder holding the prepared objects (objects/) (default: {without})",
     )
 
 

@@ -31,7 +31,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("dataset", type=Path, help="BOP dataset folder (models_eval/, split)")
     parser.add_argument("results", type=Path, help="results CSV (scene_id,im_id,obj_id,...)")
     parser.add_argument("--split", default="test", help="split folder (default: test)")
-    parser.add_argument("--targets", type=Path, default=None, help="targets JSON file")
+    parser.add_argument(
+        "--targets",
+        type=Path,
+        default=None,
+        help="targets JSON file (default: DATASET/test_targets_bop19.json, else every object "
+        "seen at least 10%% in an image)",
+    )
     parser.add_argument(
         "--metrics",
         default="vsd,mssd,mspd",

@@ -115,7 +115,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "repeatable",
     )
     parser.add_argument(
-        "--max-images", type=positive_int, default=None, metavar="N", help="stop after N images"
+        "--max-images",
+        type=positive_int,
+        default=None,
+        metavar="N",
+        help="stop after N images (default: all)",
     )
     _add_report_arguments(parser)
     add_cache_argument(parser, without="the model folder")

@@ -39,11 +39,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--images-per-scene", type=positive_int, default=10, help="viewpoints per layout"
     )
-    parser.add_argument("--width", type=positive_int, default=640)
-    parser.add_argument("--height", type=positive_int, default=480)
+    parser.add_argument("--width", type=positive_int, default=640, help="image width, px")
+    parser.add_argument("--height", type=positive_int, default=480, help="image height, px")
     add_seed_argument(parser, draws="the layouts, viewpoints, light and sensor noise")
     parser.add_argument(
-        "--objects", default=None, metavar="DIR", help="folder of .ply/.obj meshes to use"
+        "--objects",
+        default=None,
+        metavar="DIR",
+        help="folder of .ply/.obj meshes to use (default: the library's demo objects)",
     )
     parser.add_argument(
         "--mesh-scale",

@@ -93,17 +93,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--occlusion",
         type=float,
         default=0.0,
-        help="probability that an instance of an augmented copy is cut to a part (default 0)",
+        help="probability that an instance of an augmented copy is cut to a part",
     )
     parser.add_argument(
-        "--max-images", type=int, default=None, metavar="N", help="use at most N images"
+        "--max-images",
+        type=int,
+        default=None,
+        metavar="N",
+        help="use at most N images (default: all)",
     )
     parser.add_argument(
         "--min-visib-fract", type=float, default=0.1, help="skip less visible instances"
     )
-    parser.add_argument(
-        "--precision", default="bf16", help="bf16, fp16 or fp32 autocast on CUDA (default bf16)"
-    )
+    parser.add_argument("--precision", default="bf16", help="bf16, fp16 or fp32 autocast on CUDA")
     parser.add_argument("--ckpt-every", type=int, default=1000, help="steps between checkpoints")
     add_seed_argument(parser, draws="the network's initialisation, the augmentation and training")
     parser.add_argument(

@@ -47,13 +47,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--split", default="test", help="split folder (default: test)")
     parser.add_argument("--out", type=Path, default=Path("view_output"), help="output folder")
-    parser.add_argument("--scene", type=int, default=None, help="only this scene")
-    parser.add_argument("--im-id", type=int, default=None, help="only this image")
+    parser.add_argument("--scene", type=int, default=None, help="only this scene (default: all)")
+    parser.add_argument("--im-id", type=int, default=None, help="only this image (default: all)")
     parser.add_argument(
         "--max-images",
         type=nonnegative_int,
         default=10,
-        help="at most this many images, in order (0: all; default 10)",
+        help="at most this many images, in order (0: all)",
     )
     parser.add_argument(
         "--format",
@@ -67,7 +67,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--stride",
         type=positive_int,
         default=2,
-        help="the cloud keeps one depth pixel in STRIDE along each axis (default 2)",
+        help="the cloud keeps one depth pixel in STRIDE along each axis",
     )
     parser.add_argument("--no-gt", action="store_true", help="leave out the ground truth")
 
