@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 # are slower while another process uses the cores. On free cores: make ... OMP_NUM_THREADS=N
 export OMP_NUM_THREADS ?= 1
 
-.PHONY: demo test test-slow lint docs bench bench-unseen bench-quick venv sysdeps clean wheel-check
+.PHONY: demo test test-slow lint docs docs-serve bench bench-unseen bench-quick venv sysdeps clean wheel-check
 
 sysdeps:
 	@$(PYTHON) -c "import ctypes.util,sys; sys.exit(0 if all(ctypes.util.find_library(l) for l in ('usb-1.0','GL','EGL')) else 1)" \
@@ -37,6 +37,11 @@ lint: $(STAMP)
 # The API reference and guides (mkdocs.yml, docs/) into site/; offline, any warning fails it.
 docs: $(STAMP)
 	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict --site-dir site
+
+# The built site at http://localhost:8000 (search runs in a web worker, which browsers refuse to
+# start from a file:// page; pages, links and pictures also work opened as files).
+docs-serve: docs
+	$(PY) -m http.server 8000 --bind 127.0.0.1 --directory site
 
 BENCHMARKS := registration data networks features eval accuracy pipeline ablation threads demo_threads
 

@@ -71,7 +71,7 @@ from poseflow.assets import DEMO_CHECKPOINT
 from poseflow.cli.bench import benchmark_settings, fastest_equal_setting
 from poseflow.data.object_folder import load_object_models, object_cache_dir
 from poseflow.errors import MissingDependencyError
-from poseflow.features import DINOv2Encoder, UMAPReducer
+from poseflow.features import UMAPReducer
 from poseflow.fusion import key_padding_mask
 from poseflow.models import FunFlow6D, FunFlow6DConfig, NetOptions, load_prepared_object
 
@@ -213,8 +213,6 @@ def load_prepared_objects(model: FunFlow6D, root: Path, cache: Path, device: tor
             "WORK here under the same path"
         )
     model.prepare_objects(models, cache_dir=cache, progress=False)
-    if isinstance(model.appearance_encoder, DINOv2Encoder):
-        model.appearance_encoder.model.to(device)  # not an nn.Module child of the model
 
 
 def refit_umap(

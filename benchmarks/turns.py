@@ -31,8 +31,9 @@ from poseflow.data import ImageInstances
 from poseflow.data.bop import BOPDataset
 from poseflow.data.object_folder import load_object_models
 from poseflow.eval.results import read_results
+from poseflow.geometry.se3 import axis_angle_to_rotation
 from poseflow.models.verification import prepare_verification
-from poseflow.verify import PoseVerifier, VerifierConfig, axis_angle_matrix, revolution_axis
+from poseflow.verify import PoseVerifier, VerifierConfig, revolution_axis
 
 
 def split_error(R_gt: torch.Tensor, R_est: torch.Tensor, axis: torch.Tensor) -> tuple[float, float]:
@@ -45,7 +46,7 @@ def split_error(R_gt: torch.Tensor, R_est: torch.Tensor, axis: torch.Tensor) -> 
 
 def turns_about(axis: torch.Tensor, point: torch.Tensor, degrees: torch.Tensor) -> torch.Tensor:
     """Model-frame transforms ``(A, 4, 4)`` turning by ``degrees`` about ``point + s axis``."""
-    R = axis_angle_matrix(axis.expand(len(degrees), 3), torch.deg2rad(degrees))
+    R = axis_angle_to_rotation(axis.expand(len(degrees), 3), torch.deg2rad(degrees))
     T = torch.eye(4, dtype=axis.dtype).repeat(len(degrees), 1, 1)
     T[:, :3, :3] = R
     T[:, :3, 3] = point - (R @ point[:, None])[..., 0]

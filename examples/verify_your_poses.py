@@ -26,15 +26,15 @@ import torch
 from poseflow.data import ImageInstances
 from poseflow.data.demo_objects import demo_mesh
 from poseflow.data.objects import ObjectModel, write_bop_model
-from poseflow.geometry.se3 import rotation_angle_error
+from poseflow.geometry.se3 import axis_angle_to_rotation, rotation_angle_error
 from poseflow.render import Light, Renderer
-from poseflow.verify import PoseVerifier, VerifierConfig, axis_angle_matrix
+from poseflow.verify import PoseVerifier, VerifierConfig
 
 
 def turn(axis: Sequence[float], degrees: float) -> torch.Tensor:
     """A rotation about an axis through the model's origin, as a ``(4, 4)`` transform."""
     T = torch.eye(4)
-    T[:3, :3] = axis_angle_matrix(torch.tensor(axis), torch.tensor(math.radians(degrees)))
+    T[:3, :3] = axis_angle_to_rotation(torch.tensor(axis), torch.tensor(math.radians(degrees)))
     return T
 
 

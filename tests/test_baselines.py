@@ -17,9 +17,9 @@ from poseflow.eval.evaluate import evaluate_bop
 from poseflow.eval.predict import PoseEstimate
 from poseflow.eval.results import read_results, write_results
 from poseflow.eval.timing import StageTimer
-from poseflow.geometry.se3 import rotation_angle_error, translation_error
+from poseflow.geometry.se3 import axis_angle_to_rotation, rotation_angle_error, translation_error
 from poseflow.render import Light, Renderer
-from poseflow.verify import PoseVerifier, VerifierConfig, axis_angle_matrix
+from poseflow.verify import PoseVerifier, VerifierConfig
 
 #: A verifier light enough for tests.
 LIGHT = VerifierConfig(num_points=2048, crop_size=48, coarse_crop_size=24, turn_steps=4)
@@ -154,7 +154,7 @@ def test_baseline_recovers_poses_through_csv_and_eval(bracket, tmp_path):
 def test_verification_picks_the_printed_side_of_a_labelled_box(labelled_box):
     K = torch.tensor([[320.0, 0, 79.5], [0, 320.0, 59.5], [0, 0, 1]])
     pose = torch.eye(4)
-    pose[:3, :3] = axis_angle_matrix(torch.tensor([1.0, 0.3, 0.0]), torch.tensor(0.45))
+    pose[:3, :3] = axis_angle_to_rotation(torch.tensor([1.0, 0.3, 0.0]), torch.tensor(0.45))
     pose[2, 3] = 0.55
     light = Light(direction=(0.3, -0.4, -1.0), ambient=0.4, diffuse=0.6)
     out = Renderer([labelled_box.mesh]).render(pose[None], K, 160, 120, light=light)
@@ -181,7 +181,9 @@ def test_verification_picks_the_printed_side_of_a_labelled_box(labelled_box):
 def test_a_kept_estimate_comes_back_polished_or_at_full_precision(labelled_box, polish):
     K = torch.tensor([[320.0, 0, 79.5], [0, 320.0, 59.5], [0, 0, 1]])
     pose = torch.eye(4, dtype=torch.float64)
-    pose[:3, :3] = axis_angle_matrix(torch.tensor([1.0, 0.3, 0.0]), torch.tensor(0.45)).double()
+    pose[:3, :3] = axis_angle_to_rotation(
+        torch.tensor([1.0, 0.3, 0.0]), torch.tensor(0.45)
+    ).double()
     pose[2, 3] = 0.55
     light = Light(direction=(0.3, -0.4, -1.0), ambient=0.4, diffuse=0.6)
     out = Renderer([labelled_box.mesh]).render(pose[None].float(), K, 160, 120, light=light)

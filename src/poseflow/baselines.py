@@ -181,10 +181,10 @@ class ClassicBaseline:
         >>> mesh = box.translate((-0.05, -0.03, -0.015))
         >>> model = ObjectModel.from_mesh(mesh, num_points=512)
         >>> K = torch.tensor([[300.0, 0, 80], [0, 300.0, 60], [0, 0, 1]], dtype=torch.float64)
-        >>> from poseflow.eval.symmetry import axis_angle_rotation
+        >>> from poseflow.geometry.se3 import axis_angle_to_rotation
         >>> pose = torch.eye(4, dtype=torch.float64); pose[2, 3] = 0.4  # three faces in view:
         >>> axis, angle = torch.tensor([1.0, 1.0, 0.2]), torch.tensor([0.8])
-        >>> pose[:3, :3] = axis_angle_rotation(axis, angle)[0]
+        >>> pose[:3, :3] = axis_angle_to_rotation(axis, angle)[0]
         >>> out = Renderer([mesh]).render(pose[None], K, 160, 120, rgb=False)
         >>> baseline = ClassicBaseline({1: model}, num_views=6, restarts=4, verifier=None)
         >>> est = baseline.estimate(None, out.depth, K, out.masks_full, [1])

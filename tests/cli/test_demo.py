@@ -28,6 +28,7 @@ def test_pose_demo_writes_results_timing_and_overlays(tmp_path, capsys):
     assert code == 0
     text = capsys.readouterr().out
     assert "FunFlow6D" in text and "AR_MSSD" in text and "flow_net" in text
+    assert "FunFlow6D: first image" in text and "time per image (warm)" in text
     results = read_results(out / "funflow6d.csv")  # parses as a BOP results file
     assert set(results.obj_ids.tolist()) <= {1, 2, 3}
     assert (out / "funflow6d.csv").read_text().startswith("scene_id,im_id,obj_id,score,R,t,time")

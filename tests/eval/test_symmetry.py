@@ -8,17 +8,17 @@ from hypothesis import given
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from poseflow.errors import ShapeError, ValueRangeError
+from poseflow.errors import DegenerateInputError, ShapeError, ValueRangeError
 from poseflow.eval.symmetry import (
-    axis_angle_rotation,
     discretize_continuous_symmetry,
     symmetries_from_model_info,
     symmetry_transforms,
 )
+from poseflow.geometry.se3 import axis_angle_to_rotation
 
 
-def test_axis_angle_rotation_is_a_rotation(dtype):
-    R = axis_angle_rotation(
+def test_one_axis_and_angles_give_rotations(dtype):
+    R = axis_angle_to_rotation(
         torch.tensor([1.0, 2.0, 3.0], dtype=dtype), torch.linspace(0, 6, 7, dtype=dtype)
     )
     eye = torch.eye(3, dtype=dtype).expand(7, 3, 3)
@@ -31,23 +31,23 @@ def test_axis_angle_rotation_is_a_rotation(dtype):
 
 @pytest.mark.parametrize(("dtype", "tol"), [(torch.float32, 2e-6), (torch.float64, 1e-12)])
 @given(seed=st.integers(0, 2**31 - 1), K=st.integers(1, 6), length=st.sampled_from([1e-3, 1, 50]))
-def test_axis_angle_rotation_matches_scipy(dtype, tol, seed, K, length):
+def test_one_axis_and_angles_match_scipy(dtype, tol, seed, K, length):
     g = torch.Generator().manual_seed(seed)
     axis = torch.randn(3, generator=g, dtype=torch.float64)
     axis = axis / axis.norm() * length  # any length: normalised here
     angles = (2 * torch.rand(K, generator=g, dtype=torch.float64) - 1) * 2 * math.pi
-    R = axis_angle_rotation(axis.to(dtype), angles.to(dtype))
+    R = axis_angle_to_rotation(axis.to(dtype), angles.to(dtype))
     assert R.dtype == dtype and R.shape == (K, 3, 3)
     unit = (axis / axis.norm()).numpy()
     expected = Rotation.from_rotvec(angles.numpy()[:, None] * unit).as_matrix()
     assert (R.double() - torch.from_numpy(expected)).abs().max() <= tol
 
 
-def test_axis_angle_rotation_of_no_angles():
-    R = axis_angle_rotation(torch.tensor([0.0, 0.0, 1.0]), torch.zeros(0))
+def test_one_axis_and_no_angles():
+    R = axis_angle_to_rotation(torch.tensor([0.0, 0.0, 1.0]), torch.zeros(0))
     assert R.shape == (0, 3, 3)
-    with pytest.raises(ValueRangeError):
-        axis_angle_rotation(torch.zeros(3), torch.zeros(2))
+    with pytest.raises(DegenerateInputError):
+        axis_angle_to_rotation(torch.zeros(3), torch.zeros(2))
 
 
 def test_discretisation_count_and_offset():
@@ -62,7 +62,7 @@ def test_discretisation_count_and_offset():
     # Consecutive samples are one step of 2 pi / 315 apart.
     step = 2 * math.pi / 315
     torch.testing.assert_close(
-        S[1, :3, :3], axis_angle_rotation(axis, torch.tensor([step], dtype=torch.float64))[0]
+        S[1, :3, :3], axis_angle_to_rotation(axis, torch.tensor([step], dtype=torch.float64))[0]
     )
     assert discretize_continuous_symmetry(axis, offset, max_sym_disc_step=0.5).shape[0] == 7
 

@@ -503,3 +503,28 @@ def test_appearance_precision_applies_to_network_encoders_only(tiny_model, scene
     sift = DenseSIFTEncoder(input_size=32)
     assert torch.equal(features(sift, "bf16"), features(sift, "fp32"))
     assert learned.autocast and not getattr(sift, "autocast", False)
+
+
+@pytest.mark.parametrize(
+    "device", ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(
+        not torch.cuda.is_available(), reason="no CUDA device"))],
+)  # fmt: skip
+def test_the_encoders_networks_follow_the_model(device, tmp_path):
+    cfg = FunFlow6DConfig(
+        num_points=32, dit_preset="tiny", crop_size=48, appearance_encoder="learned"
+    )
+    model = FunFlow6D(cfg)
+    encoder_net = model.appearance_encoder.net
+    assert any(k.startswith("encoder_networks.appearance_net.") for k in model.state_dict())
+    model.train()  # frozen: never trained, never in training mode
+    assert not encoder_net.training and model.net.training
+    assert all(not p.requires_grad for p in encoder_net.parameters())
+    model.to(device=device, dtype=torch.float64)
+    assert {p.dtype for p in encoder_net.parameters()} == {torch.float64}
+    assert {p.device.type for p in encoder_net.parameters()} == {device}
+    model.save(tmp_path / "m")  # the checkpoint holds the trained network only
+    from safetensors.torch import load_file
+
+    assert not any(k.startswith("encoder") for k in load_file(tmp_path / "m" / "model.safetensors"))
+    loaded = FunFlow6D.load(tmp_path / "m", device=device)
+    assert {p.device.type for p in loaded.appearance_encoder.net.parameters()} == {device}

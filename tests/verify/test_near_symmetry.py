@@ -13,10 +13,9 @@ from hypothesis import strategies as st
 
 from poseflow.data.objects import ObjectModel
 from poseflow.errors import DegenerateInputError, ValueRangeError
-from poseflow.geometry.se3 import random_rotation, rotation_angle_error
+from poseflow.geometry.se3 import axis_angle_to_rotation, random_rotation, rotation_angle_error
 from poseflow.render.mesh import TexturedMesh
 from poseflow.verify import (
-    axis_angle_matrix,
     box_slides,
     box_turns,
     near_symmetries,
@@ -60,7 +59,7 @@ def test_axis_angle_is_a_rotation_by_that_angle(seed: int, double: bool) -> None
     g = torch.Generator().manual_seed(seed)
     axis = torch.randn(5, 3, generator=g, dtype=dtype)
     angle = torch.rand(5, generator=g, dtype=dtype) * math.pi
-    R = axis_angle_matrix(axis, angle)
+    R = axis_angle_to_rotation(axis, angle)
     eye = torch.eye(3, dtype=dtype).expand(5, 3, 3)
     tol = 1e-5 if not double else 1e-12
     torch.testing.assert_close(R @ R.transpose(1, 2), eye, atol=tol, rtol=0)
@@ -72,7 +71,7 @@ def test_axis_angle_is_a_rotation_by_that_angle(seed: int, double: bool) -> None
 
 def test_zero_axis_raises() -> None:
     with pytest.raises(DegenerateInputError):
-        axis_angle_matrix(torch.zeros(3), torch.tensor(1.0))
+        axis_angle_to_rotation(torch.zeros(3), torch.tensor(1.0))
 
 
 @given(seed=st.integers(0, 2**31 - 1), outliers=st.floats(0.0, 0.15))

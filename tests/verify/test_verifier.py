@@ -14,12 +14,11 @@ from poseflow.data import ImageInstances
 from poseflow.data.demo_objects import demo_mesh
 from poseflow.data.objects import ObjectModel
 from poseflow.errors import ShapeError, ValueRangeError
-from poseflow.geometry.se3 import rotation_angle_error
+from poseflow.geometry.se3 import axis_angle_to_rotation, rotation_angle_error
 from poseflow.render import Light, Renderer
 from poseflow.verify import (
     PoseVerifier,
     VerifierConfig,
-    axis_angle_matrix,
 )
 
 K = torch.tensor([[320.0, 0.0, 79.5], [0.0, 320.0, 59.5], [0.0, 0.0, 1.0]])
@@ -37,13 +36,13 @@ CONFIG = VerifierConfig(
 
 def half_turn(axis: list[float]) -> torch.Tensor:
     T = torch.eye(4)
-    T[:3, :3] = axis_angle_matrix(torch.tensor(axis), torch.tensor(math.pi))
+    T[:3, :3] = axis_angle_to_rotation(torch.tensor(axis), torch.tensor(math.pi))
     return T
 
 
 def box_pose(x: float = 0.0) -> torch.Tensor:
     T = torch.eye(4)
-    T[:3, :3] = axis_angle_matrix(torch.tensor([1.0, 0.3, 0.0]), torch.tensor(0.45))
+    T[:3, :3] = axis_angle_to_rotation(torch.tensor([1.0, 0.3, 0.0]), torch.tensor(0.45))
     T[:3, 3] = torch.tensor([x, 0.0, 0.55])
     return T
 
@@ -164,7 +163,7 @@ def test_polish_moves_a_pose_off_by_millimetres_back(
     axis, direction = torch.randn(2, 3, generator=g, dtype=dtype)
     off = true.clone()
     off[:3, :3] = (
-        axis_angle_matrix(axis / axis.norm(), torch.tensor(math.radians(angle))).to(dtype)
+        axis_angle_to_rotation(axis / axis.norm(), torch.tensor(math.radians(angle))).to(dtype)
         @ true[:3, :3]
     )
     off[:3, 3] += shift * direction / direction.norm()
@@ -220,7 +219,7 @@ def test_verify_polishes_the_chosen_pose(
     true = box_pose()
     nudged = true.clone()
     nudged[:3, :3] = (
-        axis_angle_matrix(torch.tensor([0.0, 1.0, 0.0]), torch.tensor(0.05)) @ (true[:3, :3])
+        axis_angle_to_rotation(torch.tensor([0.0, 1.0, 0.0]), torch.tensor(0.05)) @ (true[:3, :3])
     )
     nudged[:3, 3] += torch.tensor([0.004, -0.003, 0.0])
     polisher = PoseVerifier(VerifierConfig(**{**CONFIG.to_dict(), "polish_levels": 4}))
@@ -515,7 +514,7 @@ def test_search_finds_a_pose_turned_far_from_every_candidate(
 ) -> None:
     true = box_pose()
     turn = torch.eye(4)
-    turn[:3, :3] = axis_angle_matrix(torch.tensor([0.3, 1.0, 0.2]), torch.tensor(2.0))
+    turn[:3, :3] = axis_angle_to_rotation(torch.tensor([0.3, 1.0, 0.2]), torch.tensor(2.0))
     wrong = (true @ turn)[None]
     args = (one_box(scene), wrong)
     plain = verifier.verify(*args)
@@ -563,7 +562,7 @@ def test_search_slides_a_bar_seen_in_part_to_where_it_is() -> None:
     cover.paint_uniform_color((0.2, 0.3, 0.8))
     model = ObjectModel.from_mesh(bar, num_points=256)
     true = torch.eye(4)
-    true[:3, :3] = axis_angle_matrix(torch.tensor([0.2, 1.0, 0.3]), torch.tensor(0.3))
+    true[:3, :3] = axis_angle_to_rotation(torch.tensor([0.2, 1.0, 0.3]), torch.tensor(0.3))
     true[:3, 3] = torch.tensor([0.0, 0.0, 0.55])
     front = torch.eye(4)
     front[:3, 3] = torch.tensor([0.0, 0.0, 0.42])  # hides the bar's right half
@@ -591,7 +590,7 @@ def test_search_of_objects_with_different_turn_counts_keeps_the_invariants(
     import dataclasses
 
     box = verifier.objects[1]
-    R = axis_angle_matrix(torch.tensor([1.0, 2.0, 3.0]), torch.tensor(0.5))
+    R = axis_angle_to_rotation(torch.tensor([1.0, 2.0, 3.0]), torch.tensor(0.5))
     turned = dataclasses.replace(  # the same box in a model frame off its principal axes
         box, points=box.points @ R.T, normals=box.normals @ R.T, centroid=box.centroid @ R.T
     )

@@ -88,7 +88,6 @@ from poseflow.eval.scene import (
 )
 from poseflow.eval.symmetry import (
     MAX_SYM_DISC_STEP,
-    axis_angle_rotation,
     discretize_continuous_symmetry,
     symmetries_from_model_info,
     symmetry_transforms,
@@ -135,7 +134,6 @@ __all__ = [
     "active_timer",
     "as_uint8_image",
     "assign",
-    "axis_angle_rotation",
     "backproject_rgbd",
     "build_scene",
     "closest_results",

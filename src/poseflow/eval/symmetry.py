@@ -27,7 +27,6 @@ from poseflow.geometry.se3 import axis_angle_to_rotation
 
 __all__ = [
     "MAX_SYM_DISC_STEP",
-    "axis_angle_rotation",
     "discretize_continuous_symmetry",
     "symmetries_from_model_info",
     "symmetry_transforms",
@@ -35,35 +34,6 @@ __all__ = [
 
 #: The BOP toolkit's maximum step (fraction of the diameter) between sampled continuous symmetries.
 MAX_SYM_DISC_STEP = 0.01
-
-
-def axis_angle_rotation(axis: torch.Tensor, angles: torch.Tensor) -> torch.Tensor:
-    """Rotations by ``angles`` about one axis through the origin (kornia's axis-angle conversion).
-
-    Args:
-        axis: the rotation axis, shape ``(3,)``; it is normalised here.
-        angles: angles in radians, shape ``(K,)``.
-
-    Returns:
-        Rotation matrices, shape ``(K, 3, 3)``, in the dtype and on the device of ``angles``.
-
-    Raises:
-        ValueRangeError: ``axis`` has zero length.
-
-    Example:
-        >>> R = axis_angle_rotation(torch.tensor([0.0, 0.0, 1.0]), torch.tensor([math.pi / 2]))
-        >>> R[0].round(decimals=6) + 0.0  # + 0.0: no -0. in the output
-        tensor([[ 0., -1.,  0.],
-                [ 1.,  0.,  0.],
-                [ 0.,  0.,  1.]])
-    """
-    check_tensor(axis, "axis", (3,), finite=True)
-    check_tensor(angles, "angles", ("K",), finite=True)
-    a = axis.to(angles)
-    norm = a.norm()
-    if float(norm) == 0.0:
-        raise ValueRangeError("a symmetry axis must have non-zero length")
-    return axis_angle_to_rotation(angles[:, None] * (a / norm))
 
 
 def discretize_continuous_symmetry(
@@ -96,7 +66,10 @@ def discretize_continuous_symmetry(
     dtype = offset.dtype if offset.is_floating_point() else torch.float64
     n = math.ceil(math.pi / max_sym_disc_step)
     angles = torch.arange(n, dtype=torch.float64, device=offset.device) * (2 * math.pi / n)
-    R = axis_angle_rotation(axis.to(torch.float64), angles)
+    check_tensor(axis, "axis", (3,), finite=True)
+    if float(axis.norm()) == 0.0:
+        raise ValueRangeError("a symmetry axis must have non-zero length")
+    R = axis_angle_to_rotation(axis.to(torch.float64), angles)
     o = offset.to(torch.float64)
     T = torch.zeros(n, 4, 4, dtype=torch.float64, device=offset.device)
     T[:, :3, :3] = R

@@ -20,7 +20,7 @@ from kornia.geometry.conversions import (
 )
 
 from poseflow._checks import check_same, check_tensor
-from poseflow.errors import ShapeError, ValueRangeError
+from poseflow.errors import DegenerateInputError, ShapeError, ValueRangeError
 
 __all__ = [
     "axis_angle_to_rotation",
@@ -41,15 +41,18 @@ __all__ = [
 _ArrayT = TypeVar("_ArrayT", torch.Tensor, np.ndarray)
 
 
-def axis_angle_to_rotation(axis_angle: _ArrayT) -> _ArrayT:
+def axis_angle_to_rotation(axis_angle: _ArrayT, angle: _ArrayT | None = None) -> _ArrayT:
     """Rotation matrices from axis-angle vectors (kornia's ``axis_angle_to_rotation_matrix``).
 
     A vector is the unit rotation axis times the angle in radians; a positive angle turns
-    counter-clockwise about the axis (right-hand rule), so ``(0, 0, a)`` is ``R_z(a)``.
+    counter-clockwise about the axis (right-hand rule), so ``(0, 0, a)`` is ``R_z(a)``. With
+    ``angle`` given, ``axis_angle`` holds axes of any non-zero length and ``angle`` the angles
+    (broadcast against them: one axis and ``(K,)`` angles give ``K`` rotations).
 
     Args:
         axis_angle: vectors, shape ``(*, 3)``: a floating tensor (on any device), or a numpy
             array, computed in float64.
+        angle: angles in radians ``(*)``, or None (the vectors' lengths are the angles).
 
     Returns:
         Rotations ``(*, 3, 3)``: a tensor in the input's dtype and on its device, or a float64
@@ -57,6 +60,7 @@ def axis_angle_to_rotation(axis_angle: _ArrayT) -> _ArrayT:
 
     Raises:
         ShapeError: the last dimension is not 3, or a tensor is not floating point.
+        DegenerateInputError: ``angle`` given and an axis of zero length.
 
     Example:
         >>> R = axis_angle_to_rotation(torch.tensor([0.0, 0.0, math.pi / 2]))
@@ -64,8 +68,20 @@ def axis_angle_to_rotation(axis_angle: _ArrayT) -> _ArrayT:
         tensor([[ 0., -1.,  0.],
                 [ 1.,  0.,  0.],
                 [ 0.,  0.,  1.]])
+        >>> axis_angle_to_rotation(torch.tensor([0.0, 0.0, 2.0]), torch.tensor([0.0, 1.0])).shape
+        torch.Size([2, 3, 3])
     """
-    return _convert(axis_angle_to_rotation_matrix, axis_angle, "axis_angle", 3)
+    if angle is None:
+        return _convert(axis_angle_to_rotation_matrix, axis_angle, "axis_angle", 3)
+    numpy_in = not isinstance(axis_angle, torch.Tensor)
+    axis = torch.tensor(np.asarray(axis_angle, dtype=np.float64)) if numpy_in else axis_angle
+    check_tensor(axis, "axis", ("*", 3))
+    norm = axis.norm(dim=-1, keepdim=True)
+    if bool((norm == 0).any()):
+        raise DegenerateInputError("rotation axes must have non-zero length")
+    theta = torch.as_tensor(np.asarray(angle) if numpy_in else angle).to(axis)
+    R = axis_angle_to_rotation_matrix(axis / norm * theta[..., None])
+    return R.numpy() if numpy_in else R
 
 
 def quaternion_to_rotation(quaternion: _ArrayT) -> _ArrayT:

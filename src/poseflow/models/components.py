@@ -8,6 +8,8 @@ reject an unknown name when it is built (:func:`check_name`).
 
 from __future__ import annotations
 
+from torch import nn
+
 from poseflow.errors import ValueRangeError
 from poseflow.features import (
     AppearanceEncoder,
@@ -32,6 +34,7 @@ __all__ = [
     "build_geometric_encoder",
     "build_reducer",
     "check_name",
+    "encoder_networks",
 ]
 
 #: Kinds of :func:`build_geometric_encoder` (``"gedi"`` is written ``"gedi:PATH"``).
@@ -143,3 +146,25 @@ def build_reducer(name: str, *, n_components: int, seed: int = 0) -> Reducer:
     if name == "pca":
         return PCAReducer(n_components)
     return IdentityReducer()
+
+
+def encoder_networks(**encoders: object) -> dict[str, nn.Module]:
+    """The networks inside frozen encoders, named ``{encoder}_{attribute}``.
+
+    An encoder is a plain object that holds its network (DINOv2's ``model``, the learned
+    descriptor's ``net``, ...); a model registers these as its submodules so that ``.to()``,
+    ``load(device=)`` and ``state_dict()`` reach them.
+
+    Example:
+        >>> from poseflow.features.learned import DescriptorNet, LearnedAppearanceEncoder
+        >>> enc = LearnedAppearanceEncoder(DescriptorNet(widths=(8, 16), dim=4), input_size=32)
+        >>> list(encoder_networks(appearance=enc, geometric=None))
+        ['appearance_net']
+    """
+    return {
+        f"{name}_{attr}": value
+        for name, encoder in encoders.items()
+        if encoder is not None
+        for attr, value in vars(encoder).items()
+        if isinstance(value, nn.Module)
+    }

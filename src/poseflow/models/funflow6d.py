@@ -30,7 +30,11 @@ from poseflow.eval.predict import PoseEstimate, SeededEstimator, invalidate_impl
 from poseflow.eval.timing import stage
 from poseflow.features import AppearanceEncoder, GeometricEncoder
 from poseflow.models.checkpoint import read_checkpoint, write_checkpoint
-from poseflow.models.components import build_appearance_encoder, build_geometric_encoder
+from poseflow.models.components import (
+    build_appearance_encoder,
+    build_geometric_encoder,
+    encoder_networks,
+)
 from poseflow.models.config import FunFlow6DConfig
 from poseflow.models.inputs import FlowInputs
 from poseflow.models.network import FunFlow6DNet, NetInputs
@@ -66,10 +70,21 @@ class FunFlow6D(nn.Module, SeededEstimator):
         super().__init__()
         self.config = cfg = FunFlow6DConfig() if config is None else config
         self.geometric_encoder, self.appearance_encoder, self.net = _build_parts(cfg)
+        #: The frozen encoders' networks, registered so that ``.to()`` and ``load(device=)``
+        #: move them with the model (their weights stay in the encoders' own folders).
+        self.encoder_networks = nn.ModuleDict(
+            encoder_networks(geometric=self.geometric_encoder, appearance=self.appearance_encoder)
+        ).requires_grad_(False)
         #: The detector of the model's objects (``MODEL_DIR/detector``), or None.
         self.detector: Detector | None = None
         self.objects: dict[int, PreparedObject] = {}
         self.verifier = PoseVerifier(cfg.verifier)
+
+    def train(self, mode: bool = True) -> FunFlow6D:
+        """Set the flow network's mode; the frozen encoders' networks stay in evaluation mode."""
+        super().train(mode)
+        self.encoder_networks.eval()
+        return self
 
     def prepare_objects(
         self,

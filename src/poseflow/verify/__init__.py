@@ -76,7 +76,6 @@ from poseflow.verify.score import (
 from poseflow.verify.scorer import PoseScorer
 from poseflow.verify.symmetry import (
     NearSymmetries,
-    axis_angle_matrix,
     box_slides,
     box_turns,
     near_symmetries,
@@ -96,7 +95,6 @@ __all__ = [
     "VerifierObject",
     "VerifierScore",
     "appearance_agreement",
-    "axis_angle_matrix",
     "balance_colors",
     "box_slides",
     "box_sum",

@@ -35,7 +35,6 @@ from poseflow.registration.icp import multi_scale_icp
 
 __all__ = [
     "NearSymmetries",
-    "axis_angle_matrix",
     "box_slides",
     "box_turns",
     "near_symmetries",
@@ -58,36 +57,6 @@ class NearSymmetries:
 
     def __len__(self) -> int:
         return int(self.transforms.shape[0])
-
-
-def axis_angle_matrix(axis: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
-    """Rotation matrices from axes of any length and angles in radians.
-
-    The axis-angle vectors ``axis / |axis| * angle`` through
-    :func:`~poseflow.geometry.se3.axis_angle_to_rotation`.
-
-    Args:
-        axis: rotation axes ``(*, 3)``, any non-zero length.
-        angle: angles in radians ``(*)``.
-
-    Returns:
-        Rotations ``(*, 3, 3)``.
-
-    Raises:
-        ShapeError: wrong shapes.
-        DegenerateInputError: a zero axis.
-
-    Example:
-        >>> R = axis_angle_matrix(torch.tensor([0.0, 0.0, 2.0]), torch.tensor(math.pi / 2))
-        >>> (R @ torch.tensor([1.0, 0.0, 0.0])).round(decimals=6) + 0.0
-        tensor([0., 1., 0.])
-    """
-    check_tensor(axis, "axis", ("*", 3))
-    norm = axis.norm(dim=-1, keepdim=True)
-    if bool((norm == 0).any()):
-        raise DegenerateInputError("rotation axes must be non-zero")
-    angle = torch.as_tensor(angle, dtype=axis.dtype, device=axis.device)
-    return axis_angle_to_rotation(axis / norm * angle[..., None])
 
 
 def _principal_axes(points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -166,7 +135,8 @@ def box_turns(points: torch.Tensor, *, min_angle: float = 5.0) -> torch.Tensor:
         >>> box = torch.cartesian_prod(*[torch.tensor([-s, s]) for s in (3.0, 2.0, 1.0)])
         >>> len(box_turns(box))  # its principal axes are the model's: one frame
         23
-        >>> len(box_turns(box @ axis_angle_matrix(torch.tensor([1.0, 2, 3]), torch.tensor(0.5))))
+        >>> turn = axis_angle_to_rotation(torch.tensor([1.0, 2, 3]), torch.tensor(0.5))
+        >>> len(box_turns(box @ turn))
         46
     """
     check_tensor(points, "points", (None, 3), finite=True)
@@ -416,7 +386,7 @@ def _seeds(points: torch.Tensor, normals: torch.Tensor, turn_steps: int) -> torc
         # pivot on the axis, at the foot of the centroid
         foot = on_axis + ((centre.to(torch.float64) - on_axis) @ direction) * direction
         pivots.append(foot.to(dtype).expand(turn_angles.shape[0], 3))
-    R = axis_angle_matrix(torch.cat(axis_list), torch.cat(angle_list))
+    R = axis_angle_to_rotation(torch.cat(axis_list), torch.cat(angle_list))
     pivot = torch.cat(pivots)
     T = torch.eye(4, dtype=dtype, device=device).repeat(R.shape[0], 1, 1)
     T[:, :3, :3] = R
