@@ -44,7 +44,7 @@ def test_png_has_the_image_size(box, tmp_path):
 def test_background_turns_grey_and_models_are_coloured(box):
     image = torch.zeros(60, 80, 3, dtype=torch.uint8)
     image[..., 0] = 255  # pure red
-    pic = overlay_poses(image, K, [box], _pose(), alpha=1.0)
+    pic = overlay_poses(image, K, [box], _pose(), alpha=1.0, axes=False)
     corner = pic[0, 0].tolist()
     assert corner[0] == corner[1] == corner[2] == round(0.299 * 255)
     centre = pic[30, 40].float()
@@ -98,7 +98,7 @@ def _has(pic: torch.Tensor, colour) -> torch.Tensor:
 
 
 def test_estimate_is_outlined_and_lightly_tinted(box):
-    pic = overlay_poses(_grey(), BIG_K, [box], _big_pose(), legend=False)
+    pic = overlay_poses(_grey(), BIG_K, [box], _big_pose(), legend=False, axes=False)
     outline = _has(pic, ESTIMATE_COLOR)
     assert int(outline.sum()) > 100
     assert not bool(outline[120, 160])  # the inside is tinted, not painted over
@@ -111,25 +111,36 @@ def test_estimate_is_outlined_and_lightly_tinted(box):
 
 def test_each_estimate_has_its_own_colour_and_invalid_ones_are_dashed(box):
     poses = torch.cat([_big_pose(-0.1), _big_pose(0.1)])
-    pic = overlay_poses(_grey(), BIG_K, [box], poses, object_ids=[0, 0], legend=False)
+    pic = overlay_poses(_grey(), BIG_K, [box], poses, object_ids=[0, 0], legend=False, axes=False)
     first, second = _has(pic, ESTIMATE_COLORS[0]), _has(pic, ESTIMATE_COLORS[1])
     assert int(first[:, :160].sum()) > 100 and int(first[:, 160:].sum()) == 0
     assert int(second[:, 160:].sum()) > 100 and int(second[:, :160].sum()) == 0
     dashed = overlay_poses(
-        _grey(), BIG_K, [box], poses, object_ids=[0, 0], valid=[True, False], legend=False
+        _grey(),
+        BIG_K,
+        [box],
+        poses,
+        object_ids=[0, 0],
+        valid=[True, False],
+        legend=False,
+        axes=False,
     )
     assert int(_has(dashed, ESTIMATE_COLORS[1]).sum()) < 0.7 * int(second.sum())  # dashes
     assert bool((dashed[120, 240] == 128).all())  # no tint inside the invalid one
     with pytest.raises(ShapeError):
         overlay_poses(_grey(), BIG_K, [box], poses, object_ids=[0, 0], scores=[0.5])
     poses[1] = float("nan")  # no estimate at all: in the legend, not drawn
-    missing = overlay_poses(_grey(), BIG_K, [box], poses, object_ids=[0, 0], valid=[True, False])
+    missing = overlay_poses(
+        _grey(), BIG_K, [box], poses, object_ids=[0, 0], valid=[True, False], axes=False
+    )
     assert int(_has(missing[:, 160:], ESTIMATE_COLORS[1]).sum()) == 0
     assert bool(_has(missing[:, :160], ESTIMATE_COLORS[0]).any())
 
 
 def test_gt_outline_lies_outside_a_matching_estimate(box):
-    pic = overlay_poses(_grey(), BIG_K, [box], _big_pose(), gt_poses=_big_pose(), legend=False)
+    pic = overlay_poses(
+        _grey(), BIG_K, [box], _big_pose(), gt_poses=_big_pose(), legend=False, axes=False
+    )
     green, blue = _has(pic, GT_COLOR), _has(pic, ESTIMATE_COLOR)
     assert int(green.sum()) > 100 and int(blue.sum()) > 100  # both visible where they agree
     assert not bool((green & blue).any())
@@ -142,7 +153,7 @@ def _legend_pixels(pic: torch.Tensor, region: tuple[slice, slice]) -> int:
 
 def test_legend_names_the_method_and_avoids_the_objects(box):
     top_left = (slice(0, 60), slice(0, 120))
-    plain = overlay_poses(_grey(), BIG_K, [box], _big_pose(), legend=False)
+    plain = overlay_poses(_grey(), BIG_K, [box], _big_pose(), legend=False, axes=False)
     assert _legend_pixels(plain, top_left) == 0
     pic = overlay_poses(
         _grey(), BIG_K, [box], _big_pose(), method="FunFlow6D", scores=[0.87],
@@ -161,3 +172,24 @@ def test_legend_names_the_method_and_avoids_the_objects(box):
     # an object in the top-left corner moves the legend to another corner
     moved = overlay_poses(_grey(), BIG_K, [box], _big_pose(-0.13, -0.09), method="FunFlow6D")
     assert _legend_pixels(moved, (slice(0, 60), slice(200, 320))) > 500
+
+
+def test_a_turn_that_keeps_the_silhouette_shows_in_the_axes(box):
+    turned = _big_pose().clone()
+    turned[0, :3, :3] = torch.diag(torch.tensor([-1.0, -1.0, 1.0]))  # 180 deg about the view axis
+    same = [overlay_poses(_grey(), BIG_K, [box], T, legend=False, axes=False)
+            for T in (_big_pose(), turned)]  # fmt: skip
+    assert torch.equal(same[0], same[1])  # the box's silhouette and shading cannot tell
+    shown = [overlay_poses(_grey(), BIG_K, [box], T, legend=False) for T in (_big_pose(), turned)]
+    differ = (shown[0] != shown[1]).any(-1)
+    assert int(differ.sum()) > 50
+    red = (shown[0].int() - torch.tensor([235, 40, 40])).abs().sum(-1) < 30
+    assert red[:, 160:].sum() > red[:, :160].sum()  # x points right, turned left
+
+
+def test_the_legend_never_disappears(box):
+    name = "FunFlow6D (a/very/long/path/to/a/model/folder/that/fills/the/picture/model)"
+    small_k = torch.tensor([[200.0, 0, 80], [0, 200.0, 60], [0, 0, 1]])
+    pic = overlay_poses(_grey(120, 160), small_k, [box], _big_pose(), method=name, scores=[0.9])
+    plain = overlay_poses(_grey(120, 160), small_k, [box], _big_pose(), legend=False)
+    assert int((pic != plain).any(-1).sum()) > 100  # drawn, in a smaller font and shortened

@@ -121,35 +121,48 @@ def _draw_legend(
 ) -> torch.Tensor:
     """Draw a legend box (swatch and text per entry) in the least covered corner.
 
+    The box may take half of the picture's height and 60 % of its width: a legend too large is
+    drawn in a smaller font (down to 7 px), then its lines are shortened (ending in ``...``) and
+    the last ones folded into ``+ N more``; it is never left out.
+
     Args:
         picture: ``(H, W, 3)`` uint8.
         entries: ``(colour or None for a title line, text, dashed)`` per line.
         covered: ``(H, W)`` bool, pixels the box should avoid (the drawn objects).
 
     Returns:
-        The picture with the legend, or unchanged when it would cover more than half of the
-        picture's height or 60 % of its width.
+        The picture with the legend.
     """
     from PIL import Image, ImageDraw
 
     H, W = picture.shape[:2]
-    size = max(10, round(H / 40))
-    font = _font(size)
-    probe = ImageDraw.Draw(Image.new("RGB", (1, 1)))
-    pad, gap, swatch = max(3, size // 3), max(2, size // 4), size
-    widths = []
-    for colour, text, _ in entries:
-        box = probe.textbbox((0, 0), text, font=font)
-        widths.append(box[2] - box[0] + (swatch + gap if colour is not None else 0))
-    line = size + gap
-    box_w, box_h = max(widths) + 2 * pad, len(entries) * line - gap + 2 * pad
-    if not entries or box_h > H // 2 or box_w > 0.6 * W:
+    if not entries:
         return picture
+    probe = ImageDraw.Draw(Image.new("RGB", (1, 1)))
+    size = max(10, round(H / 40))
+    while True:
+        font = _font(size)
+        pad, gap, swatch = max(3, size // 3), max(2, size // 4), size
+        line = size + gap
+        width = _line_width(probe, font, swatch + gap)
+        fits = max(width(c, t) for c, t, _ in entries) + 2 * pad <= 0.6 * W
+        if (fits and len(entries) * line - gap + 2 * pad <= H // 2) or size <= 7:
+            break
+        size -= 1
+    rows = max(1, (H // 2 - 2 * pad + gap) // line)
+    if len(entries) > rows:
+        entries = [*entries[: rows - 1], (None, f"+ {len(entries) - rows + 1} more", False)]
+    entries = [(c, _shorten(t, lambda t, c=c: width(c, t) + 2 * pad <= 0.6 * W), d)
+               for c, t, d in entries]  # fmt: skip
+    box_w = min(max(width(c, t) for c, t, _ in entries) + 2 * pad, W)
+    box_h = min(len(entries) * line - gap + 2 * pad, H)
     corners = [(pad, pad), (W - box_w - pad, pad), (pad, H - box_h - pad),
                (W - box_w - pad, H - box_h - pad)]  # fmt: skip
     x0, y0 = min(
-        corners, key=lambda c: int(covered[c[1] : c[1] + box_h, c[0] : c[0] + box_w].sum())
+        corners,
+        key=lambda c: int(covered[max(c[1], 0) : c[1] + box_h, max(c[0], 0) : c[0] + box_w].sum()),
     )
+    x0, y0 = max(x0, 0), max(y0, 0)
     img = Image.fromarray(picture.numpy()).convert("RGBA")
     layer = Image.new("RGBA", img.size, (0, 0, 0, 0))
     draw = ImageDraw.Draw(layer)
@@ -165,6 +178,31 @@ def _draw_legend(
         draw.text((x, y), text, fill=(255, 255, 255, 255), font=font)
     out = Image.alpha_composite(img, layer).convert("RGB")
     return torch.from_numpy(np.array(out))
+
+
+def _line_width(probe: Any, font: Any, swatch: int) -> Any:
+    """``width(colour, text)``: pixels of a legend line (its swatch when it has a colour)."""
+
+    def width(colour: Any, text: str) -> int:
+        box = probe.textbbox((0, 0), text, font=font)
+        return int(box[2] - box[0]) + (swatch if colour is not None else 0)
+
+    return width
+
+
+def _shorten(text: str, fits: Any) -> str:
+    """``text``, or its longest start ending in ``...`` for which ``fits(text)`` holds.
+
+    Example:
+        >>> _shorten("FunFlow6D (runs/mine/model)", lambda t: len(t) <= 12)
+        'FunFlow6D...'
+    """
+    if fits(text):
+        return text
+    for n in range(len(text) - 1, 0, -1):
+        if fits(text[:n].rstrip() + "..."):
+            return text[:n].rstrip() + "..."
+    return "..."
 
 
 def _per_pose(values: Any, n: int, what: str) -> list[Any] | None:
@@ -197,13 +235,15 @@ def overlay_poses(
     valid: Sequence[bool] | torch.Tensor | None = None,
     mesh_names: Sequence[str] | None = None,
     legend: bool = True,
+    axes: bool = True,
     notes: Sequence[str] = (),
 ) -> torch.Tensor:
     """Outline models in estimated poses (and GT poses) over a grey image, with a legend.
 
     Estimates (colours :data:`ESTIMATE_COLORS` in turn) are tinted and outlined inside their
-    visible silhouettes, invalid ones dashed and not tinted; the ground truth is outlined just
-    outside. The legend is left out where it would cover over half the height or 60 % of the width.
+    visible silhouettes, invalid ones dashed and not tinted, each with its model axes (a turn
+    that keeps the silhouette shows in them); the ground truth is outlined just outside. The
+    legend takes at most half the height and 60 % of the width (smaller font, shortened lines).
 
     Args:
         image: the image, ``(H, W, 3)`` or ``(H, W)`` uint8, or ``(3, H, W)`` float in ``[0, 1]``.
@@ -223,6 +263,7 @@ def overlay_poses(
         valid: the validity of each pose ``(n,)`` (default: all valid).
         mesh_names: each mesh's name in the legend (default ``mesh 0``, ``mesh 1``, ...).
         legend: draw the legend.
+        axes: draw each estimate's model axes.
         notes: more lines at the end of the legend (e.g. the objects a detector did not find).
 
     Returns:
@@ -250,15 +291,18 @@ def overlay_poses(
     H, W = grey.shape[:2]
     ren = renderer if renderer is not None else Renderer(meshes)
     est = _Estimates.of(poses, object_ids, scores, valid, color)
-    out, edges, covered = _tint_estimates(grey, ren, K, est, alpha, outline_width)
+    out, edges, covered_by = _tint_estimates(grey, ren, K, est, alpha, outline_width)
+    covered = covered_by.any(dim=0) if len(covered_by) else torch.zeros(H, W, dtype=torch.bool)
     gt = _gt_outline(ren, K, gt_poses, gt_object_ids, outline_width, H, W)
     if gt is not None:
         edges.insert(0, (gt[0], gt_color))
         covered |= gt[1]
     pic = _paint(out, edges)
+    if axes:
+        pic = _draw_axes(pic, K, est, covered_by)
     if not legend or (est.poses.shape[0] == 0 and gt is None and not notes):
         return pic
-    entries = _legend_entries(est, method, mesh_names, None if gt is None else gt_color, H)
+    entries = _legend_entries(est, method, mesh_names, None if gt is None else gt_color, axes)
     entries += [(None, note, False) for note in notes]
     return _draw_legend(pic, entries, covered)
 
@@ -313,11 +357,12 @@ def _tint_estimates(
     """The estimates drawn on the grey picture ``(H, W, 3)``: tinted surfaces (valid ones only).
 
     Returns the tinted picture ``(H, W, 3)`` float, the outlines to draw ``[(edge (H, W),
-    colour)]`` (dashed for invalid estimates) and the pixels the estimates cover ``(H, W)``.
+    colour)]`` (dashed for invalid estimates) and the pixels each estimate covers ``(n, H, W)``
+    (none for one that is not drawn).
     """
     H, W = grey.shape[:2]
     out = grey.clone()
-    covered = torch.zeros(H, W, dtype=torch.bool)
+    covered = torch.zeros(len(est.colours), H, W, dtype=torch.bool)
     edges: list[tuple[torch.Tensor, tuple[int, int, int]]] = []
     drawn = [i for i in range(len(est.colours)) if bool(torch.isfinite(est.poses[i]).all())]
     if not drawn:
@@ -330,7 +375,7 @@ def _tint_estimates(
     dashes = _dashes(H, W)
     for i, visible in zip(drawn, r.masks_visible):
         c = torch.tensor(est.colours[i], dtype=torch.float32)
-        covered |= visible
+        covered[i] = visible
         if est.valid[i]:
             tint = (1 - alpha) * grey + alpha * c * shade
             out = torch.where(visible[..., None], tint, out)
@@ -338,6 +383,53 @@ def _tint_estimates(
         else:
             edges.append((_outline(visible, width) & dashes, est.colours[i]))
     return out, edges, covered
+
+
+#: Colours of a pose's x, y and z axes (:func:`_draw_axes`).
+AXIS_COLORS: tuple[tuple[int, int, int], ...] = ((235, 40, 40), (40, 210, 70), (60, 110, 255))
+
+
+def _draw_axes(
+    picture: torch.Tensor, K: Any, est: _Estimates, covered: torch.Tensor
+) -> torch.Tensor:
+    """Each drawn estimate's model axes (x red, y green, z blue) from its model origin.
+
+    A silhouette hides a turn that maps the shape onto itself (a box or a can turned by 180°);
+    the axes show it. Each axis is as long, in the image, as the root of the estimate's visible
+    area (in 3D: that length at the model origin's depth).
+
+    Args:
+        picture: ``(H, W, 3)`` uint8.
+        K: intrinsics ``(3, 3)``.
+        est: the estimates.
+        covered: the pixels each estimate covers ``(n, H, W)``.
+
+    Returns:
+        The picture with the axes ``(H, W, 3)`` uint8.
+    """
+    from PIL import Image, ImageDraw
+
+    Kd = torch.as_tensor(K, dtype=torch.float64).reshape(3, 3)
+    img = Image.fromarray(picture.numpy())
+    draw = ImageDraw.Draw(img)
+    width = max(1, round(picture.shape[0] / 200))
+    for i in range(len(est.colours)):
+        area = int(covered[i].sum()) if i < len(covered) else 0
+        T = est.poses[i].to(torch.float64)
+        if area == 0 or not bool(torch.isfinite(T).all()) or float(T[2, 3]) <= 0:
+            continue
+        length = 0.5 * math.sqrt(area) * float(T[2, 3]) / float(Kd[0, 0])  # metres
+        ends = (
+            T[:3, 3] + length * torch.cat([torch.zeros(1, 3), torch.eye(3)]).double() @ T[:3, :3].T
+        )
+        if bool((ends[:, 2] <= 0).any()):
+            continue
+        uv = (ends @ Kd.T)[:, :2] / (ends @ Kd.T)[:, 2:]
+        for k in (2, 0, 1):  # z first: x and y, in the image plane mostly, stay on top
+            draw.line(
+                [tuple(uv[0].tolist()), tuple(uv[k + 1].tolist())], fill=AXIS_COLORS[k], width=width
+            )
+    return torch.from_numpy(np.array(img))
 
 
 def _gt_outline(
@@ -372,9 +464,9 @@ def _legend_entries(
     method: str | None,
     mesh_names: Sequence[str] | None,
     gt_color: tuple[int, int, int] | None,
-    H: int,
+    axes: bool,
 ) -> list[tuple[tuple[int, int, int] | None, str, bool]]:
-    """The legend's lines ``(colour or None, text, dashed)``, cut to what ``H`` pixels hold."""
+    """The legend's lines ``(colour or None, text, dashed)``."""
     entries: list[tuple[tuple[int, int, int] | None, str, bool]] = []
     if method:
         entries.append((None, method, False))
@@ -387,10 +479,8 @@ def _legend_entries(
         entries.append((colour, text, not est.valid[i]))
     if gt_color is not None:
         entries.append((gt_color, "ground truth", False))
-    max_lines = max(1, (H // 2) // (max(10, round(H / 40)) + 3))
-    if len(entries) > max_lines:
-        rest = len(entries) - (max_lines - 1)
-        entries = [*entries[: max_lines - 1], (None, f"... {rest} more", False)]
+    if axes and any(bool(torch.isfinite(T).all()) for T in est.poses):
+        entries.append((None, "axes: x red, y green, z blue", False))
     return entries
 
 
