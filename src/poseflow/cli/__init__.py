@@ -40,6 +40,7 @@ __all__ = [
 SUBCOMMANDS = (
     "demo",
     "estimate",
+    "onboard",
     "synth",
     "prepare",
     "train",

@@ -161,12 +161,16 @@ def command_output(args: argparse.Namespace) -> Iterator[None]:
     Status lines (level INFO of the ``poseflow`` loggers) and logged warnings are written as one
     line each, through ``tqdm.write`` so that they do not break a progress bar; ``--quiet``
     keeps the warnings only. Python warnings are printed as one ``warning: ...`` line rather
-    than with the file and source line of their origin. Everything is restored on exit.
+    than with the file and source line of their origin. Everything is restored on exit; a
+    command run inside another keeps the outer one's set-up.
 
     Args:
         args: the parsed arguments (``quiet`` is read).
     """
     logger = logging.getLogger("poseflow")
+    if any(isinstance(h, _BarSafeHandler) for h in logger.handlers):
+        yield  # a command run by another (``poseflow onboard``): its output is set up
+        return
     handler = _BarSafeHandler()
     handler.setFormatter(_Formatter())
     saved = (logger.level, logger.propagate, warnings.formatwarning)

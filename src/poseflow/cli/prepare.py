@@ -57,8 +57,8 @@ def run(args: argparse.Namespace) -> int:
     from poseflow.cli.options import build_config, config_requested
     from poseflow.data.object_folder import check_dataset, load_object_models, object_cache_dir
     from poseflow.errors import UsageError
-    from poseflow.models import FunFlow6D, FunFlow6DConfig
-    from poseflow.models.checkpoint import is_checkpoint
+    from poseflow.models import FunFlow6D
+    from poseflow.models.checkpoint import is_checkpoint, read_model_config
 
     start = time.perf_counter()
     root = check_dataset(args.dataset)
@@ -69,7 +69,7 @@ def run(args: argparse.Namespace) -> int:
                 f"{args.out} holds a trained model whose config.json fixes the configuration; "
                 "drop --config/--preset/--set and the other configuration options"
             )
-        config = FunFlow6DConfig.load(f"{args.out}/config.json")
+        config = read_model_config(args.out)
     else:
         config = build_config(args)
     show = show_progress(args)

@@ -9,6 +9,7 @@ keeps the checkpoint's behaviour, rather than as the default of new configuratio
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 from typing import Any
@@ -24,6 +25,7 @@ __all__ = [
     "CHECKPOINT_FORMAT",
     "is_checkpoint",
     "read_checkpoint",
+    "read_model_config",
     "write_checkpoint",
 ]
 
@@ -53,6 +55,9 @@ def write_checkpoint(
 ) -> Path:
     """Write a configuration and the network's ``state_dict`` to ``folder`` (created).
 
+    Encoder folders inside ``folder`` (the onboarding's surface embedding) are recorded relative
+    to it, so that the folder works copied or moved (:func:`read_checkpoint` resolves them).
+
     Returns:
         The folder.
     """
@@ -63,7 +68,7 @@ def write_checkpoint(
     tensors = {k: v.detach().cpu().contiguous() for k, v in state.items()}
     metadata = {"format": CHECKPOINT_FORMAT}
     atomic_write(folder / "model.safetensors", lambda tmp: save_file(tensors, tmp, metadata))
-    text = json.dumps(config.to_dict(), indent=1)
+    text = json.dumps(_encoders_relative(config, folder).to_dict(), indent=1)
     atomic_write(folder / "config.json", lambda tmp: tmp.write_text(text))
     return folder
 
@@ -95,8 +100,20 @@ def read_checkpoint(folder: str | Path) -> tuple[FunFlow6DConfig, dict[str, torc
             f"{folder} holds no FunFlow6D checkpoint (config.json + model.safetensors); "
             "train one with `poseflow train`"
         )
-    config = _read_config(folder / "config.json")
-    return config, load_safetensors(folder / "model.safetensors")
+    return read_model_config(folder), load_safetensors(folder / "model.safetensors")
+
+
+def read_model_config(folder: str | Path) -> FunFlow6DConfig:
+    """The configuration of a model folder's ``config.json``, its encoder folders resolved.
+
+    An encoder path relative to the folder (written so by :func:`write_checkpoint`) that exists
+    there is made absolute; other relative paths stay relative to the working directory.
+
+    Raises:
+        CheckpointError: ``config.json`` is not valid JSON or holds a field of the wrong type.
+    """
+    folder = Path(folder)
+    return _encoders_resolved(_read_config(folder / "config.json"), folder)
 
 
 def _read_config(path: Path) -> FunFlow6DConfig:
@@ -113,3 +130,43 @@ def _read_config(path: Path) -> FunFlow6DConfig:
         raise CheckpointError(
             f"{path} holds a value of the wrong type ({exc}); restore it or train again"
         ) from None
+
+
+#: The encoder fields whose ``kind:PATH`` may name a folder inside the model folder.
+_ENCODER_FIELDS = ("appearance_encoder", "geometric_encoder")
+
+
+def _encoders_relative(config: FunFlow6DConfig, folder: Path) -> FunFlow6DConfig:
+    """``config`` with the encoder folders inside ``folder`` written relative to it.
+
+    A model folder that holds its encoders (the onboarding's surface embedding) then works
+    copied or moved anywhere (:func:`_encoders_resolved` reads it back).
+
+    Example:
+        >>> cfg = FunFlow6DConfig(appearance_encoder="surface:/runs/a/model/surface")
+        >>> _encoders_relative(cfg, Path("/runs/a/model")).appearance_encoder
+        'surface:surface'
+    """
+    changes = {}
+    for name in _ENCODER_FIELDS:
+        kind, _, path = getattr(config, name).partition(":")
+        if path and Path(path).is_absolute():
+            try:
+                inside = Path(path).resolve().relative_to(folder.resolve())
+            except ValueError:
+                continue
+            changes[name] = f"{kind}:{inside.as_posix()}"
+    return dataclasses.replace(config, **changes) if changes else config
+
+
+def _encoders_resolved(config: FunFlow6DConfig, folder: Path) -> FunFlow6DConfig:
+    """``config`` with relative encoder paths that exist inside ``folder`` made absolute.
+
+    Other relative paths stay as written (relative to the working directory).
+    """
+    changes = {}
+    for name in _ENCODER_FIELDS:
+        kind, _, path = getattr(config, name).partition(":")
+        if path and not Path(path).is_absolute() and (folder / path).exists():
+            changes[name] = f"{kind}:{(folder / path).resolve()}"
+    return dataclasses.replace(config, **changes) if changes else config

@@ -1,0 +1,195 @@
+"""``poseflow onboard``: the whole recipe for a user's meshes, from the meshes to a model folder.
+
+One command runs the recipe's phases in order, each into its place under ``--out RUN``:
+
+1. ``synth``: training images of the meshes (``RUN/train_data``, ``poseflow synth``);
+2. ``surface``: the surface embedding of the objects learned on them (``RUN/model/surface``);
+3. ``detector``: the detector of the objects (``RUN/model/detector``, ``poseflow train-detector``);
+4. ``train``: FunFlow6D by the recipe's settings on the embedding (``RUN/model``, ``poseflow
+   train``; its checkpoints let a killed run resume);
+5. ``prepare``: the objects prepared for the model (``RUN/model/objects``, ``poseflow prepare``).
+
+``RUN/onboard.json`` records the settings and each finished phase (with its minutes): a phase
+already finished is skipped, one that was interrupted (Ctrl-C, a kill) is done again, the
+training from its last checkpoint. The model folder holds everything it needs (the embedding is
+referenced relative to it), so it can be copied or moved.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import time
+from pathlib import Path
+from typing import Any
+
+__all__ = ["DESCRIPTION", "HELP", "PHASES", "add_arguments", "run"]
+
+#: ``onboard``'s line in ``poseflow --help``.
+HELP = "the whole recipe for your meshes: images, embedding, detector, FunFlow6D, preparation"
+
+#: What ``poseflow onboard --help`` says.
+DESCRIPTION = """\
+Train poseflow on your own objects in one command: render training images of the meshes, learn
+their surface embedding, train the detector and FunFlow6D, and prepare the objects. MESHES is a
+BOP models folder (obj_XXXXXX.ply + models_info.json, millimetres by default) or a BOP dataset
+folder holding one in models/. The model is RUN/model: use it with `poseflow estimate --model
+RUN/model` (no mask needed) or `poseflow predict DATASET --model RUN/model`. A finished phase is
+skipped when run again; an interrupted one is redone (training resumes from its checkpoint)."""
+
+#: The phases in order.
+PHASES = ("synth", "surface", "detector", "train", "prepare")
+
+#: Channels of the recipe's surface embedding (its reducer keeps them all).
+SURFACE_DIM = 32
+
+#: ``poseflow train``'s settings in the recipe (besides the configuration and the embedding).
+TRAIN_SETTINGS = ("--batch-size", "16", "--lr", "1e-3", "--ema-decay", "0.995", "--copies", "2",
+                  "--occlusion", "0.5")  # fmt: skip
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add the options of ``poseflow onboard`` (its ``run`` is :func:`run`)."""
+    parser.add_argument("meshes", help="BOP models folder, or a BOP dataset with models/")
+    parser.add_argument("--out", required=True, metavar="RUN", help="the run folder")
+    parser.add_argument(
+        "--mesh-scale", type=float, default=0.001, help="factor from the meshes' units to metres"
+    )
+    parser.add_argument("--images", type=int, default=3200, help="training images to render")
+    parser.add_argument("--surface-steps", type=int, default=10000, help="embedding steps")
+    parser.add_argument(
+        "--surface-images", type=int, default=1600, help="images the embedding learns from"
+    )
+    parser.add_argument("--detector-steps", type=int, default=4000, help="detector steps")
+    parser.add_argument("--steps", type=int, default=10000, help="FunFlow6D training steps")
+    parser.add_argument(
+        "--config", default="learned_small", help="FunFlow6D's configuration (recipe name or JSON)"
+    )
+    parser.add_argument("--seed", type=int, default=1, help="seed of the training images")
+
+
+def _settings(args: argparse.Namespace, models: Path) -> dict[str, Any]:
+    keys = ("mesh_scale", "images", "surface_steps", "surface_images", "detector_steps", "steps",
+            "config", "seed")  # fmt: skip
+    return {"meshes": str(models.resolve()), **{k: getattr(args, k) for k in keys}}
+
+
+def _models_folder(path: str) -> Path:
+    """The BOP models folder of ``MESHES``.
+
+    Raises:
+        MissingFileError: neither ``MESHES`` nor ``MESHES/models`` holds ``models_info.json``.
+    """
+    from poseflow.errors import MissingFileError
+
+    for folder in (Path(path), Path(path) / "models"):
+        if (folder / "models_info.json").is_file():
+            return folder
+    raise MissingFileError(
+        f"{path} is not a BOP models folder (obj_XXXXXX.ply + models_info.json) nor a dataset "
+        "holding one in models/"
+    )
+
+
+class _Record:
+    """``RUN/onboard.json``: the settings and the finished phases, written after each phase."""
+
+    def __init__(self, path: Path, settings: dict[str, Any]) -> None:
+        from poseflow.errors import UsageError
+
+        self.path = path
+        self.data: dict[str, Any] = {"settings": settings, "done": {}}
+        if path.is_file():
+            old = json.loads(path.read_text())
+            if old.get("settings") != settings:
+                changed = sorted(
+                    k for k in settings if old.get("settings", {}).get(k) != settings[k]
+                )
+                raise UsageError(
+                    f"{path.parent} was onboarded with other settings ({', '.join(changed)}); "
+                    "give another --out, or the same settings to go on"
+                )
+            self.data = old
+
+    def done(self, phase: str) -> bool:
+        return phase in self.data["done"]
+
+    def finish(self, phase: str, minutes: float) -> None:
+        from poseflow._cache import atomic_write
+
+        self.data["done"][phase] = {"minutes": round(minutes, 2)}
+        text = json.dumps(self.data, indent=1)
+        atomic_write(self.path, lambda tmp: Path(tmp).write_text(text))
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the phases not yet finished; prints each phase's minutes. Returns 0."""
+    from poseflow.cli import main as poseflow
+    from poseflow.cli.common import LOG, check_writable
+    from poseflow.errors import PoseflowError, UsageError
+
+    for name in ("images", "surface_steps", "surface_images", "detector_steps", "steps"):
+        if getattr(args, name) < 1:
+            raise UsageError(f"--{name.replace('_', '-')} must be at least 1")
+    models = _models_folder(args.meshes)
+    out = check_writable(args.out, folder=True)
+    record = _Record(out / "onboard.json", _settings(args, models))
+    train_data, model = out / "train_data", out / "model"
+    common = ["--threads", str(args.threads)] if args.threads else []
+    common += ["--no-progress"] if args.no_progress else []
+    common += ["-q"] if args.quiet else []
+
+    def poseflow_run(command: list[str]) -> None:
+        LOG.info("$ poseflow %s", " ".join(command))
+        if poseflow([*command, *common]) != 0:
+            raise PoseflowError(f"onboard: `poseflow {command[0]}` failed (see above)")
+
+    def synth() -> None:
+        poseflow_run(["synth", str(train_data), "--objects", str(models), "--mesh-scale",
+                      str(args.mesh_scale), "--train", str(args.images), "--test", "0",
+                      "--seed", str(args.seed), "--overwrite"])  # fmt: skip
+
+    def surface() -> None:
+        from poseflow.features.surface_training import train_surface_embedding
+
+        shutil.rmtree(model / "surface", ignore_errors=True)
+        train_surface_embedding(
+            train_data, model / "surface", steps=args.surface_steps, dim=SURFACE_DIM,
+            max_images=args.surface_images, progress=not (args.quiet or args.no_progress),
+            log=lambda line: LOG.info("%s", line),
+        )  # fmt: skip
+
+    def detector() -> None:
+        poseflow_run(["train-detector", str(train_data), "--out", str(model / "detector"),
+                      "--steps", str(args.detector_steps), "--overwrite"])  # fmt: skip
+
+    def train() -> None:
+        resume = ["--resume"] if any((out / "checkpoints").glob("*")) else []
+        poseflow_run(["train", str(train_data), "--out", str(out), "--config", args.config,
+                      "--appearance-encoder", f"surface:{(model / 'surface').resolve()}",
+                      "--set", f"feature_dim={SURFACE_DIM}", "--steps", str(args.steps),
+                      *TRAIN_SETTINGS, *resume])  # fmt: skip
+
+    def prepare() -> None:  # the user's meshes, as `predict` on their dataset will read them
+        dataset = models.parent if models.name == "models" else train_data
+        poseflow_run(["prepare", str(dataset), "--out", str(model)])
+
+    steps = {"synth": synth, "surface": surface, "detector": detector, "train": train,
+             "prepare": prepare}  # fmt: skip
+    for n, phase in enumerate(PHASES, 1):
+        if record.done(phase):
+            LOG.info("onboard %d/%d %s: done before, skipped", n, len(PHASES), phase)
+            continue
+        LOG.info("onboard %d/%d %s", n, len(PHASES), phase)
+        start = time.perf_counter()
+        steps[phase]()
+        minutes = (time.perf_counter() - start) / 60
+        record.finish(phase, minutes)
+        LOG.info("onboard %d/%d %s: %.1f min", n, len(PHASES), phase, minutes)
+    total = sum(d["minutes"] for d in record.data["done"].values())
+    print(
+        f"onboarded {models} into {model} ({total:.1f} min of phases); use it with "
+        f"`poseflow estimate --model {model}` or `poseflow predict DATASET --model {model}`"
+    )
+    return 0
