@@ -297,3 +297,18 @@ def test_trained_embedding_conditions_funflow6d(dataset, tmp_path) -> None:
     assert rows == {True: 2, False: 1}  # the match is one more ranked hypothesis
     with pytest.raises(ValueRangeError, match="need a surface embedding"):
         surface_match_positions(replace(obs, appearance=None), prepared, inputs.scale)
+
+
+def test_the_command_refuses_to_overwrite_and_bad_counts(dataset, tmp_path, capsys) -> None:
+    from poseflow.features.surface_training import main
+
+    train_surface_embedding(
+        dataset, tmp_path / "e", steps=1, batch_size=2, queries=8, negatives=16, dim=8,
+        init=None, progress=False,
+    )  # fmt: skip
+    with pytest.raises(SystemExit):
+        main([str(dataset), "--out", str(tmp_path / "e"), "--steps", "1"])
+    assert "already holds an embedding; pass --overwrite" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main([str(dataset), "--out", str(tmp_path / "f"), "--max-images", "-1"])
+    assert "--max-images must be 0 (all) or more" in capsys.readouterr().err

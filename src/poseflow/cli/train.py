@@ -38,6 +38,7 @@ from poseflow.cli.common import (
     add_device_argument,
     add_seed_argument,
     option_values,
+    positive_int,
 )
 from poseflow.cli.options import add_config_arguments
 
@@ -97,7 +98,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--max-images",
-        type=int,
+        type=positive_int,
         default=None,
         metavar="N",
         help="use at most N images (default: all)",

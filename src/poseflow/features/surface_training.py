@@ -329,7 +329,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--out", required=True, help="output folder (model.safetensors + config)")
     parser.add_argument("--split", default="train")
     parser.add_argument("--steps", type=int, default=10000)
-    parser.add_argument("--max-images", type=int, default=1600)
+    parser.add_argument(
+        "--max-images", type=int, default=1600, help="images to learn from (0: all)"
+    )
     parser.add_argument("--dim", type=int, default=32)
     parser.add_argument("--queries", type=int, default=48, help="pixels per crop per step")
     parser.add_argument("--points-per-crop", type=int, default=128, help="pixels kept per crop")
@@ -342,10 +344,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     )  # fmt: skip
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
     parser.add_argument("--no-progress", action="store_true")
+    parser.add_argument("--overwrite", action="store_true", help="replace --out's embedding")
     args = parser.parse_args(argv)
+    if args.max_images < 0 or args.steps < 1:
+        parser.error("--max-images must be 0 (all) or more, --steps at least 1")
+    if (Path(args.out) / "model.safetensors").exists() and not args.overwrite:
+        parser.error(f"{args.out} already holds an embedding; pass --overwrite to replace it")
     torch.set_num_threads(max(1, args.threads))
     out = train_surface_embedding(
-        args.dataset, args.out, steps=args.steps, split=args.split, max_images=args.max_images,
+        args.dataset, args.out, steps=args.steps, split=args.split,
+        max_images=args.max_images or None,
         dim=args.dim, queries=args.queries, points_per_crop=args.points_per_crop, lr=args.lr,
         seed=args.seed, init=None if args.no_init else "shipped",
         precision=args.precision,
