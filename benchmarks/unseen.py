@@ -27,10 +27,10 @@ Run ``python benchmarks/unseen.py ../shared/devbench --threads 2`` (the README r
 of 3,200 images, the surface embedding, the detector, the training set's features and the
 training; the minutes of each step are printed; then 0.3-2 s per image and estimator). The
 recipe learns a surface embedding of the dataset's objects on the synth images
-(:func:`~poseflow.features.surface_training.train_surface_embedding`, ``--surface-steps``,
-``--surface-images``, ``--surface-precision``; 0 steps keeps the shipped descriptor) and trains
-FunFlow6D on it; ``--threads`` sets the synth's processes, the embedding's threads, the processes
-that compute the training set's features and the flow network's threads.
+(``--surface-steps``, ``--surface-images``; 0 steps keeps the configuration's descriptor) and
+trains FunFlow6D on it, all by ``poseflow onboard`` (the library's command, into ``--work``);
+``--threads`` sets the synth's processes, the embedding's threads, the processes that compute
+the training set's features and the flow network's threads.
 
 ``--quick`` (CI) generates a two-image test split of the demo objects as the "user's dataset"
 and trains a few steps on four generated images (with ``--oracle`` when both estimators run): it
@@ -51,17 +51,12 @@ from pathlib import Path
 
 import torch
 
-from poseflow import num_threads
-from poseflow._threads import default_num_threads
 from poseflow.cli import main as poseflow
 from poseflow.eval import closest_results, write_results
-from poseflow.features.surface_training import train_surface_embedding
 
 REPO = Path(__file__).resolve().parents[1]
 METRICS = ("AR", "AR_VSD", "AR_MSSD", "AR_MSPD")
 METHODS = ("funflow6d", "baseline", "hybrid")
-#: Channels of the recipe's surface embedding (its reducer keeps them all).
-SURFACE_DIM = 32
 
 
 def _run(command: list[str]) -> None:
@@ -71,62 +66,31 @@ def _run(command: list[str]) -> None:
 
 
 def _recipe(args: argparse.Namespace, dataset: Path, work: Path) -> Path:
-    """Synthesise training images, learn a surface embedding (``--surface-steps``) and train.
+    """``poseflow onboard`` of the dataset's meshes into ``work`` (then the distillation).
 
-    Returns the model folder; prints each step's minutes.
+    Returns the model folder; the onboarding prints each phase's minutes.
     """
-    train_data, run, surface = work / "train_data", work / "run", work / "surface"
     threads = [] if args.threads is None else ["--threads", str(args.threads)]
-    if not (train_data / "train").is_dir():
-        with _minutes("synth"):
-            _run([
-                "synth", str(train_data), "--objects", str(dataset / "models"),
-                "--mesh-scale", str(args.mesh_scale), "--train", str(args.train_images),
-                "--test", "0", "--seed", str(args.synth_seed), "--no-progress",
-                *threads,
-            ])  # fmt: skip
-    train_args = args.train_args.split()
-    if args.surface_steps:
-        if not (surface / "model.safetensors").is_file():
-            with _minutes("surface embedding"), num_threads(args.threads or default_num_threads()):
-                train_surface_embedding(
-                    train_data,
-                    surface,
-                    steps=args.surface_steps,
-                    dim=SURFACE_DIM,
-                    max_images=args.surface_images or None,
-                    precision=args.surface_precision,
-                    progress=False,
-                )
-        encoder = f"surface:{surface.resolve()}"
-        train_args = [
-            "--appearance-encoder", encoder, "--set", f"feature_dim={SURFACE_DIM}", *train_args
-        ]  # fmt: skip
-    model = run / "model"
-    detector = model / "detector"
-    if args.detections != "gt" and not (detector / "model.safetensors").is_file():
-        with _minutes("detector"):
-            _run([
-                "train-detector", str(train_data), "--out", str(detector),
-                "--steps", str(args.detector_steps), "--overwrite", *threads,
-            ])  # fmt: skip
-    if not (model / "model.safetensors").is_file():
-        with _minutes("train (features and network)"):
-            _run([
-                "train", str(train_data), "--out", str(run), "--config", str(args.config),
-                "--steps", str(args.steps), "--batch-size", "16", "--lr", "1e-3",
-                "--ema-decay", "0.995", "--copies", "2", "--occlusion", "0.5",
-                "--device", "cpu", "--no-progress", *threads, *train_args,
-            ])  # fmt: skip
+    detector_steps = 0 if args.detections == "gt" else args.detector_steps
+    _run([
+        "onboard", str(dataset), "--out", str(work), "--mesh-scale", str(args.mesh_scale),
+        "--images", str(args.train_images), "--seed", str(args.synth_seed),
+        "--surface-steps", str(args.surface_steps), "--surface-images", str(args.surface_images),
+        "--detector-steps", str(detector_steps), "--steps", str(args.steps),
+        "--config", str(args.config), "--train-args", args.train_args, "--no-progress",
+        *threads,
+    ])  # fmt: skip
+    model = work / "model"
     if not args.distill_steps:
         return model
     one_step = work / "run_1step"
     if not (one_step / "model" / "model.safetensors").is_file():
-        _run([
-            "train", str(train_data), "--out", str(one_step), "--distill-from", str(model),
-            "--steps", str(args.distill_steps), "--batch-size", "16", "--lr", str(args.distill_lr),
-            "--ema-decay", "0.995", "--device", "cpu", "--no-progress",
-        ])  # fmt: skip
+        with _minutes("distillation"):
+            _run([
+                "train", str(work / "train_data"), "--out", str(one_step), "--distill-from",
+                str(model), "--steps", str(args.distill_steps), "--batch-size", "16", "--lr",
+                str(args.distill_lr), "--ema-decay", "0.995", "--device", "cpu", "--no-progress",
+            ])  # fmt: skip
     return one_step / "model"
 
 
@@ -200,12 +164,6 @@ def main() -> None:
         type=int,
         default=1600,
         help="synth images the surface embedding learns from (0: all)",
-    )
-    parser.add_argument(
-        "--surface-precision",
-        choices=["fp32", "bf16", "auto"],
-        default="fp32",
-        help="arithmetic of the surface embedding's query network (default: fp32)",
     )
     parser.add_argument(
         "--threads",

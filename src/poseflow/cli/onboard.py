@@ -57,21 +57,31 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--mesh-scale", type=float, default=0.001, help="factor from the meshes' units to metres"
     )
     parser.add_argument("--images", type=int, default=3200, help="training images to render")
-    parser.add_argument("--surface-steps", type=int, default=10000, help="embedding steps")
+    parser.add_argument(
+        "--surface-steps",
+        type=int,
+        default=10000,
+        help="embedding steps (0: no embedding; FunFlow6D keeps its configuration's encoder)",
+    )
     parser.add_argument(
         "--surface-images", type=int, default=1600, help="images the embedding learns from"
     )
-    parser.add_argument("--detector-steps", type=int, default=4000, help="detector steps")
+    parser.add_argument(
+        "--detector-steps", type=int, default=4000, help="detector steps (0: no detector)"
+    )
     parser.add_argument("--steps", type=int, default=10000, help="FunFlow6D training steps")
     parser.add_argument(
         "--config", default="learned_small", help="FunFlow6D's configuration (recipe name or JSON)"
     )
     parser.add_argument("--seed", type=int, default=1, help="seed of the training images")
+    parser.add_argument(
+        "--train-args", default="", help="more `poseflow train` options, one string (e.g. --set)"
+    )
 
 
 def _settings(args: argparse.Namespace, models: Path) -> dict[str, Any]:
     keys = ("mesh_scale", "images", "surface_steps", "surface_images", "detector_steps", "steps",
-            "config", "seed")  # fmt: skip
+            "config", "seed", "train_args")  # fmt: skip
     return {"meshes": str(models.resolve()), **{k: getattr(args, k) for k in keys}}
 
 
@@ -129,9 +139,12 @@ def run(args: argparse.Namespace) -> int:
     from poseflow.cli.common import LOG, check_writable
     from poseflow.errors import PoseflowError, UsageError
 
-    for name in ("images", "surface_steps", "surface_images", "detector_steps", "steps"):
+    for name in ("images", "surface_images", "steps"):
         if getattr(args, name) < 1:
             raise UsageError(f"--{name.replace('_', '-')} must be at least 1")
+    for name in ("surface_steps", "detector_steps"):
+        if getattr(args, name) < 0:
+            raise UsageError(f"--{name.replace('_', '-')} must be 0 (none) or more")
     models = _models_folder(args.meshes)
     out = check_writable(args.out, folder=True)
     record = _Record(out / "onboard.json", _settings(args, models))
@@ -166,10 +179,12 @@ def run(args: argparse.Namespace) -> int:
 
     def train() -> None:
         resume = ["--resume"] if any((out / "checkpoints").glob("*")) else []
+        surface = f"surface:{(model / 'surface').resolve()}"
+        embedding = ["--appearance-encoder", surface, "--set", f"feature_dim={SURFACE_DIM}"]
+        embedding = embedding if args.surface_steps else []
         poseflow_run(["train", str(train_data), "--out", str(out), "--config", args.config,
-                      "--appearance-encoder", f"surface:{(model / 'surface').resolve()}",
-                      "--set", f"feature_dim={SURFACE_DIM}", "--steps", str(args.steps),
-                      *TRAIN_SETTINGS, *resume])  # fmt: skip
+                      *embedding, "--steps", str(args.steps), *TRAIN_SETTINGS, *resume,
+                      *args.train_args.split()])  # fmt: skip
 
     def prepare() -> None:  # the user's meshes, as `predict` on their dataset will read them
         dataset = models.parent if models.name == "models" else train_data
@@ -177,7 +192,11 @@ def run(args: argparse.Namespace) -> int:
 
     steps = {"synth": synth, "surface": surface, "detector": detector, "train": train,
              "prepare": prepare}  # fmt: skip
+    skipped = {"surface": not args.surface_steps, "detector": not args.detector_steps}
     for n, phase in enumerate(PHASES, 1):
+        if skipped.get(phase):
+            LOG.info("onboard %d/%d %s: 0 steps, not made", n, len(PHASES), phase)
+            continue
         if record.done(phase):
             LOG.info("onboard %d/%d %s: done before, skipped", n, len(PHASES), phase)
             continue
