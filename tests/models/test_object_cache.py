@@ -147,3 +147,13 @@ def test_a_cache_that_cannot_be_written_warns_and_keeps_the_objects(bracket, tmp
     with pytest.warns(UserWarning, match="object 1 is not cached"):
         prepared = _prepare({1: bracket}, blocked)
     assert prepared[1].diameter == pytest.approx(bracket.diameter)
+
+
+def test_a_cached_preparation_equals_a_fresh_one_bit_for_bit(box, tmp_path):
+    config = FunFlow6DConfig(num_points=32, query_views=2, crop_size=32, verifier=None)
+    fresh = _prepare({1: box}, tmp_path, config)[1]  # cold: computed, then written
+    cached = _prepare({1: box}, tmp_path, config)[1]  # warm: read back
+    assert _entries(tmp_path) and fresh.bank is not None
+    assert torch.equal(fresh.bank.features, cached.bank.features)
+    rows = fresh.bank.features.flatten(0, -2)[:50]
+    assert torch.equal(fresh.reducer.transform(rows), cached.reducer.transform(rows))

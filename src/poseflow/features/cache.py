@@ -130,8 +130,7 @@ def cached_query_features(
         **settings: keyword settings of ``lift_query_features`` (part of the key).
 
     Returns:
-        The bank (features in float32; stored as float16 on disk, so a cached bank equals a fresh
-        one to about 1e-3 relative).
+        The bank (features in float32, stored so: a cached bank equals a fresh one exactly).
     """
     cache = cache if isinstance(cache, FeatureCache) else FeatureCache(cache)
     key_settings = {k: v for k, v in settings.items() if k != "renderer"}

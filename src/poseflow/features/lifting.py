@@ -373,10 +373,14 @@ class QueryFeatureBank:
         return self._fill_unseen(feats, visible.any(dim=1))
 
     def state(self) -> dict[str, torch.Tensor]:
-        """The bank as named tensors (features in float16, visibility as uint8) for safetensors."""
+        """The bank as named tensors (visibility as uint8) for safetensors.
+
+        The features keep their float32: a bank read back is the bank written, bit for bit, so
+        that a cached preparation estimates exactly as a fresh one.
+        """
         return {
             "points": self.points.detach().cpu().contiguous(),
-            "features": self.features.detach().cpu().to(torch.float16).contiguous(),
+            "features": self.features.detach().cpu().float().contiguous(),
             "visible": self.visible.detach().cpu().to(torch.uint8).contiguous(),
             "poses": self.poses.detach().cpu().contiguous(),
             "rolls": torch.tensor([self.rolls]),
@@ -384,7 +388,7 @@ class QueryFeatureBank:
 
     @classmethod
     def from_state(cls, state: dict[str, torch.Tensor]) -> QueryFeatureBank:
-        """Inverse of :meth:`state` (features come back in float32)."""
+        """Inverse of :meth:`state` (features in float32; older float16 entries are widened)."""
         return cls(
             state["points"],
             state["features"].float(),
