@@ -152,7 +152,9 @@ def prepare(model: FunFlow6D, objects: Mapping[int, Any] | None, cache: Path) ->
     if objects is None:
         objects = demo_object_map()
         missing = [
-            i for i, m in objects.items() if load_prepared_object(cache, i, m, model.config) is None
+            i
+            for i, m in objects.items()
+            if load_prepared_object(cache, i, m, model.config, model.appearance_encoder) is None
         ]
         if missing:
             raise SystemExit(f"{cache} lacks objects {missing}: run --phase features first")

@@ -204,7 +204,9 @@ def load_prepared_objects(model: FunFlow6D, root: Path, cache: Path, device: tor
     """
     models = load_object_models(root)
     missing = [
-        i for i in sorted(models) if load_prepared_object(cache, i, models[i], model.config) is None
+        i
+        for i in sorted(models)
+        if load_prepared_object(cache, i, models[i], model.config, model.appearance_encoder) is None
     ]
     if missing:
         raise SystemExit(

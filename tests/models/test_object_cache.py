@@ -157,3 +157,20 @@ def test_a_cached_preparation_equals_a_fresh_one_bit_for_bit(box, tmp_path):
     assert torch.equal(fresh.bank.features, cached.bank.features)
     rows = fresh.bank.features.flatten(0, -2)[:50]
     assert torch.equal(fresh.reducer.transform(rows), cached.reducer.transform(rows))
+
+
+def test_an_encoder_retrained_in_place_gets_new_entries(box, tmp_path):
+    from poseflow.features.learned import DescriptorNet, save_descriptor
+
+    folder = tmp_path / "descriptor"
+    config = FunFlow6DConfig(
+        num_points=32, query_views=2, crop_size=32, verifier=None,
+        appearance_encoder=f"learned:{folder}", feature_dim=4,
+    )  # fmt: skip
+    banks = []
+    for seed in (0, 1, 0):  # trained, retrained into the same folder, back to the first
+        torch.manual_seed(seed)
+        save_descriptor(DescriptorNet(widths=(8, 16), dim=8, out_stride=2), folder, input_size=32)
+        banks.append(_prepare({1: box}, tmp_path / "cache", config)[1].bank.features)
+    assert len(_entries(tmp_path / "cache")) == 2  # one per weights, not per folder name
+    assert not torch.equal(banks[0], banks[1]) and torch.equal(banks[0], banks[2])

@@ -140,18 +140,28 @@ class PreparedObject:
         )
 
 
-def object_fingerprint(config: FunFlow6DConfig) -> dict[str, Any]:
-    """The configuration fields a prepared object depends on (the key of the on-disk cache).
+def object_fingerprint(
+    config: FunFlow6DConfig, appearance_encoder: AppearanceEncoder | None = None
+) -> dict[str, Any]:
+    """What a prepared object depends on besides its mesh (the key of the on-disk cache).
+
+    The configuration fields, and for a network encoder (one with a ``weights_key``: the learned
+    descriptor, a surface embedding) the hash of its weights in place of its folder: an
+    embedding retrained in place gets new entries, a model folder moved elsewhere keeps its own.
 
     Example:
         >>> sorted(object_fingerprint(FunFlow6DConfig()))[:3]
         ['appearance_encoder', 'crop_size', 'feature_dim']
     """
+    appearance = config.appearance_encoder
+    weights = getattr(appearance_encoder, "weights_key", None)
+    if weights is not None:
+        appearance = f"{appearance.partition(':')[0]}@{weights}"
     out = {
         "num_points": config.num_points,
         "geometric_encoder": config.geometric_encoder,
         "geometric_radii": list(config.geometric_radii),
-        "appearance_encoder": config.appearance_encoder,
+        "appearance_encoder": appearance,
         "crop_size": config.crop_size,
         "query_views": config.query_views,
         "reducer": config.reducer,
@@ -196,7 +206,11 @@ def object_cache_entry(
 
 
 def load_prepared_object(
-    cache_dir: str | Path, obj_id: int, model: ObjectModel, config: FunFlow6DConfig
+    cache_dir: str | Path,
+    obj_id: int,
+    model: ObjectModel,
+    config: FunFlow6DConfig,
+    appearance_encoder: AppearanceEncoder | None = None,
 ) -> PreparedObject | None:
     """The cached preparation of ``model`` for ``config``, or None; never prepares.
 
@@ -205,12 +219,13 @@ def load_prepared_object(
         obj_id: the object's id.
         model: the object.
         config: the model configuration.
+        appearance_encoder: the model's appearance encoder (its weights are part of the key).
 
     Returns:
-        The :class:`PreparedObject`, or None when the cache holds none for this mesh, scale and
-        configuration (a damaged entry is removed with a warning).
+        The :class:`PreparedObject`, or None when the cache holds none for this mesh, scale,
+        configuration and encoder weights (a damaged entry is removed with a warning).
     """
-    fingerprint = object_fingerprint(config)
+    fingerprint = object_fingerprint(config, appearance_encoder)
     entry = object_cache_entry(cache_dir, obj_id, model, fingerprint)
     read = functools.partial(PreparedObject.load, fingerprint=fingerprint)
     return read_entry(entry, read, what=f"object {obj_id}")
@@ -331,7 +346,7 @@ def prepare_objects(
     Returns:
         ``{obj_id: PreparedObject}``.
     """
-    fingerprint = object_fingerprint(config)
+    fingerprint = object_fingerprint(config, appearance_encoder)
     out: dict[int, PreparedObject] = {}
     items = sorted(models.items())
     for obj_id, model in progress_loop(
@@ -339,7 +354,7 @@ def prepare_objects(
     ):
         prepared = None
         if cache_dir is not None:
-            prepared = load_prepared_object(cache_dir, obj_id, model, config)
+            prepared = load_prepared_object(cache_dir, obj_id, model, config, appearance_encoder)
         if prepared is None:
             prepared = prepare_object(
                 model,
