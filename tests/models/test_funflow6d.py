@@ -528,3 +528,18 @@ def test_the_encoders_networks_follow_the_model(device, tmp_path):
     assert not any(k.startswith("encoder") for k in load_file(tmp_path / "m" / "model.safetensors"))
     loaded = FunFlow6D.load(tmp_path / "m", device=device)
     assert {p.device.type for p in loaded.appearance_encoder.net.parameters()} == {device}
+
+
+def test_an_encoder_folder_given_relative_to_the_working_directory_is_found_from_anywhere(
+    tmp_path, monkeypatch
+):
+    from poseflow.features.learned import DescriptorNet, save_descriptor
+
+    monkeypatch.chdir(tmp_path)
+    save_descriptor(DescriptorNet(widths=(8, 16), dim=8, out_stride=2), "desc", input_size=32)
+    cfg = FunFlow6DConfig(num_points=32, dit_preset="tiny", crop_size=48,
+                          appearance_encoder="learned:desc", feature_dim=4)  # fmt: skip
+    FunFlow6D(cfg).save(tmp_path / "runs" / "m")
+    monkeypatch.chdir(tmp_path / "runs")  # another working directory
+    loaded = FunFlow6D.load("m")
+    assert loaded.appearance_encoder.source == str(tmp_path / "desc")

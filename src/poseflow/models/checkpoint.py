@@ -137,10 +137,11 @@ _ENCODER_FIELDS = ("appearance_encoder", "geometric_encoder")
 
 
 def _encoders_relative(config: FunFlow6DConfig, folder: Path) -> FunFlow6DConfig:
-    """``config`` with the encoder folders inside ``folder`` written relative to it.
+    """``config`` with its encoder folders written so that they are found from anywhere.
 
-    A model folder that holds its encoders (the onboarding's surface embedding) then works
-    copied or moved anywhere (:func:`_encoders_resolved` reads it back).
+    A folder inside ``folder`` is written relative to it (a model folder that holds its encoders,
+    as the onboarding's does, then works copied or moved: :func:`_encoders_resolved` reads it
+    back); another folder given relative to the working directory is written absolute.
 
     Example:
         >>> cfg = FunFlow6DConfig(appearance_encoder="surface:/runs/a/model/surface")
@@ -150,12 +151,13 @@ def _encoders_relative(config: FunFlow6DConfig, folder: Path) -> FunFlow6DConfig
     changes = {}
     for name in _ENCODER_FIELDS:
         kind, _, path = getattr(config, name).partition(":")
-        if path and Path(path).is_absolute():
-            try:
-                inside = Path(path).resolve().relative_to(folder.resolve())
-            except ValueError:
-                continue
-            changes[name] = f"{kind}:{inside.as_posix()}"
+        given = Path(path)
+        if not path or not (given.is_absolute() or given.exists()):
+            continue  # a name (dinov2:vits14), or already relative to the model folder
+        try:
+            changes[name] = f"{kind}:{given.resolve().relative_to(folder.resolve()).as_posix()}"
+        except ValueError:
+            changes[name] = f"{kind}:{given.resolve()}"
     return dataclasses.replace(config, **changes) if changes else config
 
 
