@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 # are slower while another process uses the cores. On free cores: make ... OMP_NUM_THREADS=N
 export OMP_NUM_THREADS ?= 1
 
-.PHONY: demo test test-slow lint docs docs-serve bench bench-unseen bench-quick venv sysdeps clean wheel-check
+.PHONY: demo test test-slow lint docs docs-serve docs-pictures bench bench-unseen bench-quick venv sysdeps clean wheel-check
 
 sysdeps:
 	@$(PYTHON) -c "import ctypes.util,sys; sys.exit(0 if all(ctypes.util.find_library(l) for l in ('usb-1.0','GL','EGL')) else 1)" \
@@ -37,6 +37,13 @@ lint: $(STAMP)
 # The API reference and guides (mkdocs.yml, docs/) into site/; offline, any warning fails it.
 docs: $(STAMP)
 	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict --site-dir site
+
+# The guides' pictures (docs/images/): an overlay and the timing chart of a fresh demo run.
+docs-pictures: $(STAMP)
+	rm -rf build/pictures && $(VENV)/bin/poseflow demo --images 2 --out build/pictures -q
+	mkdir -p docs/images
+	cp "$$(ls build/pictures/overlays/*.png | head -n 1)" docs/images/demo_overlay.png
+	cp build/pictures/timing.png docs/images/demo_timing.png
 
 # The built site at http://localhost:8000 (search runs in a web worker, which browsers refuse to
 # start from a file:// page; pages, links and pictures also work opened as files).
