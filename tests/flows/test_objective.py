@@ -70,11 +70,11 @@ def test_model_output_is_compared_in_full_precision() -> None:
 def test_step_random_shards_the_global_draw() -> None:
     x = torch.zeros(3, 4, 3)
     full = _rng(9)
-    noise, times = full.randn_like(torch.zeros(6, 4, 3)), full.time(6, "u_shaped")
+    noise, times = full.randn_like(torch.zeros(6, 4, 3)), full.time(6, "uniform")
     for rank in range(2):
         part = _rng(9, rank=rank, world_size=2)
         assert torch.equal(part.randn_like(x), noise[rank::2])
-        assert torch.equal(part.time(3, "u_shaped"), times[rank::2])
+        assert torch.equal(part.time(3, "uniform"), times[rank::2])
 
 
 def test_flow_batch_forms() -> None:

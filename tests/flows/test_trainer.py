@@ -210,7 +210,7 @@ def test_custom_objective_and_dataloader_input() -> None:
         x_1 = batch[0]
         fb = FlowBatch(x_1=x_1, cond={"condition": torch.zeros(*x_1.shape[:2], 4)})
         seen.append(x_1.shape)
-        return CFMObjective(time_sampler="logit_normal")(model, fb, rng), {"extra": x_1.mean()}
+        return CFMObjective(time_sampler="uniform")(model, fb, rng), {"extra": x_1.mean()}
 
     loader = torch.utils.data.DataLoader(
         torch.utils.data.TensorDataset(torch.randn(20, 6, 3)), batch_size=5

@@ -6,7 +6,7 @@ from pathlib import Path
 import pytest
 
 from poseflow.assets import DEMO_CHECKPOINT
-from poseflow.errors import MissingFileError, ValueRangeError
+from poseflow.errors import CheckpointError, MissingFileError, ValueRangeError
 from poseflow.flows import PRESETS
 from poseflow.models import (
     ABLATIONS,
@@ -19,8 +19,8 @@ from poseflow.models import (
     apply_overrides,
 )
 from poseflow.models.__main__ import main as write_configs
-from poseflow.models.checkpoint import read_checkpoint
-from poseflow.models.config import RENAMED_FIELDS
+from poseflow.models.checkpoint import read_checkpoint, write_checkpoint
+from poseflow.models.config import REMOVED_OPTIONS, RENAMED_FIELDS
 from poseflow.verify import VerifierConfig
 
 REPO = Path(__file__).resolve().parents[2]
@@ -87,7 +87,7 @@ def test_mappings_are_read_as_the_typed_parts():
         ("reducer", "tsne", "umap, pca, identity"),
         ("reducer", "pca:8", "umap, pca, identity"),
         ("pose_solver", "icp", "ransac, svd"),
-        ("anchor", "free", "pinned, noise"),
+        ("anchor", "noise", "pinned"),
         ("geometric_encoder", "fcgf", "fpfh, gedi, none"),
         ("appearance_encoder", "clip:vit", "dsift, dinov2, learned, surface, none"),
         ("dit_preset", "huge", ", ".join(PRESETS)),
@@ -177,6 +177,31 @@ def test_old_names_in_files_are_read_as_the_new_fields_silently():
         FunFlow6DConfig.from_dict({"verification": "yes"})
     for old_name in ("icp_thresholds", "verification", "verify_hypotheses"):
         assert old_name not in cfg.to_dict()
+
+
+def test_removed_options_at_their_kept_value_load_and_others_name_the_option(tmp_path):
+    # a config.json written while the options existed holds every field, at the defaults
+    old = FunFlow6DConfig().to_dict()
+    old["net"]["soft_match"] = False
+    cfg = FunFlow6DConfig.from_dict(old)
+    assert cfg == FunFlow6DConfig() and "soft_match" not in cfg.to_dict()["net"]
+    folder = write_checkpoint(tmp_path / "old", FunFlow6DConfig(), {})
+    (folder / "config.json").write_text(json.dumps(old))
+    assert read_checkpoint(folder)[0] == FunFlow6DConfig()
+    removed = {"net.soft_match": True, "anchor": "noise", "time_sampler": "logit_normal"}
+    assert set(removed) == set(REMOVED_OPTIONS)
+    for key, value in removed.items():
+        data = json.loads(json.dumps(old))
+        *parents, name = key.split(".")
+        holder = data[parents[0]] if parents else data
+        holder[name] = value
+        with pytest.raises(ValueRangeError, match=rf"{key}={value!r}: this option was removed"):
+            FunFlow6DConfig.from_dict(data)
+        (folder / "config.json").write_text(json.dumps(data))
+        with pytest.raises(CheckpointError, match=f"{key}.*removed.*commit"):
+            read_checkpoint(folder)
+    with pytest.raises(ValueRangeError, match="soft_match"):
+        apply_overrides(FunFlow6DConfig(), {"net.soft_match": True})
 
 
 def test_the_shipped_checkpoint_keeps_its_settings_under_the_new_names():

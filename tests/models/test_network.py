@@ -1,10 +1,7 @@
 import dataclasses
-import math
 
 import pytest
 import torch
-from hypothesis import given, settings
-from hypothesis import strategies as st
 
 from poseflow.models import DiTOverrides, FunFlow6DNet, NetConfig, NetInputs
 
@@ -189,37 +186,3 @@ def test_sampling_uses_the_dits_fixed_query_shortcuts_without_changing_samples(
     plain = run()
     assert seen == [(True, 4 if pinned and not noise_conditioning else 1)] * 4
     torch.testing.assert_close(fast, plain, rtol=0, atol=1e-12)
-
-
-@settings(deadline=None, max_examples=25)
-@given(seed=st.integers(0, 2**31 - 1), dtype=st.sampled_from([torch.float32, torch.float64]))
-def test_soft_match_finds_the_query_point_a_target_copies(seed, dtype):
-    g = torch.Generator().manual_seed(seed)
-    net = FunFlow6DNet(dataclasses.replace(CFG, soft_match=True)).to(dtype)
-    with torch.no_grad():
-        net.match_log_scale.fill_(math.log(200.0))  # a sharp softmax
-    inputs, _ = _inputs(n=5, seed=seed)
-    inputs = NetInputs(**{k: v.to(dtype) for k, v in inputs.net_kwargs().items()})
-    basis = torch.linalg.qr(torch.randn(5, 5, generator=g, dtype=torch.float64))[0].to(dtype)
-    order = torch.randperm(5, generator=g)
-    inputs.semantic[:, :5] = basis  # orthogonal query descriptors
-    inputs.semantic[:, 5:] = basis[order]  # target i shows query point order[i]
-    out = net.soft_match(inputs)
-    assert out.shape == (2, 10, 4) and out.dtype == dtype
-    assert torch.equal(out[:, :5, :3], inputs.points[:, :5]) and (out[:, :5, 3] == 1).all()
-    tol = 1e-5 if dtype == torch.float32 else 1e-12
-    assert torch.allclose(out[:, 5:, :3], inputs.points[:, order], atol=tol)
-    assert (out[:, 5:, 3] > 0.9).all()
-
-
-def test_soft_match_widens_the_condition_and_trains():
-    torch.manual_seed(0)
-    cfg = dataclasses.replace(CFG, soft_match=True)
-    net = FunFlow6DNet(cfg)
-    assert net.dit.config.cond_dim == CFG.feature_dim + CFG.posenc_dim + 4
-    for p in net.dit.parameters():
-        torch.nn.init.normal_(p, std=0.05)
-    inputs, x_0 = _inputs()
-    assert net.condition(inputs, x_0=x_0).shape[-1] == net.dit.config.cond_dim
-    net(x=torch.randn(2, 10, 3), t=torch.rand(2), inputs=inputs, x_0=x_0).square().sum().backward()
-    assert net.match_log_scale.grad.abs() > 0 and net.match_projection.weight.grad.abs().sum() > 0

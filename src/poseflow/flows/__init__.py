@@ -64,9 +64,7 @@ from poseflow.flows.samplers import (
 from poseflow.flows.schedule import warmup_cosine_lr
 from poseflow.flows.timesteps import (
     TIME_SAMPLERS,
-    logit_normal_time,
     sample_time,
-    u_shaped_time,
     uniform_time,
 )
 from poseflow.flows.trainer import CFMTrainer, Objective, TrainConfig, ValidateHook
@@ -113,7 +111,6 @@ __all__ = [
     "initial_noise",
     "latest_checkpoint",
     "load_checkpoint",
-    "logit_normal_time",
     "main_rank_succeeded",
     "native_bfloat16",
     "nearest_equivalent",
@@ -125,7 +122,6 @@ __all__ = [
     "sample_time",
     "save_checkpoint",
     "sinusoidal_time_embedding",
-    "u_shaped_time",
     "unflatten_optimizer_state",
     "uniform_time",
     "warmup_cosine_lr",

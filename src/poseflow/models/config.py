@@ -58,6 +58,7 @@ __all__ = [
     "INFERENCE_FIELDS",
     "POSE_SOLVERS",
     "RECIPES",
+    "REMOVED_OPTIONS",
     "RENAMED_FIELDS",
     "DiTOverrides",
     "FunFlow6DConfig",
@@ -71,7 +72,7 @@ __all__ = [
 #: Names of :attr:`FunFlow6DConfig.pose_solver`.
 POSE_SOLVERS: tuple[str, ...] = ("ransac", "svd")
 #: Names of :attr:`FunFlow6DConfig.anchor`.
-ANCHORS: tuple[str, ...] = ("pinned", "noise")
+ANCHORS: tuple[str, ...] = ("pinned",)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -129,10 +130,6 @@ class DiTOverrides:
         return config_from_dict(cls, data)
 
 
-#: Condition channels of :attr:`NetOptions.soft_match`: a position and its confidence.
-SOFT_MATCH_CHANNELS = 4
-
-
 @dataclass(frozen=True, kw_only=True)
 class NetOptions:
     """The free sizes of the trainable network (the rest follows from the method's choices).
@@ -143,10 +140,6 @@ class NetOptions:
         posenc_dim: positional channels ``d_P``.
         posenc_frequencies: octaves of the sinusoidal embedding of each attribute.
         dit: changes to the DiT preset (a mapping is read with :meth:`DiTOverrides.from_dict`).
-        soft_match: each target point's condition also holds the query position its semantic
-            descriptor matches, softly (attention of the target's descriptors over the query's,
-            through a learned projection and temperature trained with the flow), and the
-            attention's peak as its confidence; a query point holds its own position and 1.
     """
 
     fusion_heads: int = 4
@@ -154,7 +147,6 @@ class NetOptions:
     posenc_dim: int = 64
     posenc_frequencies: int = 6
     dit: DiTOverrides = field(default_factory=DiTOverrides)
-    soft_match: bool = False
 
     def __post_init__(self) -> None:
         """Read a mapping ``dit``; validate the types and sizes."""
@@ -213,11 +205,8 @@ class NetConfig(NetOptions):
         self.dit_config()
 
     def dit_config(self) -> PointDiTConfig:
-        """The DiT's configuration: the preset, the overrides and ``cond_dim = D + d_P (+ 4)``."""
-        extra = SOFT_MATCH_CHANNELS if self.soft_match else 0
-        return self.dit.resolve(
-            self.dit_preset, cond_dim=self.feature_dim + self.posenc_dim + extra
-        )
+        """The DiT's configuration: the preset, the overrides and ``cond_dim = D + d_P``."""
+        return self.dit.resolve(self.dit_preset, cond_dim=self.feature_dim + self.posenc_dim)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -252,15 +241,14 @@ class FunFlow6DConfig:
         feature_dim: fused channels ``D`` (paper: 64); also the reducer's output size.
         fusion: ``"gated"`` (paper), ``"cross"``, ``"concat_mlp"`` or ``"sum"``.
         dit_preset: ``"paper"``, ``"small"`` or ``"tiny"``.
-        anchor: ``"pinned"``: the query sits at its canonical coordinates along the whole path
-            in training and sampling; ``"noise"``: the paper's equations read literally (the
-            anchor is interpolated in training and stays at its noise sample in sampling).
+        anchor: ``"pinned"`` (the only value): the query sits at its canonical coordinates
+            along the whole path in training and sampling (see :data:`REMOVED_OPTIONS`).
         noise_conditioning: give each point's noise coordinates ``X(0)`` to the positional
             encoder, as the paper does. With them, ``X(1) - X(0) = (X(t) - X(0)) / t`` can be read
             off the input for ``t > 0``, so training concentrates on small ``t``; False replaces
             them by zeros (both are measured in ``benchmarks/LOG.md``).
-        time_sampler: training-time distribution (``"uniform"`` is the paper's; see
-            :data:`~poseflow.flows.TIME_SAMPLERS`).
+        time_sampler: training-time distribution, ``"uniform"`` (the paper's and the only
+            value; see :data:`~poseflow.flows.TIME_SAMPLERS` and :data:`REMOVED_OPTIONS`).
         solver: ODE solver (``"euler"`` is the paper's, also ``"midpoint"``, ``"heun"``,
             ``"rk4"``).
         steps: integration steps ``K`` (paper: 50).
@@ -476,10 +464,31 @@ class FunFlow6DConfig:
 
         Files written by older versions load as they were meant, silently (checkpoints are
         data): the keys of :data:`RENAMED_FIELDS` under their new names, ``verification: false``
-        as ``verifier: null``, ``verify_hypotheses`` as ``verifier.rank_hypotheses``, and the
-        network options of files from before they were typed.
+        as ``verifier: null``, ``verify_hypotheses`` as ``verifier.rank_hypotheses``, the
+        network options of files from before they were typed, and the options of
+        :data:`REMOVED_OPTIONS` at the value every configuration now has.
+
+        Raises:
+            ValueRangeError: an unknown key, a bad value, or a removed option set to another
+                value than the kept one (the message names the option).
         """
         return config_from_dict(cls, _upgrade(data))
+
+
+#: Options removed from the configuration, by dotted key, with the value every configuration now
+#: has: a field removed (``net.soft_match``, measured and not adopted) or a field whose other
+#: values were removed (never measured). A file that holds one at this value loads as before
+#: (a removed field is dropped); another value raises :class:`~poseflow.errors.ValueRangeError`
+#: naming the option. ``benchmarks/LOG.md`` ("2026-12-07: configuration options removed") says
+#: why, and names the last commit that had them.
+REMOVED_OPTIONS: dict[str, Any] = {
+    "net.soft_match": False,
+    "anchor": "pinned",
+    "time_sampler": "uniform",
+}
+
+#: The last commit whose configuration had the options of :data:`REMOVED_OPTIONS`.
+_REMOVED_AFTER = "4448b08"
 
 
 #: Keys of configuration files written before a field was renamed, and the field they are read
@@ -513,7 +522,9 @@ def _upgrade(data: Mapping[str, Any]) -> dict[str, Any]:
       (its default when absent); ``verify_hypotheses`` is ``verifier.rank_hypotheses``;
     - a ``fusion`` or ``dit_preset`` inside ``net`` (which then overrode the top-level field)
       becomes the top-level field, and a ``cond_dim`` inside ``net.dit`` (always replaced by
-      ``D + d_P``) is dropped.
+      ``D + d_P``) is dropped;
+    - an option of :data:`REMOVED_OPTIONS` at its kept value is dropped if its field was
+      removed; at another value it raises :class:`~poseflow.errors.ValueRangeError`.
     """
     data = dict(data)
     for old, new in RENAMED_FIELDS.items():
@@ -539,6 +550,31 @@ def _upgrade(data: Mapping[str, Any]) -> dict[str, Any]:
         if isinstance(net.get("dit"), Mapping):
             net["dit"] = {k: v for k, v in net["dit"].items() if k != "cond_dim"}
         data["net"] = net
+    return _drop_removed(data)
+
+
+def _drop_removed(data: dict[str, Any]) -> dict[str, Any]:
+    """``data`` without the removed fields of :data:`REMOVED_OPTIONS` (at their kept value).
+
+    Raises:
+        ValueRangeError: a removed option at another value than the kept one.
+    """
+    for key, kept in REMOVED_OPTIONS.items():
+        *parents, name = key.split(".")
+        holder: Any = data
+        for parent in parents:  # _upgrade made data["net"] a dict of its own
+            holder = holder.get(parent) if isinstance(holder, dict) else None
+        if not isinstance(holder, dict) or name not in holder:
+            continue
+        if holder[name] != kept:
+            raise ValueRangeError(
+                f"{key}={holder[name]!r}: this option was removed (only {kept!r} remains; see "
+                f"benchmarks/LOG.md, 2026-12-07); a model trained with it needs poseflow at "
+                f"commit {_REMOVED_AFTER} or earlier"
+            )
+        cls = NetOptions if parents else FunFlow6DConfig
+        if name not in {f.name for f in dataclasses.fields(cls)}:
+            del holder[name]
     return data
 
 

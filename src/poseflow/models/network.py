@@ -6,18 +6,14 @@ positional channels.
 
 The fusion block is applied to the query and the target clouds independently, as in the paper:
 ``[Q ; T]`` is folded to ``(2B, N, D)`` so that one call fuses both without letting points of one
-cloud attend to the other. With ``soft_match`` (:meth:`FunFlow6DNet.soft_match`) the condition
-also holds, for each target point, the query position its descriptor matches: the one place
-where the target's descriptors meet the query's before the DiT. None of this depends on the
-flow state, so :meth:`FunFlow6DNet.condition` is computed once per estimate and the sampler
-calls only the DiT.
+cloud attend to the other. None of this depends on the flow state, so
+:meth:`FunFlow6DNet.condition` is computed once per estimate and the sampler calls only the DiT.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import functools
-import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, Self
@@ -36,9 +32,6 @@ from poseflow.fusion import build_fusion
 from poseflow.models.config import NetConfig
 
 __all__ = ["FunFlow6DNet", "NetInputs"]
-
-#: The soft match's initial cosine scale: a contrastive embedding's usual temperature, 0.07.
-_SOFT_MATCH_SCALE = 1 / 0.07
 
 
 @dataclass(kw_only=True)
@@ -138,11 +131,6 @@ class FunFlow6DNet(nn.Module):
         self.fusion = build_fusion(cfg.fusion, **kwargs)
         self.posenc = PointPositionalEncoder(cfg.posenc_dim, num_frequencies=cfg.posenc_frequencies)
         self.dit = PointDiT(cfg.dit_config())
-        if cfg.soft_match:
-            self.match_projection = nn.Linear(cfg.semantic_dim, cfg.semantic_dim)
-            nn.init.eye_(self.match_projection.weight)
-            nn.init.zeros_(self.match_projection.bias)
-            self.match_log_scale = nn.Parameter(torch.tensor(math.log(_SOFT_MATCH_SCALE)))
 
     def condition(self, inputs: NetInputs, *, x_0: torch.Tensor) -> torch.Tensor:
         """The conditioning signal ``C = [F | P]`` of ``[Q ; T]``.
@@ -153,7 +141,7 @@ class FunFlow6DNet(nn.Module):
                 encoder without ``config.noise_conditioning``).
 
         Returns:
-            ``(B, 2N, D + d_P)`` (``+ 4`` with ``soft_match``).
+            ``(B, 2N, D + d_P)``.
         """
         sizes = check_tensor(inputs.points, "points", ("B", "L", 3))
         if sizes["L"] % 2:
@@ -177,28 +165,7 @@ class FunFlow6DNet(nn.Module):
         if not cfg.noise_conditioning:
             x_0 = torch.zeros_like(x_0)
         pos = self.posenc(inputs.points, inputs.normals, x_0, is_target)
-        if not cfg.soft_match:
-            return torch.cat([fused, pos], dim=-1)
-        return torch.cat([fused, pos, self.soft_match(inputs).to(fused.dtype)], dim=-1)
-
-    def soft_match(self, inputs: NetInputs) -> torch.Tensor:
-        """``(B, 2N, 4)``: each point's softly matched query position and its confidence.
-
-        A target point attends over the query's points by the cosine of their projected
-        semantic descriptors at a learned scale; its entry is the attention's mean of the
-        query's positions and the attention's peak. A query point's is its own position and 1.
-        """
-        points = inputs.points
-        n = points.shape[1] // 2
-        d = nn.functional.normalize(self.match_projection(inputs.semantic.to(points.dtype)), dim=-1)
-        logits = d[:, n:] @ d[:, :n].transpose(1, 2) * self.match_log_scale.exp()
-        if inputs.mask is not None:
-            logits = logits.masked_fill(~inputs.mask[:, None, :n], -torch.inf)
-        attention = logits.softmax(-1)  # (B, N, N)
-        guess = attention @ points[:, :n]
-        confidence = attention.amax(-1, keepdim=True)
-        query = torch.cat([points[:, :n], torch.ones_like(confidence)], -1)
-        return torch.cat([query, torch.cat([guess, confidence], -1)], 1)
+        return torch.cat([fused, pos], dim=-1)
 
     @torch.no_grad()
     def sample(
