@@ -186,21 +186,71 @@ def training_batch(
     )
     depth = near[:, 0] / a[:, None, None]
     inst = near[:, 1].round().long()
+    rgb, depth, inst, labels = _paste(rgb, depth, inst, data.labels[pick], generator)
     rgb, depth = _jitter(rgb, depth, generator)
     x = detector_inputs(rgb, depth, torch.full((batch_size,), input_focal))
-    return x, detector_targets(inst, data.labels[pick], len(data.obj_ids))
+    return x, detector_targets(inst, labels, len(data.obj_ids))
+
+
+def _paste(
+    rgb: torch.Tensor,
+    depth: torch.Tensor,
+    inst: torch.Tensor,
+    labels: torch.Tensor,
+    g: torch.Generator,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Paste a box of another crop in front of half the crops (copy-paste occlusion).
+
+    The box keeps its colour, its instances (with their labels) and its depth's relief, brought
+    5-30 cm nearer than this crop's median depth; what it covers is no longer visible.
+
+    Returns:
+        Colour, depth, instance maps and the label table ``(B, 2L)`` of both crops' instances.
+    """
+    b, _, h, w = rgb.shape
+    donor = torch.roll(torch.arange(b), 1)
+    sides = torch.empty(b, 2).uniform_(0.15, 0.45, generator=g) * torch.tensor([h, w])
+    corner = torch.rand(b, 2, generator=g) * (torch.tensor([h, w]) - sides)
+    ys, xs = torch.arange(h)[None, :, None], torch.arange(w)[None, None, :]
+    y0, x0 = corner[:, 0, None, None], corner[:, 1, None, None]
+    y1, x1 = y0 + sides[:, 0, None, None], x0 + sides[:, 1, None, None]
+    box = (ys >= y0) & (ys < y1) & (xs >= x0) & (xs < x1)
+    box &= (torch.rand(b, generator=g) < 0.5)[:, None, None]
+    z = torch.where(depth > 0, depth, torch.full_like(depth, float("nan")))
+    median = z.flatten(1).nanmedian(dim=1).values.nan_to_num(1.0)
+    near = median - torch.empty(b).uniform_(0.05, 0.3, generator=g)
+    relief = depth[donor] - median[donor, None, None]
+    pasted = torch.where(depth[donor] > 0, (near[:, None, None] + relief).clamp_min(0.05), 0.0)
+    donor_inst = torch.where(inst[donor] > 0, inst[donor] + labels.shape[1], 0)
+    return (
+        torch.where(box[:, None], rgb[donor], rgb),
+        torch.where(box, pasted, depth),
+        torch.where(box, donor_inst, inst),
+        torch.cat([labels, labels[donor]], dim=1),
+    )
+
+
+def _shadow(b: int, h: int, w: int, g: torch.Generator) -> torch.Tensor:
+    """Multiplicative shading ``(B, 1, H, W)``: smooth random dark patches on half the crops."""
+    field = F.interpolate(torch.rand(b, 1, 4, 4, generator=g), size=(h, w), mode="bicubic")
+    cast = (field - 0.5).mul(8).sigmoid()  # soft-edged blobs
+    depth_of_shadow = torch.empty(b, 1, 1, 1).uniform_(0.0, 0.6, generator=g)
+    depth_of_shadow *= torch.rand(b, 1, 1, 1, generator=g) < 0.5
+    return 1 - depth_of_shadow * cast
 
 
 def _jitter(
     rgb: torch.Tensor, depth: torch.Tensor, g: torch.Generator
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Colour gain, brightness, contrast, grey and noise; depth noise and dropped pixels."""
+    """Colour gain, brightness, contrast, shadows, blur, grey and noise; depth noise and holes."""
     b = len(rgb)
 
     def u(lo: float, hi: float, *shape: int) -> torch.Tensor:
         return torch.empty(b, *shape).uniform_(lo, hi, generator=g)
 
-    rgb = rgb * u(0.8, 1.2, 3, 1, 1) * u(0.6, 1.4, 1, 1, 1)
+    rgb = rgb * u(0.8, 1.2, 3, 1, 1) * u(0.6, 1.4, 1, 1, 1) * _shadow(b, *rgb.shape[-2:], g)
+    blurred = F.avg_pool2d(F.pad(rgb, (1, 1, 1, 1), mode="replicate"), 3, stride=1)
+    rgb = torch.where(torch.rand(b, 1, 1, 1, generator=g) < 0.3, blurred, rgb)
     mean = rgb.mean(dim=(1, 2, 3), keepdim=True)
     rgb = (rgb - mean) * u(0.7, 1.3, 1, 1, 1) + mean
     grey = torch.rand(b, 1, 1, 1, generator=g) < 0.1
