@@ -181,7 +181,7 @@ def test_polish_moves_a_pose_off_by_millimetres_back(
     torch.testing.assert_close(
         total,
         polisher.score(image, polished[:, None], boxes=boxes).total[:, 0],
-        atol=1e-9 if double else 1e-4,
+        atol=1e-9 if double else 1e-3,  # float32 sums over the crop: ~3e-4 apart seen
         rtol=0,
     )
     # one pixel of the 48-pixel crop is about 4 mm on this 15 cm box

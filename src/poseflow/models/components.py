@@ -157,7 +157,8 @@ def encoder_networks(**encoders: object) -> dict[str, nn.Module]:
 
     Example:
         >>> from poseflow.features.learned import DescriptorNet, LearnedAppearanceEncoder
-        >>> enc = LearnedAppearanceEncoder(DescriptorNet(widths=(8, 16), dim=4), input_size=32)
+        >>> net = DescriptorNet(widths=(8, 16), dim=4, out_stride=2)
+        >>> enc = LearnedAppearanceEncoder(net, input_size=32)
         >>> list(encoder_networks(appearance=enc, geometric=None))
         ['appearance_net']
     """
