@@ -256,12 +256,11 @@ def check_depth_extent(
     Each mask's valid depth, clamped to half the object's diameter around its median (so that
     the far background a loose mask takes in does not count), is back-projected and its robust
     extent (twice the 90th percentile of the distances to the median point) compared with the
-    object's diameter: a depth in the
-    wrong unit scales every extent by one factor (10 for 0.1 mm read as millimetres), while its
-    median alone can still look plausible. Judged on the instances with at least ``min_points``
-    valid pixels, the depth is too large when the median ratio exceeds 3, too small when even
-    the largest is below 1/20, or below 1/3 with the masked depth nearer than
-    :data:`NEAR_DEPTH` (:data:`EXTENT_RATIO_RANGE` says why).
+    object's diameter: a depth in the wrong unit scales every extent by one factor (10 for
+    0.1 mm read as millimetres), while its median alone can still look plausible. Judged on the
+    instances with at least ``min_points`` valid pixels, the depth is too large when the median
+    ratio exceeds 3, too small when even the largest is below 1/20, or below 1/3 with the masked
+    depth nearer than :data:`NEAR_DEPTH` (:data:`EXTENT_RATIO_RANGE` says why).
 
     Args:
         depth: depth ``(H, W)``, metres; 0 or NaN where missing.
@@ -346,8 +345,8 @@ def _extent_ratios(
         # depth within half a diameter of the median: the background a loose mask takes in
         # (far behind the object) must not count as the object's extent; a depth in the
         # wrong unit still scales the lateral extent by its factor
-        half = float(diameters[i]) / 2
-        z = z.clamp(float(z.median()) - half, float(z.median()) + half)
+        middle, half = float(z.median()), float(diameters[i]) / 2
+        z = z.clamp(middle - half, middle + half)
         pts = torch.stack([(u.double() - cx) * z / fx, (v.double() - cy) * z / fy, z], dim=1)
         ratios[i] = _extent(pts) / float(diameters[i])
     return ratios

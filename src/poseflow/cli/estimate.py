@@ -264,12 +264,13 @@ def _method(args: argparse.Namespace) -> str:
     return method
 
 
-def _estimator(args: argparse.Namespace, objects: dict[int, Any], progress: bool) -> Any:
-    """The estimator of ``--method`` and its name."""
+def _estimator(
+    args: argparse.Namespace, method: str, objects: dict[int, Any], progress: bool
+) -> Any:
+    """The estimator of ``method`` (:func:`_method`) and its name."""
     from poseflow.baselines import ClassicBaseline
     from poseflow.cli.common import LOG, load_model, resolve_device, resolve_model
 
-    method = _method(args)
     if method == "baseline":
         LOG.info("estimating with the classic baseline (FPFH + RANSAC + ICP)")
         return ClassicBaseline(objects, seed=args.seed).estimator(), METHOD_LABELS[method]
@@ -306,7 +307,7 @@ def _run(args: argparse.Namespace) -> int:
     from poseflow.cli.common import check_writable, show_progress
     from poseflow.eval.frame import estimate_frame, write_poses_json
 
-    _method(args)
+    method = _method(args)  # a usage error before any work
     detector, detector_dir = None, None
     if not args.mask and args.detections is None:
         from poseflow.cli.detect import load_detector
@@ -322,11 +323,11 @@ def _run(args: argparse.Namespace) -> int:
     progress = show_progress(args)
     objects = load_meshes(args.mesh, mesh_scale=args.mesh_scale, progress=progress)
     frame = _read_checked_frame(args, objects, detector)
-    estimator, method = _estimator(args, objects, progress)
+    estimator, name = _estimator(args, method, objects, progress)
     diameters = {o: m.diameter for o, m in objects.items()}
     result = estimate_frame(estimator, frame, diameters=diameters)
     meta = {
-        "method": method,
+        "method": name,
         "rgb": str(args.rgb),
         "depth": str(args.depth),
         "depth_scale": frame.depth_scale,
@@ -339,12 +340,12 @@ def _run(args: argparse.Namespace) -> int:
         meta["missed"] = missed
     write_poses_json(out / "poses.json", result, meta=meta)
     notes = [f"obj {o}: not found" for o in missed]
-    _write_overlay(out / "overlay.png", frame, objects, result, method, notes)
+    _write_overlay(out / "overlay.png", frame, objects, result, name, notes)
     for o in missed:
         print(f"obj {o}: not found by the detector")
     if args.view:
-        _write_view(out, frame, objects, result, method, name=f"{method}: {args.rgb}")
-    _print_poses(result, method, out)
+        _write_view(out, frame, objects, result, name, name=f"{name}: {args.rgb}")
+    _print_poses(result, name, out)
     return 0
 
 

@@ -24,6 +24,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from poseflow.cli.common import nonnegative_int, positive_int
+
 __all__ = ["DESCRIPTION", "HELP", "PHASES", "add_arguments", "run"]
 
 #: ``onboard``'s line in ``poseflow --help``.
@@ -56,20 +58,27 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--mesh-scale", type=float, default=0.001, help="factor from the meshes' units to metres"
     )
-    parser.add_argument("--images", type=int, default=3200, help="training images to render")
+    parser.add_argument(
+        "--images", type=positive_int, default=3200, help="training images to render"
+    )
     parser.add_argument(
         "--surface-steps",
-        type=int,
+        type=nonnegative_int,
         default=10000,
         help="embedding steps (0: no embedding; FunFlow6D keeps its configuration's encoder)",
     )
     parser.add_argument(
-        "--surface-images", type=int, default=1600, help="images the embedding learns from"
+        "--surface-images", type=positive_int, default=1600, help="images the embedding learns from"
     )
     parser.add_argument(
-        "--detector-steps", type=int, default=4000, help="detector steps (0: no detector)"
+        "--detector-steps",
+        type=nonnegative_int,
+        default=4000,
+        help="detector steps (0: no detector)",
     )
-    parser.add_argument("--steps", type=int, default=10000, help="FunFlow6D training steps")
+    parser.add_argument(
+        "--steps", type=positive_int, default=10000, help="FunFlow6D training steps"
+    )
     parser.add_argument(
         "--config", default="learned_small", help="FunFlow6D's configuration (recipe name or JSON)"
     )
@@ -137,14 +146,8 @@ def run(args: argparse.Namespace) -> int:
     """Run the phases not yet finished; prints each phase's minutes. Returns 0."""
     from poseflow.cli import main as poseflow
     from poseflow.cli.common import LOG, check_writable
-    from poseflow.errors import PoseflowError, UsageError
+    from poseflow.errors import PoseflowError
 
-    for name in ("images", "surface_images", "steps"):
-        if getattr(args, name) < 1:
-            raise UsageError(f"--{name.replace('_', '-')} must be at least 1")
-    for name in ("surface_steps", "detector_steps"):
-        if getattr(args, name) < 0:
-            raise UsageError(f"--{name.replace('_', '-')} must be 0 (none) or more")
     models = _models_folder(args.meshes)
     out = check_writable(args.out, folder=True)
     record = _Record(out / "onboard.json", _settings(args, models))

@@ -292,7 +292,7 @@ def overlay_poses(
     ren = renderer if renderer is not None else Renderer(meshes)
     est = _Estimates.of(poses, object_ids, scores, valid, color)
     out, edges, covered_by = _tint_estimates(grey, ren, K, est, alpha, outline_width)
-    covered = covered_by.any(dim=0) if len(covered_by) else torch.zeros(H, W, dtype=torch.bool)
+    covered = covered_by.any(dim=0)
     gt = _gt_outline(ren, K, gt_poses, gt_object_ids, outline_width, H, W)
     if gt is not None:
         edges.insert(0, (gt[0], gt_color))
@@ -414,7 +414,7 @@ def _draw_axes(
     draw = ImageDraw.Draw(img)
     width = max(1, round(picture.shape[0] / 200))
     for i in range(len(est.colours)):
-        area = int(covered[i].sum()) if i < len(covered) else 0
+        area = int(covered[i].sum())
         T = est.poses[i].to(torch.float64)
         if area == 0 or not bool(torch.isfinite(T).all()) or float(T[2, 3]) <= 0:
             continue
@@ -424,7 +424,8 @@ def _draw_axes(
         )
         if bool((ends[:, 2] <= 0).any()):
             continue
-        uv = (ends @ Kd.T)[:, :2] / (ends @ Kd.T)[:, 2:]
+        projected = ends @ Kd.T
+        uv = projected[:, :2] / projected[:, 2:]
         for k in (2, 0, 1):  # z first: x and y, in the image plane mostly, stay on top
             draw.line(
                 [tuple(uv[0].tolist()), tuple(uv[k + 1].tolist())], fill=AXIS_COLORS[k], width=width

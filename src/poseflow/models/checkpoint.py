@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -148,17 +149,16 @@ def _encoders_relative(config: FunFlow6DConfig, folder: Path) -> FunFlow6DConfig
         >>> _encoders_relative(cfg, Path("/runs/a/model")).appearance_encoder
         'surface:surface'
     """
-    changes = {}
-    for name in _ENCODER_FIELDS:
-        kind, _, path = getattr(config, name).partition(":")
-        given = Path(path)
-        if not path or not (given.is_absolute() or given.exists()):
-            continue  # a name (dinov2:vits14), or already relative to the model folder
+
+    def place(given: Path) -> str | None:
+        if not (given.is_absolute() or given.exists()):
+            return None  # a name (dinov2:vits14), or already relative to the model folder
         try:
-            changes[name] = f"{kind}:{given.resolve().relative_to(folder.resolve()).as_posix()}"
+            return given.resolve().relative_to(folder.resolve()).as_posix()
         except ValueError:
-            changes[name] = f"{kind}:{given.resolve()}"
-    return dataclasses.replace(config, **changes) if changes else config
+            return str(given.resolve())
+
+    return _replace_encoder_paths(config, place)
 
 
 def _encoders_resolved(config: FunFlow6DConfig, folder: Path) -> FunFlow6DConfig:
@@ -166,9 +166,22 @@ def _encoders_resolved(config: FunFlow6DConfig, folder: Path) -> FunFlow6DConfig
 
     Other relative paths stay as written (relative to the working directory).
     """
+
+    def place(given: Path) -> str | None:
+        inside = folder / given
+        return str(inside.resolve()) if not given.is_absolute() and inside.exists() else None
+
+    return _replace_encoder_paths(config, place)
+
+
+def _replace_encoder_paths(
+    config: FunFlow6DConfig, place: Callable[[Path], str | None]
+) -> FunFlow6DConfig:
+    """``config`` with each encoder's ``kind:PATH`` given the path ``place(PATH)`` (None: kept)."""
     changes = {}
     for name in _ENCODER_FIELDS:
         kind, _, path = getattr(config, name).partition(":")
-        if path and not Path(path).is_absolute() and (folder / path).exists():
-            changes[name] = f"{kind}:{(folder / path).resolve()}"
+        new = place(Path(path)) if path else None
+        if new is not None:
+            changes[name] = f"{kind}:{new}"
     return dataclasses.replace(config, **changes) if changes else config

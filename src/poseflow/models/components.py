@@ -152,8 +152,7 @@ def encoder_networks(**encoders: object) -> dict[str, nn.Module]:
     """The networks inside frozen encoders, named ``{encoder}_{attribute}``.
 
     An encoder is a plain object that holds its network (DINOv2's ``model``, the learned
-    descriptor's ``net``, ...); a model registers these as its submodules so that ``.to()``,
-    ``load(device=)`` and ``state_dict()`` reach them.
+    descriptor's ``net``, ...); a model moves these with itself (``.to()``, ``load(device=)``).
 
     Example:
         >>> from poseflow.features.learned import DescriptorNet, LearnedAppearanceEncoder

@@ -17,6 +17,7 @@ from __future__ import annotations
 import contextlib
 from collections.abc import Iterator, Mapping
 from pathlib import Path
+from typing import Any
 
 import torch
 from torch import nn
@@ -70,20 +71,23 @@ class FunFlow6D(nn.Module, SeededEstimator):
         super().__init__()
         self.config = cfg = FunFlow6DConfig() if config is None else config
         self.geometric_encoder, self.appearance_encoder, self.net = _build_parts(cfg)
-        #: The frozen encoders' networks, registered so that ``.to()`` and ``load(device=)``
-        #: move them with the model (their weights stay in the encoders' own folders).
-        self.encoder_networks = nn.ModuleDict(
-            encoder_networks(geometric=self.geometric_encoder, appearance=self.appearance_encoder)
-        ).requires_grad_(False)
         #: The detector of the model's objects (``MODEL_DIR/detector``), or None.
         self.detector: Detector | None = None
         self.objects: dict[int, PreparedObject] = {}
         self.verifier = PoseVerifier(cfg.verifier)
 
-    def train(self, mode: bool = True) -> FunFlow6D:
-        """Set the flow network's mode; the frozen encoders' networks stay in evaluation mode."""
-        super().train(mode)
-        self.encoder_networks.eval()
+    def _apply(self, fn: Any, recurse: bool = True) -> FunFlow6D:
+        """``.to()``, ``.cuda()``, ``.double()``, ...: the frozen encoders' networks move too.
+
+        They are not submodules: their weights stay in their own folders, out of
+        ``state_dict()``, the training checkpoints and the EMA (they never change).
+        """
+        super()._apply(fn, recurse)
+        encoders = encoder_networks(
+            geometric=self.geometric_encoder, appearance=self.appearance_encoder
+        )
+        for network in encoders.values():
+            network._apply(fn, recurse)
         return self
 
     def prepare_objects(
