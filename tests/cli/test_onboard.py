@@ -12,7 +12,7 @@ from poseflow.data.synthetic import generate_dataset
 from poseflow.models import FunFlow6D
 
 TINY = ["--images", "4", "--surface-steps", "3", "--surface-images", "4", "--detector-steps", "3",
-        "--steps", "3", "--config", "demo_small"]  # fmt: skip
+        "--steps", "3", "--config", "demo_small", "--calibration-images", "1"]  # fmt: skip
 
 
 @pytest.fixture(scope="module")
@@ -42,10 +42,12 @@ def test_onboard_runs_every_phase_once_and_the_model_moves(user_dataset, tmp_pat
     run = tmp_path / "run"
     assert main(["onboard", str(user_dataset), "--out", str(run), *TINY, "--threads", "1"]) == 0
     record = json.loads((run / "onboard.json").read_text())
-    assert list(record["done"]) == ["synth", "surface", "detector", "train", "prepare"]
+    assert list(record["done"]) == [
+        "synth", "surface", "detector", "train", "prepare", "calibrate"
+    ]  # fmt: skip
     model = run / "model"
     for part in ("config.json", "model.safetensors", "surface/model.safetensors",
-                 "detector/model.safetensors"):  # fmt: skip
+                 "detector/model.safetensors", "validity.json"):  # fmt: skip
         assert (model / part).is_file(), part
     assert (
         json.loads((model / "config.json").read_text())["appearance_encoder"] == "surface:surface"
@@ -56,7 +58,7 @@ def test_onboard_runs_every_phase_once_and_the_model_moves(user_dataset, tmp_pat
     (run / "onboard.json").write_text(json.dumps(record))
     assert main(["onboard", str(user_dataset), "--out", str(run), *TINY]) == 0
     err = capsys.readouterr().err
-    assert err.count("done before, skipped") == 4 and "onboard 5/5 prepare:" in err
+    assert err.count("done before, skipped") == 5 and "onboard 5/6 prepare:" in err
     # the model folder holds its embedding: moved elsewhere, it loads from there
     moved = tmp_path / "elsewhere" / "model"
     shutil.copytree(model, moved)
@@ -64,3 +66,21 @@ def test_onboard_runs_every_phase_once_and_the_model_moves(user_dataset, tmp_pat
     loaded = FunFlow6D.load(moved)
     assert loaded.appearance_encoder.source == str((moved / "surface").resolve())
     assert loaded.detector is not None
+
+
+def test_a_run_recorded_before_a_setting_existed_goes_on(user_dataset, tmp_path, capsys):
+    from poseflow.cli import build_parser
+    from poseflow.cli.onboard import PHASES, _models_folder, _settings
+
+    run = tmp_path / "run"
+    argv = ["onboard", str(user_dataset), "--out", str(run), *TINY, "--calibration-images", "0"]
+    settings = _settings(build_parser().parse_args(argv), _models_folder(str(user_dataset)))
+    del settings["calibration_images"]  # a run onboarded before calibration existed
+    run.mkdir()
+    done = {phase: {"minutes": 1.0} for phase in PHASES[:-1]}
+    (run / "onboard.json").write_text(json.dumps({"settings": settings, "done": done}))
+    assert main(argv) == 0
+    err = capsys.readouterr().err
+    assert err.count("done before, skipped") == 5 and "calibrate: not made" in err
+    # another value of an existing setting is still refused
+    assert main([*argv, "--steps", "4"]) == 2

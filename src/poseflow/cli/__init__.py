@@ -41,6 +41,7 @@ SUBCOMMANDS = (
     "demo",
     "estimate",
     "onboard",
+    "calibrate",
     "synth",
     "prepare",
     "train",

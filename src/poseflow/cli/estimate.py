@@ -304,8 +304,9 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from poseflow.cli.common import check_writable, show_progress
+    from poseflow.cli.common import check_writable, resolve_model, show_progress
     from poseflow.eval.frame import estimate_frame, write_poses_json
+    from poseflow.eval.validity import apply_validity, mesh_key, read_validity
 
     method = _method(args)  # a usage error before any work
     detector, detector_dir = None, None
@@ -325,9 +326,14 @@ def _run(args: argparse.Namespace) -> int:
     frame = _read_checked_frame(args, objects, detector)
     estimator, name = _estimator(args, method, objects, progress)
     diameters = {o: m.diameter for o, m in objects.items()}
-    result = estimate_frame(estimator, frame, diameters=diameters)
+    result, meaning = apply_validity(
+        estimate_frame(estimator, frame, diameters=diameters),
+        None if args.model is None else read_validity(resolve_model(args.model), method),
+        {o: mesh_key(m) for o, m in objects.items()},
+    )
     meta = {
         "method": name,
+        "valid_means": meaning,
         "rgb": str(args.rgb),
         "depth": str(args.depth),
         "depth_scale": frame.depth_scale,

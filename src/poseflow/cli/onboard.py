@@ -7,7 +7,10 @@ One command runs the recipe's phases in order, each into its place under ``--out
 3. ``detector``: the detector of the objects (``RUN/model/detector``, ``poseflow train-detector``);
 4. ``train``: FunFlow6D by the recipe's settings on the embedding (``RUN/model``, ``poseflow
    train``; its checkpoints let a killed run resume);
-5. ``prepare``: the objects prepared for the model (``RUN/model/objects``, ``poseflow prepare``).
+5. ``prepare``: the objects prepared for the model (``RUN/model/objects``, ``poseflow prepare``);
+6. ``calibrate``: what ``valid`` means, fitted on other renders of the meshes
+   (``RUN/calibration_data``, another seed) with ground truth (``RUN/model/validity.json``,
+   ``poseflow calibrate``).
 
 ``RUN/onboard.json`` records the settings and each finished phase (with its minutes): a phase
 already finished is skipped, one that was interrupted (Ctrl-C, a kill) is done again, the
@@ -41,7 +44,7 @@ RUN/model` (no mask needed) or `poseflow predict DATASET --model RUN/model`. A f
 skipped when run again; an interrupted one is redone (training resumes from its checkpoint)."""
 
 #: The phases in order.
-PHASES = ("synth", "surface", "detector", "train", "prepare")
+PHASES = ("synth", "surface", "detector", "train", "prepare", "calibrate")
 
 #: Channels of the recipe's surface embedding (its reducer keeps them all).
 SURFACE_DIM = 32
@@ -82,6 +85,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--config", default="learned_small", help="FunFlow6D's configuration (recipe name or JSON)"
     )
+    parser.add_argument(
+        "--calibration-images",
+        type=nonnegative_int,
+        default=40,
+        help="renders (seed + 1) that `valid` is calibrated on (0: not calibrated)",
+    )
     parser.add_argument("--seed", type=int, default=1, help="seed of the training images")
     parser.add_argument(
         "--train-args", default="", help="more `poseflow train` options, one string (e.g. --set)"
@@ -90,7 +99,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _settings(args: argparse.Namespace, models: Path) -> dict[str, Any]:
     keys = ("mesh_scale", "images", "surface_steps", "surface_images", "detector_steps", "steps",
-            "config", "seed", "train_args")  # fmt: skip
+            "config", "seed", "train_args", "calibration_images")  # fmt: skip
     return {"meshes": str(models.resolve()), **{k: getattr(args, k) for k in keys}}
 
 
@@ -121,15 +130,15 @@ class _Record:
         self.data: dict[str, Any] = {"settings": settings, "done": {}}
         if path.is_file():
             old = json.loads(path.read_text())
-            if old.get("settings") != settings:
-                changed = sorted(
-                    k for k in settings if old.get("settings", {}).get(k) != settings[k]
-                )
+            before = old.get("settings", {})
+            # a setting newer than the run (absent from its record) takes its value now
+            changed = sorted(k for k in settings if k in before and before[k] != settings[k])
+            if changed or "settings" not in old:
                 raise UsageError(
                     f"{path.parent} was onboarded with other settings ({', '.join(changed)}); "
                     "give another --out, or the same settings to go on"
                 )
-            self.data = old
+            self.data = {**old, "settings": settings}
 
     def done(self, phase: str) -> bool:
         return phase in self.data["done"]
@@ -193,12 +202,21 @@ def run(args: argparse.Namespace) -> int:
         dataset = models.parent if models.name == "models" else train_data
         poseflow_run(["prepare", str(dataset), "--out", str(model)])
 
+    def calibrate() -> None:  # renders no training saw: another seed
+        data = out / "calibration_data"
+        poseflow_run(["synth", str(data), "--objects", str(models), "--mesh-scale",
+                      str(args.mesh_scale), "--train", "0", "--test",
+                      str(args.calibration_images), "--seed", str(args.seed + 1),
+                      "--overwrite"])  # fmt: skip
+        poseflow_run(["calibrate", str(data), "--model", str(model)])
+
     steps = {"synth": synth, "surface": surface, "detector": detector, "train": train,
-             "prepare": prepare}  # fmt: skip
-    skipped = {"surface": not args.surface_steps, "detector": not args.detector_steps}
+             "prepare": prepare, "calibrate": calibrate}  # fmt: skip
+    skipped = {"surface": not args.surface_steps, "detector": not args.detector_steps,
+               "calibrate": not args.calibration_images}  # fmt: skip
     for n, phase in enumerate(PHASES, 1):
         if skipped.get(phase):
-            LOG.info("onboard %d/%d %s: 0 steps, not made", n, len(PHASES), phase)
+            LOG.info("onboard %d/%d %s: not made (its count is 0)", n, len(PHASES), phase)
             continue
         if record.done(phase):
             LOG.info("onboard %d/%d %s: done before, skipped", n, len(PHASES), phase)

@@ -12,6 +12,9 @@
   (:func:`invalidate_implausible`);
 - the same loop split over the processes of a ``torchrun`` job (:func:`join_ranks`,
   :class:`Ranks`, :func:`shard_images`, :func:`merge_parts`), merged into one process's results;
+- what `valid` means: a per-object score threshold fitted on calibration renders
+  (:class:`ValidityRule`, :func:`estimate_errors`, :func:`validity_report`,
+  :func:`plot_reliability`), stored in a model folder (:func:`write_validity`);
 - BOP 2019 results CSV files (:func:`read_results`, :func:`write_results`);
 - the paper's correspondence-inlier metric (:func:`correspondence_inliers`);
 - the per-image stage breakdown (:class:`StageTimer`, reported to through :func:`stage` and
@@ -100,6 +103,17 @@ from poseflow.eval.timing import (
     stage,
     timed,
 )
+from poseflow.eval.validity import (
+    VALIDITY_FILE,
+    ValidityRule,
+    apply_validity,
+    estimate_errors,
+    mesh_key,
+    plot_reliability,
+    read_validity,
+    validity_report,
+    write_validity,
+)
 
 __all__ = [
     "ESTIMATE_COLOR",
@@ -113,6 +127,7 @@ __all__ = [
     "MSPD_THRESHOLDS",
     "MSSD_THRESHOLDS",
     "STAGES",
+    "VALIDITY_FILE",
     "VSD_DELTA",
     "VSD_TAUS",
     "VSD_THRESHOLDS",
@@ -131,7 +146,9 @@ __all__ = [
     "SceneView",
     "StageTimer",
     "Target",
+    "ValidityRule",
     "active_timer",
+    "apply_validity",
     "as_uint8_image",
     "assign",
     "backproject_rgbd",
@@ -140,6 +157,7 @@ __all__ = [
     "correspondence_inliers",
     "depth_to_distance",
     "discretize_continuous_symmetry",
+    "estimate_errors",
     "estimate_frame",
     "evaluate_bop",
     "export_scene",
@@ -152,16 +170,19 @@ __all__ = [
     "merge_parts",
     "merge_results",
     "merge_timers",
+    "mesh_key",
     "mspd",
     "mssd",
     "mutual_nearest_neighbors",
     "on_device",
     "overlay_poses",
     "place_mesh",
+    "plot_reliability",
     "predict_dataset",
     "predict_seeded",
     "project_points",
     "read_results",
+    "read_validity",
     "score_detections",
     "seeded_estimator",
     "shard_images",
@@ -170,10 +191,12 @@ __all__ = [
     "symmetry_transforms",
     "targets_from_gt",
     "timed",
+    "validity_report",
     "vsd_from_depth",
     "write_overlay",
     "write_poses_json",
     "write_recording",
     "write_result_overlays",
     "write_results",
+    "write_validity",
 ]
