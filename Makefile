@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 # are slower while another process uses the cores. On free cores: make ... OMP_NUM_THREADS=N
 export OMP_NUM_THREADS ?= 1
 
-.PHONY: demo test test-slow lint docs docs-serve docs-pictures bench bench-unseen bench-quick venv sysdeps clean wheel-check
+.PHONY: demo demo-validity test test-slow lint docs docs-serve docs-pictures bench bench-unseen bench-quick venv sysdeps clean wheel-check
 
 sysdeps:
 	@$(PYTHON) -c "import ctypes.util,sys; sys.exit(0 if all(ctypes.util.find_library(l) for l in ('usb-1.0','GL','EGL')) else 1)" \
@@ -45,6 +45,13 @@ docs-pictures: $(STAMP)
 	cp "$$(ls build/pictures/overlays/*.png | head -n 1)" docs/images/demo_overlay.png
 	cp build/pictures/timing.png docs/images/demo_timing.png
 
+# What `valid` means for the shipped demo model (src/poseflow/assets/demo_model/validity.json):
+# calibrated on 40 renders of the demo objects, one per layout, with a seed no training used.
+demo-validity: $(STAMP)
+	rm -rf build/demo_validity
+	$(VENV)/bin/poseflow synth build/demo_validity/renders --train 0 --test 40 --seed 11 --images-per-scene 1 -q
+	$(VENV)/bin/poseflow calibrate build/demo_validity/renders --model src/poseflow/assets/demo_model --work build/demo_validity --cache build/demo_validity/cache
+
 # The built site at http://localhost:8000 (search runs in a web worker, which browsers refuse to
 # start from a file:// page; pages, links and pictures also work opened as files).
 docs-serve: docs
@@ -62,7 +69,7 @@ bench-unseen: $(STAMP)
 
 # gpu.py needs a GPU at full scale (benchmarks/RESULTS.md gives its commands); --quick is its CPU dry run
 bench-quick: $(STAMP)
-	for b in $(BENCHMARKS) unseen detection diagnose conditioning_use gpu surface_precision other_renderer; do $(PY) benchmarks/$$b.py --quick || exit 1; done
+	for b in $(BENCHMARKS) unseen detection diagnose conditioning_use gpu surface_precision other_renderer validity; do $(PY) benchmarks/$$b.py --quick || exit 1; done
 
 demo: $(STAMP)
 	$(PY) -m poseflow.cli demo

@@ -58,6 +58,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-images", type=positive_int, default=None, help="images to use")
     parser.add_argument("--seed", type=int, default=0, help="seed of the predictions")
     parser.add_argument(
+        "--cache",
+        default=None,
+        help="folder of the prepared objects (default: the model folder, as predict's)",
+    )
+    parser.add_argument(
         "--work",
         default=None,
         help="folder of the predictions and the picture (default: MODEL_DIR/calibration)",
@@ -96,6 +101,7 @@ def run(args: argparse.Namespace) -> int:
     common = ["--threads", str(args.threads)] if args.threads else []
     common += ["--no-progress"] if args.no_progress else []
     common += ["--max-images", str(args.max_images)] if args.max_images else []
+    common += ["--cache", str(args.cache)] if args.cache else []
     panels = {}
     for method in args.method:
         csv = work / f"{method}.csv"

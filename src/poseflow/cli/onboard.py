@@ -202,12 +202,12 @@ def run(args: argparse.Namespace) -> int:
         dataset = models.parent if models.name == "models" else train_data
         poseflow_run(["prepare", str(dataset), "--out", str(model)])
 
-    def calibrate() -> None:  # renders no training saw: another seed
+    def calibrate() -> None:  # renders no training saw (another seed), one per layout
         data = out / "calibration_data"
         poseflow_run(["synth", str(data), "--objects", str(models), "--mesh-scale",
                       str(args.mesh_scale), "--train", "0", "--test",
                       str(args.calibration_images), "--seed", str(args.seed + 1),
-                      "--overwrite"])  # fmt: skip
+                      "--images-per-scene", "1", "--overwrite"])  # fmt: skip
         poseflow_run(["calibrate", str(data), "--model", str(model)])
 
     steps = {"synth": synth, "surface": surface, "detector": detector, "train": train,
