@@ -1,16 +1,17 @@
 """Does ``valid`` mean right? Precision and recall of a model's calibrated ``valid`` on a test set.
 
-For each estimator and predict seed, the results CSV of DATASET's test split (ground-truth
-masks; written first with ``--predict``) is scored against the truth: a pose is right when its
-MSSD is below the rule's tolerance (a tenth of the diameter), valid when the model's
+For each estimator and predict seed, DATASET's test split is estimated from its ground-truth
+masks (in this process, so that each pose's agreement of the estimator's hypotheses is kept;
+the results CSVs go to ``--work``) and scored against the truth: a pose is right when its MSSD
+is below the rule's tolerance (a tenth of the diameter), valid when the model's
 ``validity.json`` (``poseflow calibrate``, fitted on renders, never on DATASET) marks it so.
 Prints one row per estimator and seed (poses, right, valid, precision = right among valid,
-recall = valid among right), per object below, and draws score against error with each
-object's threshold (``--picture``).
+recall = valid among right), per object beside, and draws score against error with each
+object's threshold (``--picture``, the first seed).
 
 Run ``python benchmarks/validity.py ../shared/devbench --model runs/unseen/dev/run/model
---results 'runs/cal/dev_{method}_seed{seed}.csv' --predict``; ``--quick`` (CI) calibrates
-the demo model on two generated images and scores two others.
+--work runs/cal/check``; ``--quick`` (CI) calibrates the demo model's baseline rule on two
+generated images and checks it on two others.
 """
 
 from __future__ import annotations
@@ -24,7 +25,8 @@ from _common import report
 
 from poseflow.assets import DEMO_CHECKPOINT
 from poseflow.cli import main as poseflow
-from poseflow.eval.results import read_results
+from poseflow.cli.predict import estimate_split
+from poseflow.eval.results import write_results
 from poseflow.eval.validity import estimate_errors, plot_reliability, read_validity, validity_report
 
 METHODS = ("funflow6d", "baseline", "hybrid")
@@ -34,10 +36,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("dataset", nargs="?", help="BOP dataset with a test split")
     parser.add_argument("--model", default=None, help="a calibrated model folder")
-    parser.add_argument("--results", default=None, help="CSV path with {method} and {seed} in it")
+    parser.add_argument("--work", default=None, help="folder of the results CSVs")
     parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
-    parser.add_argument("--predict", action="store_true", help="write the CSVs first")
     parser.add_argument("--picture", default=None, help="PNG of the first seed's poses")
     parser.add_argument("--quick", action="store_true", help="tiny generated set (CI)")
     args = parser.parse_args()
@@ -45,20 +46,24 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         if args.quick:
             _quick(args, Path(tmp))
-        if args.dataset is None or args.model is None or args.results is None:
-            parser.error("give DATASET, --model and --results, or --quick")
+        if args.dataset is None or args.model is None or args.work is None:
+            parser.error("give DATASET, --model and --work, or --quick")
+        work = Path(args.work)
+        work.mkdir(parents=True, exist_ok=True)
         rows, panels = [], {}
         for method in args.methods:
             rule = read_validity(args.model, method)
             if rule is None:
                 parser.error(f"{args.model} has no rule for {method}: run `poseflow calibrate`")
             for seed in args.seeds:
-                csv = args.results.format(method=method, seed=seed)
-                if args.predict:
-                    _predict(args.dataset, args.model, method, seed, csv)
-                res = read_results(csv)
+                csv = work / f"{method}_seed{seed}.csv"
+                res, agreement = estimate_split([args.dataset, "--model", args.model, "--method",
+                                                 method, "--out", str(csv), "--seed", str(seed),
+                                                 "--no-progress", "-q"])  # fmt: skip
+                write_results(csv, res)
                 errors = estimate_errors(args.dataset, res)
-                valid, _ = rule.decide(res.scores, res.obj_ids)
+                shares = None if bool(agreement.isnan().all()) else agreement
+                valid, _ = rule.decide(res.scores, res.obj_ids, agreement=shares)
                 rep = validity_report(valid, errors, res.obj_ids, tolerance=rule.tolerance)
                 rows.append({"method": method, "seed": seed, **rep})
                 if seed == args.seeds[0]:
@@ -70,31 +75,20 @@ def main() -> None:
         report({"validity": rows, "model": str(args.model)}, __file__)
 
 
-def _predict(dataset: str, model: str, method: str, seed: int, csv: str) -> None:
-    argv = ["predict", dataset, "--model", model, "--method", method, "--out", csv,
-            "--seed", str(seed), "--threads", "1", "--no-progress", "-q"]  # fmt: skip
-    if poseflow(argv) != 0:
-        raise SystemExit(f"`poseflow {' '.join(argv)}` failed")
-
-
 def _quick(args: argparse.Namespace, tmp: Path) -> None:
-    """Calibrate a copy of the demo model on two renders; score two others."""
+    """Calibrate a copy of the demo model's baseline rule on two renders; check two others."""
     import shutil
 
     for name, seed in (("calib", 7), ("test", 8)):
         poseflow(["synth", str(tmp / name), "--train", "0", "--test", "2", "--seed", str(seed),
-                  "--width", "320", "--height", "240", "--no-progress"])  # fmt: skip
+                  "--width", "320", "--height", "240", "--images-per-scene", "1",
+                  "--no-progress"])  # fmt: skip
     model = tmp / "model"
     shutil.copytree(DEMO_CHECKPOINT, model)
     poseflow(["calibrate", str(tmp / "calib"), "--model", str(model), "--method", "baseline",
               "--no-progress"])  # fmt: skip
-    args.dataset, args.model, args.methods, args.seeds = (
-        str(tmp / "test"),
-        str(model),
-        ["baseline"],
-        [0],
-    )
-    args.results, args.predict = str(tmp / "{method}_seed{seed}.csv"), True
+    args.dataset, args.model, args.work = str(tmp / "test"), str(model), str(tmp / "check")
+    args.methods, args.seeds = ["baseline"], [0]
 
 
 def _print(rows: list[dict]) -> None:

@@ -73,24 +73,6 @@ def test_a_rule_of_another_mesh_does_not_mark_valid(box_frame, tmp_path):
     assert not pose["valid"] and "is not the one calibrated" in pose["note"]
 
 
-def test_eval_reports_precision_and_recall_of_valid(box_frame, tmp_path, capsys):
-    root, _ = box_frame
-    truth = tmp_path / "truth.csv"
-    from poseflow.eval.evaluate import gt_results
-    from poseflow.eval.results import write_results
-
-    write_results(truth, gt_results(root))
-    write_validity(tmp_path, _rule(root, 0.5))
-    argv = ["eval", str(root), str(truth), "--metrics", "mssd", "--validity", str(tmp_path)]
-    assert main([*argv, "--method", "baseline"]) == 0
-    out = capsys.readouterr().out
-    assert "valid (baseline" in out and "precision 1.000" in out and "recall 1.000" in out
-    report = json.loads((tmp_path / "truth_scores.json").read_text())
-    assert report["validity"]["valid_right"] == 1
-    assert main([*argv, "--method", "hybrid"]) == 1  # no rule for it
-    assert "holds no rule for hybrid" in capsys.readouterr().err
-
-
 @pytest.mark.parametrize(
     ("extra", "message"),
     [(["--precision", "1"], "--precision must lie"), (["--tolerance", "0"], "--tolerance must")],
@@ -117,6 +99,7 @@ def test_calibrate_fits_every_method_and_estimate_applies_it(tmp_path, capsys):
     )  # fmt: skip
     model = tmp_path / "model"
     shutil.copytree(DEMO_CHECKPOINT, model)
+    (model / "validity.json").unlink(missing_ok=True)  # the shipped rules
     argv = ["calibrate", str(root), "--model", str(model), "--method", "funflow6d", "baseline"]
     assert main([*argv, "--no-progress", "--threads", "1"]) == 0
     out = capsys.readouterr().out
@@ -127,3 +110,22 @@ def test_calibrate_fits_every_method_and_estimate_applies_it(tmp_path, capsys):
         assert (model / "calibration" / f"{method}.csv").is_file()
     assert read_validity(model, "hybrid") is None
     assert (model / "calibration" / "validity.png").stat().st_size > 1000
+    flow = (model / "calibration" / "funflow6d_poses.csv").read_text().splitlines()
+    classic = (model / "calibration" / "baseline_poses.csv").read_text().splitlines()
+    assert flow[0] == "scene_id,im_id,obj_id,score,agreement,mssd" and len(flow) > 1
+    assert all(line.split(",")[4] for line in flow[1:])  # the flow's hypotheses agree or not
+    assert not any(line.split(",")[4] for line in classic[1:])  # the baseline samples none
+    # --check measures the stored rules again without changing them
+    rules = (model / "validity.json").read_text()
+    assert main([*argv, "--check", "--no-progress", "--threads", "1"]) == 0
+    assert "(not the calibration's)" in capsys.readouterr().out
+    assert (model / "validity.json").read_text() == rules
+
+
+def test_check_needs_the_rules(box_frame, tmp_path, capsys):
+    root, _ = box_frame
+    shutil.copytree(DEMO_CHECKPOINT, tmp_path / "model")
+    (tmp_path / "model" / "validity.json").unlink(missing_ok=True)  # the shipped rules
+    argv = ["calibrate", str(root), "--model", str(tmp_path / "model"), "--check"]
+    assert main([*argv, "--method", "baseline"]) == 1
+    assert "holds no rule for baseline" in capsys.readouterr().err

@@ -193,3 +193,35 @@ def test_reliability_picture_is_written(tmp_path):
     panels = {"funflow6d": (s, e, o, rule), "baseline": (s, e, o, None)}
     path = plot_reliability(tmp_path / "r.png", panels)
     assert path.stat().st_size > 1000 and path.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_agreement_separates_what_the_score_cannot():
+    # half the poses are wrong at every score; only the wrong ones have little agreement
+    scores = torch.linspace(0.3, 0.9, 40, dtype=torch.float64)
+    right = torch.arange(40) % 2 == 0
+    errors = torch.where(right, 0.02, 0.4).double()
+    agreement = torch.where(right, 0.5, 0.1).double()
+    without = ValidityRule.fit("funflow6d", scores, errors, [5] * 40)
+    assert math.isinf(without.thresholds[5]) and without.agreements == {}
+    rule = ValidityRule.fit("funflow6d", scores, errors, [5] * 40, agreement=agreement)
+    assert rule.agreements == {5: 0.5} and rule.thresholds[5] == pytest.approx(0.3)
+    valid, notes = rule.decide(scores, [5] * 40, agreement=agreement)
+    assert torch.equal(valid, right)
+    assert "agree with the pose too little (10%" in notes[1]
+    unknown, why = rule.decide(scores[:1], [5])  # no agreement given: not valid
+    assert not unknown[0] and "(unknown;" in why[0]
+    again = ValidityRule.from_json("funflow6d", json.loads(json.dumps(rule.to_json())))
+    assert again == rule
+
+
+def test_agreement_must_match_the_poses():
+    with pytest.raises(ValueRangeError, match="agreement has 1 entries for 2 poses"):
+        ValidityRule.fit("funflow6d", [0.5, 0.6], [0.0, 0.0], [1, 1], agreement=[0.5])
+
+
+def test_frame_poses_write_their_agreement():
+    T = torch.eye(4, dtype=torch.float64)[None]
+    poses = FramePoses(torch.tensor([1]), T, torch.ones(1), torch.ones(1).bool(), [""])
+    assert "agreement" not in poses.to_json()[0]
+    poses.agreement = torch.tensor([0.25], dtype=torch.float64)
+    assert poses.to_json()[0]["agreement"] == 0.25

@@ -289,6 +289,8 @@ def test_verification_turns_a_flipped_pose_back_and_scores_it(tiny_model, scene)
     assert (rotation_angle_error(off.poses, scene["poses"]) > 150).all()  # the flip
     assert (rotation_angle_error(on.poses, scene["poses"]) < 3).all()
     assert (translation_error(on.poses, scene["poses"]) < 0.003).all()
+    # every hypothesis is the flip: all agree with the unverified pose, none with the verified
+    assert off.agreement.tolist() == [1.0, 1.0] and on.agreement.tolist() == [0.0, 0.0]
     # the scores are the verifier's, not RANSAC fitness times surface agreement
     assert ((on.scores > 0) & (on.scores <= 1)).all()
     assert (on.scores - off.scores).abs().min() > 1e-3

@@ -65,6 +65,7 @@ def test_the_verifier_keeps_the_baseline_pose_where_the_flow_is_lost(hybrid, box
     assert (rotation_angle_error(out.poses, truth) < 5).all()
     assert (translation_error(out.poses, truth) < 0.005).all()
     assert out.poses.dtype == torch.float32 and ((out.scores > 0) & (out.scores <= 1)).all()
+    assert out.agreement.shape == (2,) and ((out.agreement >= 0) & (out.agreement <= 1)).all()
 
 
 def test_the_same_call_gives_the_same_poses(hybrid, scene):

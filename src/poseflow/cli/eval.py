@@ -56,19 +56,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="with --run-baseline: replace RESULTS when it exists",
     )
-    parser.add_argument(
-        "--validity",
-        metavar="MODEL_DIR",
-        default=None,
-        help="also report how often the poses this model's validity.json marks valid are right "
-        "(MSSD below its tolerance), and how many right ones it marks",
-    )
-    parser.add_argument(
-        "--method",
-        choices=("funflow6d", "baseline", "hybrid"),
-        default="funflow6d",
-        help="with --validity: the estimator that wrote RESULTS",
-    )
 
 
 def format_table(report: dict[str, Any]) -> str:
@@ -132,51 +119,12 @@ def run(args: argparse.Namespace) -> int:
         progress=show_progress(args),
     )
     print(format_table(report))
-    if args.validity is not None:
-        report["validity"] = _validity(args, results)
     out.write_text(json.dumps(report, indent=2))
     t = report["average_time"]
     if t >= 0:
         print(f"average time per image: {1000 * t:.1f} ms")
     print(f"report written to {out}")
     return 0
-
-
-def _validity(args: argparse.Namespace, results: Path) -> dict[str, Any]:
-    """The precision and recall of ``--validity``'s rule on the results; prints them.
-
-    Raises:
-        MissingFileError: the model folder has no rule for ``--method``.
-    """
-    from poseflow.data.object_folder import load_object_models
-    from poseflow.errors import MissingFileError
-    from poseflow.eval.results import read_results
-    from poseflow.eval.validity import (
-        VALIDITY_FILE,
-        estimate_errors,
-        mesh_key,
-        read_validity,
-        validity_report,
-    )
-
-    rule = read_validity(args.validity, args.method)
-    if rule is None:
-        raise MissingFileError(
-            f"{Path(args.validity) / VALIDITY_FILE} holds no rule for {args.method}: run "
-            f"`poseflow calibrate CALIBRATION_DATA --model {args.validity}`"
-        )
-    res = read_results(results)
-    objects = load_object_models(args.dataset, obj_ids=sorted(set(res.obj_ids.tolist())))
-    valid, _ = rule.decide(res.scores, res.obj_ids, {o: mesh_key(m) for o, m in objects.items()})
-    errors = estimate_errors(args.dataset, res, split=args.split)
-    report = validity_report(valid, errors, res.obj_ids, tolerance=rule.tolerance)
-    print(
-        f"valid ({args.method}, {Path(args.validity) / VALIDITY_FILE}): {report['valid']} of "
-        f"{report['poses']} poses; precision {report['precision']:.3f} (right among valid, MSSD "
-        f"< {rule.tolerance:g} diameter), recall {report['recall']:.3f} (valid among the "
-        f"{report['right']} right)"
-    )
-    return report
 
 
 def _predict_baseline(root: Path, split: str, out: Path, *, progress: bool) -> None:

@@ -66,13 +66,14 @@ if TYPE_CHECKING:
 
     from poseflow.eval.distributed import PredictionPart, Ranks
     from poseflow.eval.predict import Estimator
+    from poseflow.eval.results import PoseResults
 
 #: The estimators of ``--method``; all but ``baseline`` need a model.
 METHODS = ("funflow6d", "baseline", "hybrid")
 #: How the overlays' legends name them.
 METHOD_LABELS = {"funflow6d": "FunFlow6D", "baseline": "classic baseline", "hybrid": "hybrid"}
 
-__all__ = ["DESCRIPTION", "HELP", "add_arguments", "run", "select_targets"]
+__all__ = ["DESCRIPTION", "HELP", "add_arguments", "estimate_split", "run", "select_targets"]
 
 
 #: ``predict``'s line in ``poseflow --help``.
@@ -351,6 +352,42 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def estimate_split(argv: Sequence[str]) -> tuple[PoseResults, torch.Tensor]:
+    """``poseflow predict ARGV`` run in this process, writing nothing.
+
+    For commands that need more of each estimate than the results file holds
+    (``poseflow calibrate``). ``--out`` must be given but is not written; the process's thread
+    count is used as ``predict``'s ``--threads``.
+
+    Returns:
+        ``(results, agreement)``: the results, and each row's agreement of the estimator's
+        hypotheses (:class:`~poseflow.eval.predict.PoseEstimate`; NaN where it gives none).
+    """
+    import torch
+
+    from poseflow.cli import build_parser
+    from poseflow.cli.common import image_workers, resolve_device
+    from poseflow.data.object_folder import check_dataset
+
+    args = build_parser().parse_args(["predict", *argv])
+    root = check_dataset(args.dataset, args.split)
+    device = resolve_device(args.device)
+    rows: list[torch.Tensor] = []
+
+    def keep(scene_id: int, im_id: int, obj_ids: list[int], estimate: Any) -> None:
+        ok = estimate.valid
+        shares = estimate.agreement
+        if shares is None:
+            shares = torch.full(ok.shape, float("nan"), dtype=torch.float64)
+        rows.append(shares.double()[ok])
+
+    with image_workers(device) as workers:
+        changes = inference_changes(args, method=args.method)
+        part = _predict(args, root, device, changes, workers=workers, after_image=keep)
+    agreement = torch.cat(rows) if rows else torch.zeros(0, dtype=torch.float64)
+    return part.results, agreement
+
+
 def _predict(
     args: argparse.Namespace,
     root: Path,
@@ -359,8 +396,12 @@ def _predict(
     ranks: Ranks | None = None,
     *,
     workers: int = 1,
+    after_image: Any = None,
 ) -> PredictionPart:
-    """Estimate the images (this rank's share under ``torchrun``) in ``workers`` processes."""
+    """Estimate the images (this rank's share under ``torchrun``) in ``workers`` processes.
+
+    ``after_image`` is also called as :func:`~poseflow.eval.predict.predict_dataset` calls it.
+    """
     import time
 
     from poseflow.cli.common import load_model, resolve_model, show_progress
@@ -396,6 +437,8 @@ def _predict(
     def count(scene_id: int, im_id: int, obj_ids: list[int], estimate: Any) -> None:
         nonlocal instances
         instances += len(obj_ids)
+        if after_image is not None:
+            after_image(scene_id, im_id, obj_ids, estimate)
 
     def before_image(scene_id: int, im_id: int) -> None:
         if ranks is not None:

@@ -40,6 +40,8 @@ class FramePoses:
         notes: why each invalid instance is invalid (empty for valid ones).
         sources: where each instance's mask came from.
         seconds: wall-clock time of the estimator call.
+        agreement: ``(B,)`` float64, the share of the estimator's hypotheses that agree with
+            each pose (:class:`~poseflow.eval.predict.PoseEstimate`), or None.
     """
 
     obj_ids: torch.Tensor
@@ -49,6 +51,7 @@ class FramePoses:
     notes: list[str] = field(default_factory=list)
     sources: list[str] = field(default_factory=list)
     seconds: float = 0.0
+    agreement: torch.Tensor | None = None
 
     def __len__(self) -> int:
         return int(self.obj_ids.shape[0])
@@ -57,11 +60,12 @@ class FramePoses:
         """One JSON object per instance.
 
         Keys: ``obj_id``, ``R`` (3x3 rows), ``t_m``, ``t_mm``, ``score``, ``valid``, ``note``
-        and ``source``.
+        and ``source``, and ``agreement`` where the estimator gives one.
         """
         out = []
         for i in range(len(self)):
             T = self.poses[i]
+            extra = {} if self.agreement is None else {"agreement": float(self.agreement[i])}
             out.append(
                 {
                     "obj_id": int(self.obj_ids[i]),
@@ -72,6 +76,7 @@ class FramePoses:
                     "valid": bool(self.valid[i]),
                     "note": self.notes[i] if i < len(self.notes) else "",
                     "source": self.sources[i] if i < len(self.sources) else "",
+                    **extra,
                 }
             )
         return out
@@ -145,6 +150,7 @@ def estimate_frame(
         _notes(poses, found),
         list(frame.sources),
         seconds,
+        None if est.agreement is None else est.agreement.detach().to("cpu", torch.float64),
     )
 
 

@@ -50,11 +50,20 @@ class PoseEstimate:
         scores: confidences in ``[0, 1]`` ``(B,)``, used to rank estimates (0 where invalid).
         valid: ``(B,)`` False where no pose could be estimated (too few points, no consensus)
             or the pose cannot be right (not finite, or behind the camera).
+        agreement: ``(B,)`` the share of the estimator's pose hypotheses of each instance that
+            lie within a tenth of the diameter of its pose (how much of the sampled posterior
+            agrees with the choice), or None for an estimator that samples none.
     """
 
     poses: torch.Tensor
     scores: torch.Tensor
     valid: torch.Tensor
+    agreement: torch.Tensor | None = None
+
+    def cpu(self) -> PoseEstimate:
+        """This estimate with every tensor on the CPU."""
+        agreement = None if self.agreement is None else self.agreement.cpu()
+        return PoseEstimate(self.poses.cpu(), self.scores.cpu(), self.valid.cpu(), agreement)
 
     @classmethod
     def empty(
@@ -100,7 +109,7 @@ def invalidate_implausible(estimate: PoseEstimate) -> PoseEstimate:
     finite = torch.isfinite(poses).flatten(1).all(1)
     valid = estimate.valid.bool() & finite & in_front_of_camera(poses)
     scores = torch.where(valid, estimate.scores, torch.zeros_like(estimate.scores))
-    return PoseEstimate(poses, scores, valid)
+    return PoseEstimate(poses, scores, valid, estimate.agreement)
 
 
 #: ``estimator(rgb (3,H,W) | None, depth (H,W) m, K (3,3), masks (B,H,W), obj_ids (B,))``.
@@ -318,8 +327,7 @@ def predict_dataset(
         if diameters:
             _check_depth(scene, i, depth, K, stacked, [diameters.get(o, nan) for o in obj_ids])
         est, elapsed = _timed(estimator, timer, rgb, depth, K, stacked, obj_ids)
-        cpu = PoseEstimate(est.poses.cpu(), est.scores.cpu(), est.valid.cpu())
-        return _ImageEstimate(s, i, obj_ids, cpu, elapsed)
+        return _ImageEstimate(s, i, obj_ids, est.cpu(), elapsed)
 
     def in_worker(n: int) -> tuple[_ImageEstimate | None, StageTimer | None]:
         """An image estimated in a worker, with the stage times it took there."""

@@ -64,6 +64,9 @@ class ValidityRule:
         mesh_keys: ``{obj_id: content key}`` of the meshes it was fitted on
             (:meth:`~poseflow.data.ObjectModel.content_key`; empty: not recorded).
         counts: ``{obj_id: (poses, right)}`` of the calibration.
+        agreements: ``{obj_id: share}``: a pose is valid only where at least this share of
+            the estimator's hypotheses agree with it (:class:`~poseflow.eval.PoseEstimate`'s
+            ``agreement``); 0 or absent: no such condition.
     """
 
     method: str
@@ -72,6 +75,7 @@ class ValidityRule:
     thresholds: dict[int, float]
     mesh_keys: dict[int, str] = field(default_factory=dict)
     counts: dict[int, tuple[int, int]] = field(default_factory=dict)
+    agreements: dict[int, float] = field(default_factory=dict)
 
     @classmethod
     def fit(
@@ -84,6 +88,7 @@ class ValidityRule:
         precision: float = 0.95,
         tolerance: float = 0.1,
         mesh_keys: Mapping[int, str] | None = None,
+        agreement: torch.Tensor | Sequence[float] | None = None,
     ) -> ValidityRule:
         """Fit the thresholds on calibration poses: per object, the lowest precise enough.
 
@@ -91,6 +96,10 @@ class ValidityRule:
         lowest score at which the poses at or above it are right in at least ``precision`` of
         cases, counting one wrong pose more than seen (so that a handful of right poses does
         not make an object trusted at any score). An object without such a score gets ``inf``.
+        With ``agreement``, each of the object's agreements is tried as a second condition;
+        one is kept where it marks at least a tenth of the object's right poses more valid
+        than the score alone (the least such agreement among those marking the most), so that
+        a condition fitted to one or two poses does not stay.
 
         Args:
             method: the estimator's name.
@@ -101,6 +110,8 @@ class ValidityRule:
             precision: the share of right poses to reach, in ``(0, 1)``.
             tolerance: the MSSD fraction below which a pose is right, ``> 0``.
             mesh_keys: the objects' mesh content keys, recorded with the rule.
+            agreement: ``(E,)`` the share of the estimator's hypotheses agreeing with each
+                pose; None: the score alone decides.
 
         Returns:
             The rule.
@@ -125,18 +136,35 @@ class ValidityRule:
             raise ValueRangeError(
                 f"scores, errors and obj_ids differ in length: {len(s)}, {len(e)}, {len(o)}"
             )
-        thresholds, counts = {}, {}
+        a = torch.zeros_like(s) if agreement is None else torch.as_tensor(agreement).double()
+        if len(a) != len(s):
+            raise ValueRangeError(f"agreement has {len(a)} entries for {len(s)} poses")
+        thresholds, counts, agreements = {}, {}, {}
         for obj in sorted({int(x) for x in o.tolist()}):
             rows = o == obj
-            thresholds[obj] = _lowest_precise_score(s[rows], e[rows] < tolerance, precision)
-            counts[obj] = (int(rows.sum()), int((e[rows] < tolerance).sum()))
-        return cls(method, tolerance, precision, thresholds, dict(mesh_keys or {}), counts)
+            right = e[rows] < tolerance
+            counts[obj] = (int(rows.sum()), int(right.sum()))
+            best = (-1, 0.0, math.inf)  # (right poses marked valid, agreement, score)
+            gain = 0  # what an agreement condition must add: a tenth of the right poses
+            for least in sorted({0.0, *a[rows].tolist()}):
+                kept = a[rows] >= least
+                cut = _lowest_precise_score(s[rows][kept], right[kept], precision)
+                marked = int((right & kept & (s[rows] >= cut)).sum())
+                if marked > best[0] + gain:
+                    best = (marked, least, cut)
+                gain = max(1, math.ceil(0.1 * int(right.sum())))
+            thresholds[obj], agreements[obj] = best[2], best[1] if math.isfinite(best[2]) else 0.0
+        return cls(
+            method, tolerance, precision, thresholds, dict(mesh_keys or {}), counts,
+            {k: v for k, v in agreements.items() if v > 0},
+        )  # fmt: skip
 
     def decide(
         self,
         scores: torch.Tensor,
         obj_ids: torch.Tensor | Sequence[int],
         mesh_keys: Mapping[int, str] | None = None,
+        agreement: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, list[str]]:
         """Which poses are valid, and a note for each one that is not.
 
@@ -146,6 +174,8 @@ class ValidityRule:
             mesh_keys: ``{obj_id: content key}`` of the meshes the poses are of; an object
                 whose mesh differs from the calibration's is not valid (the rule does not know
                 it). None: not checked.
+            agreement: ``(E,)`` the poses' agreements, for objects with an agreement
+                threshold (without it, those objects are not valid).
 
         Returns:
             ``(valid (E,) bool, notes)``, the note empty where valid.
@@ -159,9 +189,11 @@ class ValidityRule:
         ids = [int(x) for x in torch.as_tensor(obj_ids).reshape(-1).tolist()]
         valid = torch.zeros(len(ids), dtype=torch.bool)
         notes = []
+        shares = [None] * len(ids) if agreement is None else agreement.reshape(-1).tolist()
         for i, (obj, score) in enumerate(zip(ids, scores.reshape(-1).tolist())):
             note = ""
             known = self.mesh_keys.get(obj)
+            least = self.agreements.get(obj, 0.0)
             if obj not in self.thresholds:
                 note = f"obj {obj} was not calibrated (`poseflow calibrate`)"
             elif mesh_keys is not None and known and mesh_keys.get(obj) != known:
@@ -176,6 +208,13 @@ class ValidityRule:
                     f"score {score:.3f} below {self.thresholds[obj]:.3f}, from which poses of "
                     f"obj {obj} were right in {self.precision:.0%} of the calibration renders"
                 )
+            elif least > 0 and (shares[i] is None or shares[i] < least):
+                agreed = "unknown" if shares[i] is None else f"{shares[i]:.0%}"
+                note = (
+                    f"the estimator's hypotheses agree with the pose too little ({agreed}; "
+                    f"obj {obj} needs {least:.0%} to be right in {self.precision:.0%} of the "
+                    "calibration renders)"
+                )
             valid[i] = not note
             notes.append(note)
         return valid, notes
@@ -188,6 +227,7 @@ class ValidityRule:
             "objects": {
                 str(o): {
                     "threshold": None if math.isinf(t) else t,
+                    "agreement": self.agreements.get(o, 0.0),
                     "mesh_key": self.mesh_keys.get(o, ""),
                     "poses": self.counts.get(o, (0, 0))[0],
                     "right": self.counts.get(o, (0, 0))[1],
@@ -207,6 +247,7 @@ class ValidityRule:
             {o: _threshold(v["threshold"]) for o, v in objects.items()},
             {o: v["mesh_key"] for o, v in objects.items() if v.get("mesh_key")},
             {o: (int(v["poses"]), int(v["right"])) for o, v in objects.items()},
+            {o: float(v["agreement"]) for o, v in objects.items() if v.get("agreement", 0) > 0},
         )
 
 
@@ -269,7 +310,7 @@ def apply_validity(
             "a pose was found and is plausible; not calibrated (no validity.json for this "
             "estimator: run `poseflow calibrate`), so it says nothing of its accuracy"
         )
-    valid, notes = rule.decide(poses.scores, poses.obj_ids, mesh_keys)
+    valid, notes = rule.decide(poses.scores, poses.obj_ids, mesh_keys, poses.agreement)
     keep = poses.valid & valid
     merged = [
         old or (new if not k else "")

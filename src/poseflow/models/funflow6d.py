@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import contextlib
 from collections.abc import Iterator, Mapping
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -184,9 +185,22 @@ class FunFlow6D(nn.Module, SeededEstimator):
         prepared for another ``config.verifier``.
         """
         proposals = self.propose(image, generator=generator)
-        if self.config.verifier is None or proposals.estimate.poses.shape[0] == 0:
+        if proposals.estimate.poses.shape[0] == 0:
             return proposals.estimate
-        return self.verify(proposals, image)
+        est = proposals.estimate if self.config.verifier is None else self.verify(proposals, image)
+        return replace(est, agreement=self.agreement(proposals, est.poses, image.obj_ids))
+
+    def agreement(self, proposals: Proposals, poses: torch.Tensor, obj_ids: object) -> torch.Tensor:
+        """``(B,)`` the share of the flow's proposals that agree with the chosen ``poses``.
+
+        :meth:`Proposals.agreement <poseflow.models.verification.Proposals.agreement>` with
+        the prepared objects' query clouds and diameters.
+        """
+        ids = [int(o) for o in torch.as_tensor(obj_ids).reshape(-1).tolist()]
+        objects = [self.objects[o] for o in ids]
+        return proposals.agreement(
+            poses, [o.points for o in objects], [o.diameter for o in objects]
+        )
 
     @torch.no_grad()
     def propose(

@@ -103,12 +103,13 @@ class Hybrid(SeededEstimator):
 
         ``generator`` seeds the flow's noise, its sampling of the clouds and RANSAC (the
         baseline seeds each instance from its own ``seed``). The verifier's scores become the
-        estimate's; an instance is valid where either estimator found a pose.
+        estimate's; an instance is valid where either estimator found a pose, and its
+        agreement is that of the flow's proposals with the kept pose.
         """
         proposals = self.model.propose(image, generator=generator)
         if proposals.estimate.poses.shape[0] == 0:
             return proposals.estimate
         on_cpu = replace(image, rgb=None, depth=image.depth.cpu(), masks=image.masks.cpu())
         classic, _ = self.baseline.solve(on_cpu)
-        out = self.model.verify(proposals.with_rival(classic), image.twice())
-        return keep_better(out)
+        best = keep_better(self.model.verify(proposals.with_rival(classic), image.twice()))
+        return replace(best, agreement=self.model.agreement(proposals, best.poses, image.obj_ids))

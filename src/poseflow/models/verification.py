@@ -34,6 +34,7 @@ from poseflow.geometry.se3 import inverse_transform
 from poseflow.verify import PoseVerifier
 
 __all__ = [
+    "AGREEMENT_TOLERANCE",
     "Proposals",
     "keep_better",
     "other_hypotheses",
@@ -42,6 +43,11 @@ __all__ = [
     "verify_estimate",
     "verify_proposals",
 ]
+
+
+#: A proposal agrees with a pose within this fraction of the object's diameter (BOP's tightest
+#: useful MSSD threshold): :meth:`Proposals.agreement`.
+AGREEMENT_TOLERANCE = 0.1
 
 
 @dataclass(frozen=True)
@@ -74,6 +80,52 @@ class Proposals:
     observed: torch.Tensor | None = None
     observed_mask: torch.Tensor | None = None
     rank: bool = False
+
+    def agreement(
+        self,
+        poses: torch.Tensor,
+        points: list[torch.Tensor],
+        diameters: list[float],
+        *,
+        tolerance: float = AGREEMENT_TOLERANCE,
+    ) -> torch.Tensor:
+        """``(B,)`` the share of each instance's proposals that agree with its pose ``(B, 4, 4)``.
+
+        A proposal (the incumbent or a valid other) agrees when no point of the object moves
+        by ``tolerance`` times its diameter or more between it and the pose (the MSSD without
+        symmetries): with proposals drawn from the flow's posterior, the share estimates how
+        sure the model is of the pose; a symmetric object's share is spread over its
+        symmetric poses, which calibration (:class:`~poseflow.eval.ValidityRule`) takes into
+        account per object.
+
+        Args:
+            poses: the instances' final poses ``(B, 4, 4)``.
+            points: each instance's object surface points ``(N_b, 3)``, canonical frame.
+            diameters: each instance's object diameter.
+            tolerance: the fraction of the diameter.
+
+        Returns:
+            ``(B,)`` float in ``[0, 1]`` (0 for an instance without a valid proposal).
+
+        Example:
+            >>> turned = torch.eye(4); turned[:3, :3] = torch.diag(torch.tensor([-1.0, -1, 1]))
+            >>> est = PoseEstimate(torch.eye(4)[None], torch.ones(1), torch.ones(1).bool())
+            >>> p = Proposals(est, torch.stack([torch.eye(4), turned])[None],
+            ...               torch.ones(1, 2, dtype=torch.bool))
+            >>> box = torch.tensor([[0.05, 0.02, 0.0], [-0.05, -0.02, 0.0]])
+            >>> p.agreement(torch.eye(4)[None], [box], [0.1]).tolist()  # 2 of 3 agree
+            [0.6666666865348389]
+        """
+        hyps = torch.cat((self.estimate.poses[:, None], self.others), 1).to(poses.dtype)
+        mask = torch.cat((self.estimate.valid[:, None], self.others_mask), 1)
+        out = torch.zeros(len(poses), dtype=poses.dtype, device=poses.device)
+        for b, (pts, diameter) in enumerate(zip(points, diameters)):
+            p = pts[:: max(1, len(pts) // 256)].to(poses)  # (N', 3), at most ~256 points
+            moved = p @ hyps[b, :, :3, :3].transpose(-1, -2) + hyps[b, :, None, :3, 3]
+            final = p @ poses[b, :3, :3].T + poses[b, :3, 3]
+            near = (moved - final).norm(dim=-1).amax(-1) < tolerance * diameter
+            out[b] = (near & mask[b]).sum() / mask[b].sum().clamp_min(1)
+        return out
 
     def with_rival(self, other: PoseEstimate) -> Proposals:
         """These ``B`` instances followed by the same ``B`` instances proposed by ``other``.
