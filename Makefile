@@ -46,10 +46,10 @@ docs-pictures: $(STAMP)
 	cp build/pictures/timing.png docs/images/demo_timing.png
 
 # What `valid` means for the shipped demo model (src/poseflow/assets/demo_model/validity.json):
-# calibrated on 40 renders of the demo objects, one per layout, with a seed no training used.
+# calibrated on 80 renders of the demo objects, one per layout, with a seed no training used.
 demo-validity: $(STAMP)
 	rm -rf build/demo_validity
-	$(VENV)/bin/poseflow synth build/demo_validity/renders --train 0 --test 40 --seed 11 --images-per-scene 1 -q
+	$(VENV)/bin/poseflow synth build/demo_validity/renders --train 0 --test 80 --seed 11 --images-per-scene 1 -q
 	$(VENV)/bin/poseflow calibrate build/demo_validity/renders --model src/poseflow/assets/demo_model --work build/demo_validity --cache build/demo_validity/cache
 
 # The built site at http://localhost:8000 (search runs in a web worker, which browsers refuse to

@@ -48,8 +48,8 @@ def test_fitted_rule_reaches_its_precision_on_its_own_poses(rows, precision):
         rows_o = torch.tensor([o == obj for o in obj_ids])
         marked = valid & rows_o
         right = int((marked & (errors < 0.1)).sum())
-        # one wrong pose more than seen: the precision holds with margin on the fitted poses
-        assert right >= precision * (int(marked.sum()) + 1) or not bool(marked.any())
+        # Jeffreys' posterior mean of the precision reaches it: a margin on the fitted poses
+        assert right + 0.5 >= precision * (int(marked.sum()) + 1) or not bool(marked.any())
         threshold = rule.thresholds[obj]
         if math.isinf(threshold):
             assert not bool(marked.any())

@@ -88,7 +88,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--calibration-images",
         type=nonnegative_int,
-        default=40,
+        default=80,
         help="renders (seed + 1) that `valid` is calibrated on (0: not calibrated)",
     )
     parser.add_argument("--seed", type=int, default=1, help="seed of the training images")

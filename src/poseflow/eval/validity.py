@@ -94,8 +94,9 @@ class ValidityRule:
 
         For each object, the poses are taken in order of falling score; the threshold is the
         lowest score at which the poses at or above it are right in at least ``precision`` of
-        cases, counting one wrong pose more than seen (so that a handful of right poses does
-        not make an object trusted at any score). An object without such a score gets ``inf``.
+        cases, estimated as ``(right + 1/2) / (poses + 1)`` (Jeffreys' prior, so that a handful
+        of right poses does not make an object trusted at any score). An object without such a
+        score gets ``inf``.
         With ``agreement``, each of the object's agreements is tried as a second condition;
         one is kept where it marks at least a tenth of the object's right poses more valid
         than the score alone (the least such agreement among those marking the most), so that
@@ -275,11 +276,16 @@ def _threshold(value: float | None) -> float:
 
 
 def _lowest_precise_score(scores: torch.Tensor, right: torch.Tensor, precision: float) -> float:
-    """The lowest score from which the poses are right in ``precision`` of cases (+1 wrong)."""
+    """The lowest score from which the poses are right in ``precision`` of cases.
+
+    The share of right poses is estimated by its posterior mean under Jeffreys' prior,
+    ``(right + 1/2) / (poses + 1)``, so that a few poses, all right, do not make an object
+    trusted (at 95 %, nine right poses are needed).
+    """
     order = torch.argsort(scores, descending=True, stable=True)
     s, r = scores[order], right[order].double()
     kept = torch.arange(1, len(s) + 1, dtype=torch.float64)
-    share = r.cumsum(0) / (kept + 1)
+    share = (r.cumsum(0) + 0.5) / (kept + 1)
     # only cut between different scores: equal scores are all in or all out
     ends = torch.ones(len(s), dtype=torch.bool)
     ends[:-1] = s[:-1] != s[1:]
