@@ -11,6 +11,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from poseflow.cli import main as poseflow
 from poseflow.data import ImageInstances, generate_dataset
 from poseflow.data.bop import BOPDataset
 from poseflow.data.object_folder import load_object_models
@@ -24,7 +25,6 @@ from poseflow.features import (
     save_surface_embedding,
 )
 from poseflow.features.appearance import AppearanceEncoder
-from poseflow.features.surface_training import main as surface_main
 from poseflow.features.surface_training import surface_crops, surface_loss, train_surface_embedding
 from poseflow.flows import native_bfloat16
 from poseflow.models import FunFlow6D, FunFlow6DConfig
@@ -166,7 +166,7 @@ def test_folder_round_trip_and_clear_errors(tmp_path) -> None:
     torch.testing.assert_close(back.query(x), emb.query(x))
     pts = torch.rand(5, 3) * 0.05
     torch.testing.assert_close(back.keys_of(4, pts), emb.keys_of(4, pts))
-    with pytest.raises(MissingWeightsError, match="surface_training"):
+    with pytest.raises(MissingWeightsError, match="poseflow train-surface"):
         load_surface_embedding(tmp_path / "nowhere")
     text = (folder / "config.json").read_text()
     (folder / "config.json").write_text(json.dumps({**json.loads(text), "dim": 7}))
@@ -231,8 +231,9 @@ def test_queries_are_checked_against_the_pixels_kept(dataset, tmp_path, monkeypa
 
     monkeypatch.setattr("poseflow.features.surface_training.surface_crops", recording)
     out = tmp_path / "all"
-    args = [str(dataset), "--out", str(out), "--steps", "1", "--dim", "16", "--no-init"]
-    assert surface_main([*args, "--queries", "16", "--points-per-crop", "16", "--no-progress"]) == 0
+    args = ["train-surface", str(dataset), "--out", str(out), "--steps", "1", "--dim", "16"]
+    extra = ["--queries", "16", "--points-per-crop", "16", "--no-init", "--no-progress"]
+    assert poseflow([*args, *extra]) == 0
     training = json.loads((out / "config.json").read_text())["training"]
     assert kept == [16] and (training["queries"], training["points_per_crop"]) == (16, 16)
     with pytest.raises(ValueRangeError, match="queries must be at most points_per_crop"):
@@ -300,15 +301,14 @@ def test_trained_embedding_conditions_funflow6d(dataset, tmp_path) -> None:
 
 
 def test_the_command_refuses_to_overwrite_and_bad_counts(dataset, tmp_path, capsys) -> None:
-    from poseflow.features.surface_training import main
-
     train_surface_embedding(
         dataset, tmp_path / "e", steps=1, batch_size=2, queries=8, negatives=16, dim=8,
         init=None, progress=False,
     )  # fmt: skip
-    with pytest.raises(SystemExit):
-        main([str(dataset), "--out", str(tmp_path / "e"), "--steps", "1"])
+    assert poseflow(["train-surface", str(dataset), "--out", str(tmp_path / "e")]) == 1
     assert "already holds an embedding; pass --overwrite" in capsys.readouterr().err
     with pytest.raises(SystemExit):
-        main([str(dataset), "--out", str(tmp_path / "f"), "--max-images", "-1"])
-    assert "--max-images must be 0 (all) or more" in capsys.readouterr().err
+        poseflow(
+            ["train-surface", str(dataset), "--out", str(tmp_path / "f"), "--max-images", "-1"]
+        )
+    assert "--max-images" in capsys.readouterr().err

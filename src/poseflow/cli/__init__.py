@@ -44,6 +44,7 @@ SUBCOMMANDS = (
     "calibrate",
     "synth",
     "prepare",
+    "train-surface",
     "train",
     "train-detector",
     "detect",

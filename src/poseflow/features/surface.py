@@ -60,7 +60,7 @@ __all__ = [
 #: The ``format`` tag of a surface embedding folder's ``config.json``.
 SURFACE_FORMAT = "poseflow-surface-embedding"
 _HOW_TO_MAKE = (
-    "make one with `python -m poseflow.features.surface_training TRAIN_DATASET --out DIR` "
+    "make one with `poseflow train-surface TRAIN_DATASET --out DIR` "
     "and pass appearance_encoder='surface:DIR'"
 )
 #: Relative tolerance between an object's diameter and the one its keys were trained for.

@@ -21,14 +21,13 @@ times the steps per second of float32 on one thread, the same loss and inliers, 
 trained on it scored 0.008 and 0.023 AR lower on devbench in two pairs of runs, so the default is
 float32 (``benchmarks/surface_precision.py``, ``benchmarks/LOG.md``).
 
-Run ``python -m poseflow.features.surface_training TRAIN_DATASET --out DIR`` (about 20 minutes
+Run ``poseflow train-surface TRAIN_DATASET --out DIR`` (about 20 minutes
 on one CPU thread at the default 10,000 steps: a minute for the crops of 1,600 images, 0.12 s a
 step); FunFlow6D uses the result with ``appearance_encoder="surface:DIR"``.
 """
 
 from __future__ import annotations
 
-import argparse
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -317,51 +316,3 @@ def _start_from_descriptor(model: SurfaceEmbedding, folder: str | Path) -> None:
             own[name] = torch.zeros_like(own[name])
             own[name][:, : value.shape[1]] = value
     model.query.load_state_dict(own)
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m poseflow.features.surface_training TRAIN_DATASET --out DIR``."""
-    parser = argparse.ArgumentParser(
-        prog="python -m poseflow.features.surface_training",
-        description="Train a surface embedding of a BOP dataset's objects on its images.",
-    )
-    parser.add_argument("dataset", help="BOP dataset with models/ and a split with poses")
-    parser.add_argument("--out", required=True, help="output folder (model.safetensors + config)")
-    parser.add_argument("--split", default="train")
-    parser.add_argument("--steps", type=int, default=10000)
-    parser.add_argument(
-        "--max-images", type=int, default=1600, help="images to learn from (0: all)"
-    )
-    parser.add_argument("--dim", type=int, default=32)
-    parser.add_argument("--queries", type=int, default=48, help="pixels per crop per step")
-    parser.add_argument("--points-per-crop", type=int, default=128, help="pixels kept per crop")
-    parser.add_argument("--lr", type=float, default=2e-3)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--no-init", action="store_true", help="random start of the query net")
-    parser.add_argument(
-        "--precision", default="fp32", choices=["fp32", "bf16", "auto"],
-        help="the query network's products (auto: bfloat16 where the CPU has it)",
-    )  # fmt: skip
-    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
-    parser.add_argument("--no-progress", action="store_true")
-    parser.add_argument("--overwrite", action="store_true", help="replace --out's embedding")
-    args = parser.parse_args(argv)
-    if args.max_images < 0 or args.steps < 1:
-        parser.error("--max-images must be 0 (all) or more, --steps at least 1")
-    if (Path(args.out) / "model.safetensors").exists() and not args.overwrite:
-        parser.error(f"{args.out} already holds an embedding; pass --overwrite to replace it")
-    torch.set_num_threads(max(1, args.threads))
-    out = train_surface_embedding(
-        args.dataset, args.out, steps=args.steps, split=args.split,
-        max_images=args.max_images or None,
-        dim=args.dim, queries=args.queries, points_per_crop=args.points_per_crop, lr=args.lr,
-        seed=args.seed, init=None if args.no_init else "shipped",
-        precision=args.precision,
-        progress=not args.no_progress, log=lambda line: print(line, flush=True),
-    )  # fmt: skip
-    print(f"wrote {out}/model.safetensors and config.json", flush=True)
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

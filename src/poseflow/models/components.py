@@ -102,8 +102,8 @@ def build_appearance_encoder(name: str, *, crop_size: int) -> AppearanceEncoder 
     ``"dsift"``, ``"dinov2:NAME_OR_PATH"``, ``"learned[:FOLDER]"`` or ``"surface:FOLDER"``:
     ``"learned"`` is the descriptor shipped with the package, ``"learned:FOLDER"`` one made by
     ``python -m poseflow.features.descriptor_training --out FOLDER``; ``"surface:FOLDER"`` a
-    surface embedding of the user's objects made by ``python -m
-    poseflow.features.surface_training TRAIN_DATASET --out FOLDER``.
+    surface embedding of the user's objects made by ``poseflow train-surface TRAIN_DATASET
+    --out FOLDER``.
 
     Raises:
         ValueRangeError: an unknown name, or ``"surface"`` without a folder.
@@ -124,7 +124,7 @@ def build_appearance_encoder(name: str, *, crop_size: int) -> AppearanceEncoder 
         if not weights:
             raise ValueRangeError(
                 "appearance_encoder 'surface' needs its folder: 'surface:FOLDER', made by "
-                "`python -m poseflow.features.surface_training TRAIN_DATASET --out FOLDER`"
+                "`poseflow train-surface TRAIN_DATASET --out FOLDER`"
             )
         return SurfaceEmbeddingEncoder(weights, input_size=crop_size)
     return None
