@@ -187,6 +187,25 @@ def test_a_turn_that_keeps_the_silhouette_shows_in_the_axes(box):
     assert red[:, 160:].sum() > red[:, :160].sum()  # x points right, turned left
 
 
+def test_a_turn_of_a_labelled_object_shows_where_the_label_is(box):
+    """A box printed dark on its right half: turned 180 degrees about the view axis, the same
+    silhouette, but the print moves to the left half, and the picture shows it."""
+    printed = o3d.geometry.TriangleMesh(box).subdivide_midpoint(number_of_iterations=4)
+    x = np.asarray(printed.vertices)[:, 0]
+    printed.vertex_colors = o3d.utility.Vector3dVector(
+        np.where(x[:, None] > 0.02, 0.1, 0.9).repeat(3, axis=1)
+    )
+    turned = _big_pose().clone()
+    turned[0, :3, :3] = torch.diag(torch.tensor([-1.0, -1.0, 1.0]))
+    pics = [overlay_poses(_grey(), BIG_K, [printed], T, legend=False, axes=False)
+            for T in (_big_pose(), turned)]  # fmt: skip
+    # the front face spans columns 127-193; the print x > 2 cm, columns 173-193 (or mirrored)
+    lum = [p[100:140].float().mean(-1) for p in pics]
+    left, right = slice(130, 144), slice(176, 190)
+    assert float(lum[0][:, right].mean()) < float(lum[0][:, left].mean()) - 20  # print right
+    assert float(lum[1][:, left].mean()) < float(lum[1][:, right].mean()) - 20  # turned: left
+
+
 def test_the_legend_never_disappears(box):
     name = "FunFlow6D (a/very/long/path/to/a/model/folder/that/fills/the/picture/model)"
     small_k = torch.tensor([[200.0, 0, 80], [0, 200.0, 60], [0, 0, 1]])

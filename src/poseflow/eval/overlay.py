@@ -367,17 +367,21 @@ def _tint_estimates(
     drawn = [i for i in range(len(est.colours)) if bool(torch.isfinite(est.poses[i]).all())]
     if not drawn:
         return out, edges, covered
-    r = renderer.render(
-        est.poses[drawn], K, W, H, object_ids=[est.ids[i] for i in drawn], rgb=False
-    )
-    # Headlight shading from the camera-facing normals: |n_z| is 1 facing the camera.
+    r = renderer.render(est.poses[drawn], K, W, H, object_ids=[est.ids[i] for i in drawn])
+    # Headlight shading from the camera-facing normals: |n_z| is 1 facing the camera. The
+    # model's own brightness, relative to its mean over the estimate, modulates the tint, so
+    # that a print or label shows where the estimate puts it (a turn keeping the silhouette
+    # shows); a model of one colour keeps the estimate's colour.
     shade = (0.35 + 0.65 * r.normals[..., 2].abs()).clamp(0, 1)[..., None]
+    own = r.rgb.float() @ torch.tensor([0.299, 0.587, 0.114])  # (H, W) luminance
     dashes = _dashes(H, W)
     for i, visible in zip(drawn, r.masks_visible):
         c = torch.tensor(est.colours[i], dtype=torch.float32)
         covered[i] = visible
         if est.valid[i]:
-            tint = (1 - alpha) * grey + alpha * c * shade
+            mean = own[visible].mean().clamp_min(1.0) if bool(visible.any()) else 1.0
+            detail = (own / mean).clamp(0.25, 1.75)[..., None]
+            tint = ((1 - alpha) * grey + alpha * c * shade * detail).clamp(0, 255)
             out = torch.where(visible[..., None], tint, out)
             edges.append((_outline(visible, width), est.colours[i]))
         else:
