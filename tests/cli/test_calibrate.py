@@ -6,7 +6,6 @@ import json
 import math
 import shutil
 
-import open3d as o3d
 import pytest
 
 from poseflow.assets import DEMO_CHECKPOINT
@@ -16,22 +15,13 @@ from poseflow.data.synthetic import generate_dataset
 from poseflow.eval.validity import ValidityRule, mesh_key, read_validity, write_validity
 
 
-@pytest.fixture(scope="module")
-def box_frame(tmp_path_factory):
-    """A generated image of one box and the paths ``estimate`` takes."""
-    box = o3d.geometry.TriangleMesh.create_box(0.1, 0.07, 0.05).translate((-0.05, -0.035, -0.025))
-    root = generate_dataset(
-        tmp_path_factory.mktemp("calib") / "ds", [box], num_train_images=0, num_test_images=1,
-        objects_per_image=1, distractors_per_image=0, width=160, height=120, progress=False,
-        seed=3,
-    )  # fmt: skip
-    scene = root / "test" / "000000"
-    return root, [
-        "estimate", "--rgb", str(scene / "rgb" / "000000.png"),
-        "--depth", str(scene / "depth" / "000000.png"), "--K", str(scene / "scene_camera.json"),
-        "--mask", str(scene / "mask_visib" / "000000_000000.png"),
-        "--mesh", str(root / "models" / "obj_000001.ply"), "--mesh-scale", "0.001",
-        "--method", "baseline", "--no-progress",
+@pytest.fixture
+def box_frame(frame):
+    """The generated box frame's dataset and the baseline's ``estimate`` command of it."""
+    return frame["root"], [
+        "estimate", "--rgb", str(frame["rgb"]), "--depth", str(frame["depth"]),
+        "--K", str(frame["camera"]), "--mask", str(frame["mask"]), "--mesh", str(frame["mesh"]),
+        "--mesh-scale", "0.001", "--method", "baseline", "--no-progress",
     ]  # fmt: skip
 
 
