@@ -77,8 +77,8 @@ def _recipe(args: argparse.Namespace, dataset: Path, work: Path) -> Path:
         "--images", str(args.train_images), "--seed", str(args.synth_seed),
         "--surface-steps", str(args.surface_steps), "--surface-images", str(args.surface_images),
         "--detector-steps", str(detector_steps), "--steps", str(args.steps),
-        "--config", str(args.config), "--train-args", args.train_args, "--no-progress",
-        *threads,
+        "--config", str(args.config), "--train-args", args.train_args, "--calibration-images",
+        str(args.calibration_images), "--no-progress", *threads,
     ])  # fmt: skip
     model = work / "model"
     if not args.distill_steps:
@@ -201,6 +201,12 @@ def main() -> None:
     parser.add_argument(
         "--detector-steps", type=int, default=4000, help="training steps of the detector"
     )
+    parser.add_argument(
+        "--calibration-images",
+        type=int,
+        default=80,
+        help="renders `valid` is calibrated on (onboard's last phase; 0: not calibrated)",
+    )
     parser.add_argument("--quick", action="store_true", help="tiny generated dataset (CI)")
     args = parser.parse_args()
     if args.oracle and not {"funflow6d", "baseline"} <= set(args.methods):
@@ -215,6 +221,7 @@ def main() -> None:
             args.distill_steps = min(args.distill_steps, 5)
             args.surface_steps = min(args.surface_steps, 5)
             args.detector_steps = min(args.detector_steps, 3)
+            args.calibration_images = min(args.calibration_images, 2)
             args.oracle = {"funflow6d", "baseline"} <= set(args.methods)  # runs it too
             work = Path(tmp) / "work"
         elif args.dataset is None:
