@@ -16,8 +16,9 @@ from poseflow.eval.validity import ValidityRule, mesh_key, read_validity, write_
 
 
 @pytest.fixture
-def box_frame(frame):
+def box_frame(box_frame_files):
     """The generated box frame's dataset and the baseline's ``estimate`` command of it."""
+    frame = box_frame_files
     return frame["root"], [
         "estimate", "--rgb", str(frame["rgb"]), "--depth", str(frame["depth"]),
         "--K", str(frame["camera"]), "--mask", str(frame["mask"]), "--mesh", str(frame["mesh"]),

@@ -14,6 +14,12 @@ from poseflow.cli import main
 from poseflow.geometry import translation_error
 
 
+@pytest.fixture
+def frame(box_frame_files):
+    """The generated box frame (``box_frame_files`` of the tests' conftest)."""
+    return box_frame_files
+
+
 def _argv(frame, out, *extra):
     return [
         "estimate", "--rgb", str(frame["rgb"]), "--depth", str(frame["depth"]),
