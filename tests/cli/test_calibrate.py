@@ -111,6 +111,9 @@ def test_calibrate_fits_every_method_and_estimate_applies_it(tmp_path, capsys):
     assert main([*argv, "--check", "--no-progress", "--threads", "1"]) == 0
     assert "(not the calibration's)" in capsys.readouterr().out
     assert (model / "validity.json").read_text() == rules
+    # ... into its own folder, leaving the calibration's files as they were
+    assert (model / "check" / "funflow6d_poses.csv").is_file()
+    assert (model / "calibration" / "funflow6d_poses.csv").read_text().splitlines() == flow
 
 
 def test_check_needs_the_rules(box_frame, tmp_path, capsys):

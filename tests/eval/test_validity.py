@@ -225,3 +225,15 @@ def test_frame_poses_write_their_agreement():
     assert "agreement" not in poses.to_json()[0]
     poses.agreement = torch.tensor([0.25], dtype=torch.float64)
     assert poses.to_json()[0]["agreement"] == 0.25
+
+
+def test_reliability_picture_without_matplotlib_names_the_extra(tmp_path, monkeypatch):
+    import sys
+
+    from poseflow.errors import MissingDependencyError
+
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # an import of it fails
+    panels = {"baseline": (torch.rand(2), torch.rand(2), torch.tensor([1, 1]), None)}
+    with pytest.raises(MissingDependencyError, match=r"poseflow\[viz\]"):
+        plot_reliability(tmp_path / "r.png", panels)
+    assert not (tmp_path / "r.png").exists()

@@ -8,7 +8,8 @@ the truth (:func:`~poseflow.eval.validity.estimate_errors`) and the agreement of
 estimator's hypotheses with it then fit a :class:`~poseflow.eval.validity.ValidityRule` (per
 object, the lowest score, and for FunFlow6D and the hybrid the least agreement, from which
 ``--precision`` of the poses were right), stored in ``MODEL/validity.json`` and drawn in
-``WORK/validity.png`` (score against error). ``poseflow onboard`` runs it on renders of the
+``WORK/validity.png`` (score against error; with matplotlib, the ``viz`` extra).
+``poseflow onboard`` runs it on renders of the
 user's objects that no training saw; calibrating on test images would make the figures on them
 meaningless. ``--check`` measures instead how well the stored rules hold on DATASET.
 """
@@ -75,7 +76,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--work",
         default=None,
-        help="folder of the predictions and the picture (default: MODEL_DIR/calibration)",
+        help="folder of the predictions and the picture (default: MODEL_DIR/calibration, "
+        "with --check MODEL_DIR/check)",
     )
 
 
@@ -84,7 +86,7 @@ def run(args: argparse.Namespace) -> int:
     from poseflow.cli.common import LOG, check_writable, show_progress
     from poseflow.data.bop import BOPDataset
     from poseflow.data.object_folder import check_dataset, load_object_models
-    from poseflow.errors import MissingFileError, UsageError
+    from poseflow.errors import MissingDependencyError, MissingFileError, UsageError
     from poseflow.eval.results import write_results
     from poseflow.eval.validity import (
         VALIDITY_FILE,
@@ -104,7 +106,9 @@ def run(args: argparse.Namespace) -> int:
     model = Path(args.model)
     if not (model / "config.json").is_file():
         raise UsageError(f"{model} is not a model folder (no config.json)")
-    work = check_writable(args.work or model / "calibration", folder=True)
+    work = check_writable(
+        args.work or model / ("check" if args.check else "calibration"), folder=True
+    )
     ds = BOPDataset(args.dataset, args.split, load_rgb=False, load_masks=False)
     objects = load_object_models(args.dataset, progress=show_progress(args))
     keys = {o: mesh_key(m) for o, m in objects.items()}
@@ -129,11 +133,14 @@ def run(args: argparse.Namespace) -> int:
         figures[method] = validity_report(valid, errors, res.obj_ids, tolerance=rule.tolerance)
         print(_summary(method, rule, figures[method], checked=args.check))
         panels[method] = (res.scores, errors, res.obj_ids, rule)
-    picture = plot_reliability(work / "validity.png", panels)
     (work / "validity_report.json").write_text(json.dumps(figures, indent=1))
     done = "checked" if args.check else "written to"
-    print(f"rules {done} {model / VALIDITY_FILE}; picture {picture}")
-    LOG.info("per-object figures in %s", work / "validity_report.json")
+    print(f"rules {done} {model / VALIDITY_FILE}; per-object figures in {work}")
+    try:
+        plot_reliability(work / "validity.png", panels)
+    except MissingDependencyError:
+        LOG.info("note: validity.png skipped: the picture needs matplotlib (pip install "
+                 "'poseflow[viz]')")  # fmt: skip
     return 0
 
 

@@ -31,7 +31,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
-from poseflow.errors import CheckpointError, ValueRangeError
+from poseflow.errors import CheckpointError, MissingDependencyError, ValueRangeError
 
 if TYPE_CHECKING:
     from poseflow.eval.frame import FramePoses
@@ -61,8 +61,8 @@ class ValidityRule:
         tolerance: a pose is right when its MSSD is below this fraction of the diameter.
         precision: the share of right poses among the valid ones it was fitted to reach.
         thresholds: ``{obj_id: score}``; ``inf`` where no score reached ``precision``.
-        mesh_keys: ``{obj_id: content key}`` of the meshes it was fitted on
-            (:meth:`~poseflow.data.ObjectModel.content_key`; empty: not recorded).
+        mesh_keys: ``{obj_id: key}`` of the meshes it was fitted on (:func:`mesh_key`; empty:
+            not recorded).
         counts: ``{obj_id: (poses, right)}`` of the calibration.
         agreements: ``{obj_id: share}``: a pose is valid only where at least this share of
             the estimator's hypotheses agree with it (:class:`~poseflow.eval.PoseEstimate`'s
@@ -110,7 +110,7 @@ class ValidityRule:
             obj_ids: ``(E,)`` their objects.
             precision: the share of right poses to reach, in ``(0, 1)``.
             tolerance: the MSSD fraction below which a pose is right, ``> 0``.
-            mesh_keys: the objects' mesh content keys, recorded with the rule.
+            mesh_keys: the objects' :func:`mesh_key`, recorded with the rule.
             agreement: ``(E,)`` the share of the estimator's hypotheses agreeing with each
                 pose; None: the score alone decides.
 
@@ -172,7 +172,7 @@ class ValidityRule:
         Args:
             scores: ``(E,)`` the poses' scores.
             obj_ids: ``(E,)`` their objects.
-            mesh_keys: ``{obj_id: content key}`` of the meshes the poses are of; an object
+            mesh_keys: ``{obj_id: mesh_key}`` of the meshes the poses are of; an object
                 whose mesh differs from the calibration's is not valid (the rule does not know
                 it). None: not checked.
             agreement: ``(E,)`` the poses' agreements, for objects with an agreement
@@ -318,14 +318,11 @@ def apply_validity(
         )
     valid, notes = rule.decide(poses.scores, poses.obj_ids, mesh_keys, poses.agreement)
     keep = poses.valid & valid
-    merged = [
-        old or (new if not k else "")
-        for old, new, k in zip(_padded(poses.notes, len(poses)), notes, keep.tolist())
-    ]
+    merged = [old or new for old, new in zip(_padded(poses.notes, len(poses)), notes)]
     meaning = (
         f"the pose is within MSSD < {rule.tolerance:g} diameter with a precision of "
-        f"{rule.precision:.0%} on the calibration renders (its score at least its object's "
-        "threshold in validity.json)"
+        f"{rule.precision:.0%} on the calibration renders (its score, and where its object "
+        "needs one its agreement, at least its object's thresholds in validity.json)"
     )
     return replace(poses, valid=keep, notes=merged), meaning
 
@@ -377,17 +374,22 @@ def estimate_errors(
     poses = res.poses.to(torch.float64)
     gts: dict[tuple[int, int], list[Any]] = {}
     for obj, idx in rows.items():
-        m = models[obj]
+        # every (estimate, instance of its object in its image) pair, in one call per object
+        pairs, truth = [], []
         for e in idx:
             key = (int(res.scene_ids[e]), int(res.im_ids[e]))
             if key not in gts:
                 gts[key] = ds.scene(key[0]).gt_of(key[1])
-            truth = [g.pose for g in gts[key] if g.obj_id == obj]
-            if not truth:
-                continue
-            T_gt = torch.from_numpy(np.stack(truth)).to(torch.float64)
-            T_est = poses[e].expand(len(truth), 4, 4)
-            errors[e] = float((mssd(T_est, T_gt, m.vertices, m.symmetries) / m.diameter).min())
+            for g in gts[key]:
+                if g.obj_id == obj:
+                    pairs.append(e)
+                    truth.append(g.pose)
+        if not pairs:
+            continue
+        m, at = models[obj], torch.tensor(pairs)
+        T_gt = torch.from_numpy(np.stack(truth)).to(torch.float64)
+        err = mssd(poses[at], T_gt, m.vertices, m.symmetries) / m.diameter
+        errors.scatter_reduce_(0, at, err, reduce="amin")
     return errors
 
 
@@ -476,20 +478,23 @@ def _read(path: Path) -> dict[str, Any]:
 def plot_reliability(
     path: str | os.PathLike[str],
     panels: Mapping[str, tuple[torch.Tensor, torch.Tensor, torch.Tensor, ValidityRule | None]],
-    *,
-    names: Mapping[int, str] | None = None,
 ) -> Path:
     """Score against MSSD error, one panel per estimator, each object's threshold drawn.
 
     Args:
         path: the PNG to write.
         panels: ``{title: (scores (E,), errors (E,), obj_ids (E,), rule or None)}``.
-        names: ``{obj_id: name}`` for the legend.
 
     Returns:
         The written path.
+
+    Raises:
+        MissingDependencyError: matplotlib (the ``viz`` extra) is not installed.
     """
-    import matplotlib
+    try:
+        import matplotlib
+    except ImportError as exc:
+        raise MissingDependencyError("matplotlib", "viz", "reliability plots") from exc
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -502,8 +507,7 @@ def plot_reliability(
         s = torch.as_tensor(scores).reshape(-1)
         for k, obj in enumerate(torch.unique(o).tolist()):
             rows = o == obj
-            label = (names or {}).get(obj, f"obj {obj}")
-            ax.scatter(s[rows], e[rows], s=12, color=colours(k % 10), label=label, alpha=0.8)
+            ax.scatter(s[rows], e[rows], s=12, color=colours(k % 10), label=f"obj {obj}", alpha=0.8)
             t = None if rule is None else rule.thresholds.get(obj)
             if t is not None and math.isfinite(t):
                 ax.axvline(t, color=colours(k % 10), linestyle=":", linewidth=1)

@@ -196,11 +196,10 @@ class FunFlow6D(nn.Module, SeededEstimator):
         :meth:`Proposals.agreement <poseflow.models.verification.Proposals.agreement>` with
         the prepared objects' query clouds and diameters.
         """
-        ids = [int(o) for o in torch.as_tensor(obj_ids).reshape(-1).tolist()]
-        objects = [self.objects[o] for o in ids]
-        return proposals.agreement(
-            poses, [o.points for o in objects], [o.diameter for o in objects]
-        )
+        objects = [self.objects[int(o)] for o in torch.as_tensor(obj_ids).reshape(-1).tolist()]
+        points = torch.stack([o.points for o in objects]).to(poses.device)  # (B, N, 3)
+        diameters = torch.tensor([o.diameter for o in objects], device=poses.device)
+        return proposals.agreement(poses, points, diameters)
 
     @torch.no_grad()
     def propose(

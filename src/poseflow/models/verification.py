@@ -84,8 +84,8 @@ class Proposals:
     def agreement(
         self,
         poses: torch.Tensor,
-        points: list[torch.Tensor],
-        diameters: list[float],
+        points: torch.Tensor,
+        diameters: torch.Tensor,
         *,
         tolerance: float = AGREEMENT_TOLERANCE,
     ) -> torch.Tensor:
@@ -100,8 +100,8 @@ class Proposals:
 
         Args:
             poses: the instances' final poses ``(B, 4, 4)``.
-            points: each instance's object surface points ``(N_b, 3)``, canonical frame.
-            diameters: each instance's object diameter.
+            points: each instance's object surface points ``(B, N, 3)``, canonical frame.
+            diameters: each instance's object diameter ``(B,)``.
             tolerance: the fraction of the diameter.
 
         Returns:
@@ -112,20 +112,18 @@ class Proposals:
             >>> est = PoseEstimate(torch.eye(4)[None], torch.ones(1), torch.ones(1).bool())
             >>> p = Proposals(est, torch.stack([torch.eye(4), turned])[None],
             ...               torch.ones(1, 2, dtype=torch.bool))
-            >>> box = torch.tensor([[0.05, 0.02, 0.0], [-0.05, -0.02, 0.0]])
-            >>> round(p.agreement(torch.eye(4)[None], [box], [0.1]).item(), 4)  # 2 of 3 agree
-            0.6667
+            >>> box = torch.tensor([[[0.05, 0.02, 0.0], [-0.05, -0.02, 0.0]]])
+            >>> p.agreement(torch.eye(4)[None], box, torch.tensor([0.1])).mul(3).tolist()
+            [2.0]
         """
         hyps = torch.cat((self.estimate.poses[:, None], self.others), 1).to(poses.dtype)
         mask = torch.cat((self.estimate.valid[:, None], self.others_mask), 1)
-        out = torch.zeros(len(poses), dtype=poses.dtype, device=poses.device)
-        for b, (pts, diameter) in enumerate(zip(points, diameters)):
-            p = pts[:: max(1, len(pts) // 256)].to(poses)  # (N', 3), at most ~256 points
-            moved = p @ hyps[b, :, :3, :3].transpose(-1, -2) + hyps[b, :, None, :3, 3]
-            final = p @ poses[b, :3, :3].T + poses[b, :3, 3]
-            near = (moved - final).norm(dim=-1).amax(-1) < tolerance * diameter
-            out[b] = (near & mask[b]).sum() / mask[b].sum().clamp_min(1)
-        return out
+        p = points.to(poses)[:, None]  # (B, 1, N, 3)
+        moved = p @ hyps[..., :3, :3].transpose(-1, -2) + hyps[..., None, :3, 3]  # (B, H, N, 3)
+        final = p @ poses[:, None, :3, :3].transpose(-1, -2) + poses[:, None, None, :3, 3]
+        reach = (moved - final).norm(dim=-1).amax(-1)  # (B, H)
+        near = (reach < tolerance * diameters.to(poses)[:, None]) & mask
+        return near.sum(1).to(poses.dtype) / mask.sum(1).clamp_min(1).to(poses.dtype)
 
     def with_rival(self, other: PoseEstimate) -> Proposals:
         """These ``B`` instances followed by the same ``B`` instances proposed by ``other``.
